@@ -1,0 +1,194 @@
+"""Closed forms of Shi, Xie & Murray 2009 for a receive buffer of length D.
+
+* γ̂_i(D) = F(min(i, D_max))  with D_max the largest kept delay (eq. 4; D_max = D − 1 under
+  ``delay_lt_D``, D under ``delay_le_D``) — Pr[γ_{k−i} = 1].
+* θ(k, D) = ∏_{j=0}^{k−1} (1 − γ̂_j(D))  = Pr[N_k ≥ k]                        (eqs 8–9)
+* k₁(M) = min{t ≥ 1 : hᵗ(M̄) ≰ M},  k₂(M) = min{t ≥ 1 : hᵗ(P̄) ≰ M}          (eqs 5–6)
+* 1 − θ(k₁, D) ≤ Pr[P_k ≤ M] ≤ 1 − θ(k₂, D)                                  (Thm 3.8, eq. 10)
+* smart sensor: Pr[P_k ≤ M] = 1 − θ(k₂, D)                                     (Thm 4.1, eq. 11)
+* minimum buffers D_s, D_n (Sec. 3.4) and D* (Sec. 4) by binary search (Remark 3.9).
+
+``k = math.inf`` means hᵗ(·) ≤ M for every t (possible for stable A); then θ(∞, D) is the
+probability that no packet ever arrives, 0 whenever F(D_max) > 0.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from netkf_cli import riccati
+from netkf_cli.channels.delay import Convention, max_kept_delay
+from netkf_cli.errors import TheoremConditionError
+from netkf_cli.system import LinearSystem
+
+K_MAX = 100_000  # iterations of h before declaring hᵗ(X) ≤ M for all t
+
+Cdf = Callable[[np.ndarray], np.ndarray]
+
+
+def as_matrix_bound(M, n: int) -> np.ndarray:
+    """A scalar M means M·Iₙ (Fig. 9: "M means M × I₄"); a matrix is taken as is."""
+    M = np.asarray(M, dtype=float)
+    if M.ndim == 0:
+        return float(M) * np.eye(n)
+    return np.atleast_2d(M)
+
+
+def gamma_hat(cdf: Cdf, i: np.ndarray | int, D: int, convention: Convention) -> np.ndarray:
+    """γ̂_i(D) = Pr[y_{k−i} received and kept by time k] (eq. 4 under the chosen convention)."""
+    i = np.asarray(i)
+    return np.asarray(cdf(np.minimum(i, max_kept_delay(D, convention))), dtype=float)
+
+
+def theta(k: float, D: int, cdf: Cdf, convention: Convention) -> float:
+    """θ(k, D) = ∏_{j=0}^{k−1} (1 − γ̂_j(D)) (eq. 8): probability of k consecutive misses."""
+    if D < 1:
+        raise ValueError(f"buffer length D must be ≥ 1, got {D}")
+    if k <= 0:
+        return 1.0
+    Dmax = max_kept_delay(D, convention)
+    if math.isinf(k):
+        # factors are constant (1 − F(D_max)) for j ≥ D_max: the infinite product is 0 unless F(D_max) = 0
+        return 0.0 if float(cdf(np.asarray(Dmax))) > 0 else float(np.prod(1 - gamma_hat(cdf, np.arange(max(Dmax, 0) + 1), D, convention)))
+    j = np.arange(int(k))
+    factors = 1.0 - gamma_hat(cdf, j, D, convention)
+    return float(np.prod(factors))
+
+
+def saturation_D(k: float, convention: Convention) -> int:
+    """The D beyond which θ(k, D) no longer changes: k − 1 (``delay_le_D``) or k (``delay_lt_D``)."""
+    if math.isinf(k):
+        return 1
+    return max(1, int(k) - 1) if convention == "delay_le_D" else max(1, int(k))
+
+
+def theta_floor(k: float, cdf: Cdf, convention: Convention) -> float:
+    """lim_{D→∞} θ(k, D): the smallest ε any buffer can guarantee (Sec. 3.4)."""
+    return theta(k, saturation_D(k, convention), cdf, convention)
+
+
+def first_exceedance(X0: np.ndarray, M: np.ndarray, s: LinearSystem, k_max: int = K_MAX) -> float:
+    """min{t ≥ 1 : hᵗ(X0) ≰ M}, or ``math.inf`` when hᵗ(X0) ≤ M for all t (eqs 5–6)."""
+    X = X0
+    for t in range(1, k_max + 1):
+        Xn = riccati.h(X, s)
+        if not bool(riccati.psd_leq(Xn, M)):
+            return float(t)
+        if np.allclose(Xn, X, rtol=1e-13, atol=1e-15):
+            return math.inf  # converged (stable A) without exceeding M
+        X = Xn
+    return math.inf
+
+
+def k1(M, s: LinearSystem, path: str = "M") -> float:
+    """k₁(M) = min{t ≥ 1 : hᵗ(M̄) ≰ M} (eq. 5). Requires M ≥ M̄ (Thm 3.8)."""
+    Mm = as_matrix_bound(M, s.n)
+    Mbar = riccati.mbar(s)
+    require_at_least(Mm, Mbar, "M̄", "Thm 3.8 needs M ≥ M̄", path)
+    return first_exceedance(Mbar, Mm, s)
+
+
+def k2(M, s: LinearSystem, path: str = "M") -> float:
+    """k₂(M) = min{t ≥ 1 : hᵗ(P̄) ≰ M} (eq. 6). Requires M ≥ P̄ (Thm 4.1)."""
+    Mm = as_matrix_bound(M, s.n)
+    Pbar = riccati.pbar(s)
+    require_at_least(Mm, Pbar, "P̄", "Thm 4.1 needs M ≥ P̄", path)
+    return first_exceedance(Pbar, Mm, s)
+
+
+def _fmt(X: np.ndarray) -> str:
+    if X.size == 1:
+        return f"{float(X.ravel()[0]):.6g}"
+    return "[" + "; ".join(" ".join(f"{v:.4g}" for v in row) for row in X) + "]"
+
+
+def require_at_least(M: np.ndarray, lower: np.ndarray, name: str, why: str, path: str) -> None:
+    if not bool(riccati.psd_leq(lower, M)):
+        raise TheoremConditionError.at(
+            path, f"must satisfy M ≥ {name} = {_fmt(lower)} ({why}), got M = {_fmt(M)}"
+        )
+
+
+def bounds(M, D: int, s: LinearSystem, cdf: Cdf, convention: Convention, path: str = "M") -> tuple[float, float]:
+    """(1 − θ(k₁, D), 1 − θ(k₂, D)): lower and upper bounds on Pr[P_k ≤ M] (Thm 3.8)."""
+    return 1 - theta(k1(M, s, path), D, cdf, convention), 1 - theta(k2(M, s, path), D, cdf, convention)
+
+
+def smart_sensor_probability(M, D: int, s: LinearSystem, cdf: Cdf, convention: Convention, path: str = "M") -> float:
+    """Pr[P_k ≤ M] = 1 − θ(k₂, D) for a sensor that sends its own estimate (Thm 4.1, eq. 11)."""
+    return 1 - theta(k2(M, s, path), D, cdf, convention)
+
+
+def min_buffer(k: float, eps: float, cdf: Cdf, convention: Convention, D_max: int | None = None) -> int | None:
+    """min{D ≥ 1 : θ(k, D) ≤ ε} by binary search (Remark 3.9); ``None`` when no D achieves it.
+
+    θ(k, ·) is non-increasing and constant beyond :func:`saturation_D`, so the search runs
+    over [1, saturation_D(k)]. With ``D_max`` the answer is also ``None`` if it exceeds D_max.
+    """
+    hi = saturation_D(k, convention)
+    if theta(k, hi, cdf, convention) > eps:
+        return None
+    lo = 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if theta(k, mid, cdf, convention) <= eps:
+            hi = mid
+        else:
+            lo = mid + 1
+    if D_max is not None and lo > D_max:
+        return None
+    return lo
+
+
+@dataclass(frozen=True)
+class BufferSizing:
+    """Everything ``netkf mind`` reports (Sec. 3.4 and Sec. 4)."""
+
+    M: float | list
+    eps: float
+    sensor: str
+    convention: Convention
+    mbar: np.ndarray
+    pbar: np.ndarray
+    k1: float | None
+    k2: float
+    theta_floor_1: float | None
+    theta_floor_2: float
+    D_s: int | None
+    D_n: int | None
+    D_star: int | None
+
+    @property
+    def feasible(self) -> bool:
+        return (self.D_star if self.sensor == "smart" else self.D_s) is not None
+
+
+def size_buffer(M, eps: float, s: LinearSystem, cdf: Cdf, convention: Convention, sensor: str = "raw",
+                D_max: int | None = None, path: str = "M") -> BufferSizing:
+    """Minimum buffer lengths for Pr[P_k ≤ M] ≥ 1 − ε: D_s, D_n (raw, Sec. 3.4) or D* (smart, Sec. 4)."""
+    Pb = riccati.pbar(s)
+    if sensor == "raw":
+        Mb = riccati.mbar(s)
+        kk1 = k1(M, s, path)  # checks M ≥ M̄ first: the condition Thm 3.8 states
+        kk2 = k2(M, s, path)
+        D_s = min_buffer(kk1, eps, cdf, convention, D_max)
+        D_n = min_buffer(kk2, eps, cdf, convention, D_max)
+        return BufferSizing(M, eps, sensor, convention, Mb, Pb, kk1, kk2, theta_floor(kk1, cdf, convention),
+                            theta_floor(kk2, cdf, convention), D_s, D_n, None)
+    kk2 = k2(M, s, path)
+    D_star = min_buffer(kk2, eps, cdf, convention, D_max)
+    Mb = riccati.mbar(s) if _has_mbar(s) else np.full_like(Pb, np.nan)
+    return BufferSizing(M, eps, sensor, convention, Mb, Pb, None, kk2, None, theta_floor(kk2, cdf, convention),
+                        None, None, D_star)
+
+
+def _has_mbar(s: LinearSystem) -> bool:
+    try:
+        riccati.mbar(s)
+        return True
+    except Exception:
+        return False

@@ -1,0 +1,567 @@
+"""Closed forms and exact computations for Leong, Dey & Evans 2008 ("On Kalman smoothing with
+random packet loss", IEEE TSP 56(8)), plus the exact quantities the paper only bounds.
+
+Paper quantities
+* M̄ = A C⁻¹ R C⁻ᵀ Aᵀ + Q (C invertible, Sec. IV) — the prediction covariance right after an
+  arrival from an infinitely uncertain prior, i.e. g(∞).
+* k₁ = min{k ∈ ℤ⁺ : hᵏ(M̄) ≰ M}, h(X) = A X Aᵀ + Q (Sec. IV).
+* λ ≥ 1 − ε^{1/k₁} suffices for P(P_{k|k−1} ≤ M) > 1 − ε (eq. 7, from Shi et al. 2005 Cor. 4);
+  λ ≥ 1 − ε^{1/(k₁+N+1)} for P(P_{k|k+N} ≤ M) > 1 − ε (eq. 8; N = 0 is the filter P_{k|k}).
+* f(n), g(n) of the random retransmission scheme (eqs 10–11) and g(n) = 1.
+* λ_c = 1 − 1/ρ(A)² for the critical arrival rate (Lemma 1; exact when C is invertible).
+
+Beyond the paper (exact values, so that the guarantees' slack is visible)
+* :func:`exact_probability` — the stationary P(P_{k|k+N} ≤ M) for i.i.d. or Markov (Gilbert)
+  loss, by enumeration of the recent arrival pattern (a backward tree, see below), returned as
+  a certified interval [lower, upper] whose width is reported.
+* :func:`exact_mean` — the stationary E[P_{k|k−1}], E[P_{k|k+N}] for i.i.d. loss (exact
+  decomposition over the last arrival + enumeration of a bounded function).
+* :func:`batch_posterior_covariance` — Cov(x_k | all received y_t, t ≤ j) by brute-force
+  Gaussian conditioning of the joint law of (x_0 … x_T, y_0 … y_T): the reference for eqs 3–4.
+
+How the enumeration works. Conditioned on x_k, the measurements y_k … y_{k+N} are independent
+of the past, so P_{k|k+N} = (P_{k|k−1}⁻¹ + J(f))⁻¹ where J(f) is the Fisher information on x_k
+of the *received* future measurements (future pattern f = γ_k … γ_{k+N}). P_{k|k−1} is the
+image of P_{k−j|k−j−1} under the j Riccati maps of the suffix s = γ_{k−j} … γ_{k−1}; in
+stationarity (started at P*) P_{k−j|k−j−1} ∈ [P*, ∞) and every map is monotone, so
+P_{k|k−1} ∈ [Φ_s(P*), Φ_s(∞)] (the upper end computed in information form, which needs A
+invertible). A suffix is *resolved* for pattern f when both ends agree on "P_{k|k+N} ≤ M";
+otherwise it is extended one step further into the past. The probability of unresolved
+suffixes dropped at the cut-off (``tol`` per node, ``max_depth``) is the reported interval
+width, so the result is a rigorous bracket, not an approximation of unknown quality.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from fractions import Fraction
+
+import numpy as np
+import scipy.linalg
+
+from netkf_cli import riccati
+from netkf_cli.errors import ConfigError, TheoremConditionError
+from netkf_cli.system import LinearSystem
+
+K_MAX = 100_000
+PSD_TOL = 1e-10
+
+
+# --------------------------------------------------------------------------------------------
+# M̄, k₁, arrival rates (Sec. IV, eqs 7–8)
+# --------------------------------------------------------------------------------------------
+
+
+def as_bound(M, n: int, path: str = "analysis.M") -> np.ndarray:
+    """A scalar M means M·Iₙ; a matrix must be n×n, symmetric positive definite."""
+    Ma = np.asarray(M, dtype=float)
+    Ma = float(Ma) * np.eye(n) if Ma.ndim == 0 else np.atleast_2d(Ma)
+    if Ma.shape != (n, n):
+        raise ConfigError.at(path, f"must be a scalar or an {n}×{n} matrix, got shape {Ma.shape}")
+    if not np.allclose(Ma, Ma.T) or np.linalg.eigvalsh(riccati.sym(Ma)).min() <= 0:
+        raise ConfigError.at(path, "must be symmetric positive definite (a covariance bound)")
+    return riccati.sym(Ma)
+
+
+def leong_mbar(s: LinearSystem, path: str = "system.C") -> np.ndarray:
+    """M̄ = A C⁻¹ R C⁻ᵀ Aᵀ + Q for C invertible (Sec. IV, Leong 2008).
+
+    Any prediction covariance one step after an arrival satisfies P_{k+1|k} ≤ M̄ (g(X) ≤ g(∞) = M̄).
+    For non-invertible C the paper defers to Epstein et al. [17]; not implemented here.
+    """
+    if s.m != s.n or np.linalg.matrix_rank(s.C) < s.n:
+        raise ConfigError.at(
+            path,
+            f"Leong's M̄ = A C⁻¹ R C⁻ᵀ Aᵀ + Q needs C square and invertible, got C of shape {s.m}×{s.n} "
+            f"(rank {np.linalg.matrix_rank(s.C)}); the non-invertible case (Epstein et al. 2008) is not implemented",
+        )
+    CiR = np.linalg.solve(s.C, s.R)
+    CiRCit = np.linalg.solve(s.C, CiR.T).T
+    return riccati.sym(s.A @ CiRCit @ s.A.T + s.Q)
+
+
+def k1(s: LinearSystem, M, Mbar: np.ndarray | None = None, k_max: int = K_MAX) -> float:
+    """k₁ = min{k ≥ 1 : hᵏ(M̄) ≰ M} (Sec. IV); ``math.inf`` if hᵏ(M̄) ≤ M for every k ≤ k_max."""
+    Mm = as_bound(M, s.n)
+    X = leong_mbar(s) if Mbar is None else Mbar
+    if not bool(riccati.psd_leq(X, Mm)):
+        raise TheoremConditionError.at(
+            "analysis.M", f"must satisfy M ≥ M̄ = {np.array2string(X, precision=4)} for the guarantee of eq. (7) to make sense"
+        )
+    for k in range(1, k_max + 1):
+        X = riccati.h(X, s)
+        if not bool(riccati.psd_leq(X, Mm)):
+            return float(k)
+        if not np.all(np.isfinite(X)):
+            return float(k)
+    return math.inf
+
+
+def sufficient_arrival_rate(k1_value: float, eps: float, lag: int | None) -> float:
+    """λ ≥ 1 − ε^{1/k₁} (eq. 7, ``lag=None``: P_{k|k−1}) or 1 − ε^{1/(k₁+N+1)} (eq. 8, lag N ≥ 0)."""
+    if not 0 < eps < 1:
+        raise ConfigError.at("analysis.eps", f"must be in (0, 1), got {eps}")
+    k = k1_value if lag is None else k1_value + lag + 1
+    if math.isinf(k):
+        return 0.0
+    return 1.0 - eps ** (1.0 / k)
+
+
+def critical_rate(s: LinearSystem) -> float:
+    """λ_c = 1 − 1/ρ(A)² (Sinopoli et al. 2004; exact when C is invertible). 0 for stable A."""
+    rho = float(np.max(np.abs(np.linalg.eigvals(s.A))))
+    return max(0.0, 1.0 - 1.0 / rho**2) if rho > 0 else 0.0
+
+
+def second_moment_rate(s: LinearSystem) -> float:
+    """1 − 1/ρ(A)⁴: below this arrival rate E[P²] = ∞ for C invertible (the k-step loss run has
+    probability (1−λ)ᵏ and P grows like ρ^{2k}), so a Monte Carlo mean has no finite standard error."""
+    rho = float(np.max(np.abs(np.linalg.eigvals(s.A))))
+    return max(0.0, 1.0 - 1.0 / rho**4) if rho > 0 else 0.0
+
+
+# --------------------------------------------------------------------------------------------
+# Information of future measurements, batch conditioning
+# --------------------------------------------------------------------------------------------
+
+
+def future_information(s: LinearSystem, pattern) -> np.ndarray:
+    """J(f): Fisher information on x_k of the received y_{k+i} (f_i = 1), i = 0 … len(f)−1.
+
+    y_{k+i} = C Aⁱ x_k + η_i, η_i = C Σ_{l<i} A^{i−1−l} w_{k+l} + v_{k+i} (correlated across i):
+    J = Hᵀ Σ_η⁻¹ H with H = [C Aⁱ]_{i received}.
+    """
+    f = [int(b) for b in pattern]
+    idx = [i for i, b in enumerate(f) if b]
+    n, m = s.n, s.m
+    if not idx:
+        return np.zeros((n, n))
+    A, C, Q, R = s.A, s.C, s.Q, s.R
+    Ap = [np.eye(n)]
+    for _ in range(max(idx) + 1):
+        Ap.append(A @ Ap[-1])
+    H = np.vstack([C @ Ap[i] for i in idx])
+    # Cov(η_i, η_j) = C [Σ_{l < min(i,j)} A^{i-1-l} Q A^{j-1-l}ᵀ] Cᵀ + δ_ij R
+    blocks = np.zeros((len(idx) * m, len(idx) * m))
+    for a, i in enumerate(idx):
+        for b, j in enumerate(idx):
+            acc = np.zeros((n, n))
+            for l in range(min(i, j)):
+                acc += Ap[i - 1 - l] @ Q @ Ap[j - 1 - l].T
+            blk = C @ acc @ C.T + (R if i == j else 0.0)
+            blocks[a * m:(a + 1) * m, b * m:(b + 1) * m] = blk
+    J = H.T @ np.linalg.solve(blocks, H)
+    return riccati.sym(J)
+
+
+def smoothed_from_prior(P: np.ndarray, s: LinearSystem, pattern) -> np.ndarray:
+    """P_{k|k+N} from P_{k|k−1} = P and the future arrival pattern f (covariance form, P may be singular)."""
+    f = [int(b) for b in pattern]
+    idx = [i for i, b in enumerate(f) if b]
+    if not idx:
+        return P
+    n, m = s.n, s.m
+    Ap = [np.eye(n)]
+    for _ in range(max(idx) + 1):
+        Ap.append(s.A @ Ap[-1])
+    H = np.vstack([s.C @ Ap[i] for i in idx])
+    Sig = np.zeros((len(idx) * m, len(idx) * m))
+    for a, i in enumerate(idx):
+        for b, j in enumerate(idx):
+            acc = np.zeros((n, n))
+            for l in range(min(i, j)):
+                acc += Ap[i - 1 - l] @ s.Q @ Ap[j - 1 - l].T
+            Sig[a * m:(a + 1) * m, b * m:(b + 1) * m] = s.C @ acc @ s.C.T + (s.R if i == j else 0.0)
+    S = H @ P @ H.T + Sig
+    PH = P @ H.T
+    return riccati.sym(P - PH @ np.linalg.solve(S, PH.T))
+
+
+def batch_posterior_covariance(s: LinearSystem, gamma, k: int, upto: int, P0: np.ndarray) -> np.ndarray:
+    """Cov(x_k | y_t for all t ≤ ``upto`` with γ_t = 1), by conditioning the joint Gaussian law of
+    (x_0, …, x_T, y_0, …, y_T) — brute force, no recursion; the reference for eqs (3)–(4).
+
+    x_0 ~ N(·, P0), x_{t+1} = A x_t + w_t; ``upto = k − 1`` gives P_{k|k−1}.
+    """
+    n, m = s.n, s.m
+    T = max(k, upto) + 1
+    # Cov(x_t) and Cov(x_s, x_t) = A^{s−t} Cov(x_t) for s ≥ t
+    V = [np.asarray(P0, dtype=float)]
+    for _ in range(1, T):
+        V.append(s.A @ V[-1] @ s.A.T + s.Q)
+    big = np.zeros((n * T, n * T))
+    for t in range(T):
+        X = V[t]
+        for u in range(t, T):
+            big[u * n:(u + 1) * n, t * n:(t + 1) * n] = X
+            big[t * n:(t + 1) * n, u * n:(u + 1) * n] = X.T
+            X = s.A @ X
+    rec = [t for t in range(min(upto, T - 1) + 1) if gamma[t]]
+    Pkk = big[k * n:(k + 1) * n, k * n:(k + 1) * n]
+    if not rec:
+        return Pkk
+    H = np.zeros((m * len(rec), n * T))
+    for a, t in enumerate(rec):
+        H[a * m:(a + 1) * m, t * n:(t + 1) * n] = s.C
+    Syy = H @ big @ H.T + np.kron(np.eye(len(rec)), s.R)
+    Sxy = big[k * n:(k + 1) * n, :] @ H.T
+    return riccati.sym(Pkk - Sxy @ np.linalg.solve(Syy, Sxy.T))
+
+
+# --------------------------------------------------------------------------------------------
+# Exact stationary probability P(P_{k|k+N} ≤ M) by enumeration of the recent arrival pattern
+# --------------------------------------------------------------------------------------------
+
+
+def _require_invertible_A(s: LinearSystem) -> np.ndarray:
+    if np.linalg.matrix_rank(s.A) < s.n:
+        raise ConfigError.at("system.A", "the exact enumeration bounds P_{k|k−1} from above in information form, which needs A invertible")
+    return np.linalg.inv(s.A)
+
+
+def _cov_step(P: np.ndarray, s: LinearSystem, arrived: bool) -> np.ndarray:
+    return riccati.g(P, s) if arrived else riccati.h(P, s)
+
+
+def _info_step(Y: np.ndarray, s: LinearSystem, Ainv: np.ndarray, CRC: np.ndarray, arrived: bool) -> np.ndarray:
+    """Information-form prediction step: Y ← Z (I + Q Z)⁻¹, Z = A⁻ᵀ (Y + γ CᵀR⁻¹C) A⁻¹ (valid for singular Y)."""
+    if arrived:
+        Y = Y + CRC
+    Z = Ainv.T @ Y @ Ainv
+    out = np.linalg.solve((np.eye(s.n) + Z @ s.Q).T, Z.T).T  # Z (I + Q Z)⁻¹
+    return riccati.sym(out)
+
+
+def _psd_geq(X: np.ndarray, Y: np.ndarray, tol: float = PSD_TOL) -> bool:
+    """X ≥ Y in the PSD order (finite matrices)."""
+    D = riccati.sym(X - Y)
+    scale = max(1.0, float(np.abs(Y).max()))
+    return float(np.linalg.eigvalsh(D)[0]) >= -tol * scale
+
+
+@dataclass(frozen=True)
+class ExactProbability:
+    """A certified bracket lower ≤ P(·) ≤ upper; ``value`` is its midpoint, ``width`` = upper − lower."""
+
+    lower: float
+    upper: float
+    nodes: int
+    depth: int
+
+    @property
+    def value(self) -> float:
+        return 0.5 * (self.lower + self.upper)
+
+    @property
+    def width(self) -> float:
+        return self.upper - self.lower
+
+
+def exact_probability(
+    s: LinearSystem,
+    M,
+    lag: int | None,
+    T: np.ndarray,
+    pi: np.ndarray,
+    *,
+    tol: float = 1e-14,
+    max_depth: int = 2000,
+    max_nodes: int = 200_000,
+) -> ExactProbability:
+    """Stationary P(P_{k|k+N} ≤ M) (``lag=N``; ``lag=None`` for P_{k|k−1}), arrivals a 2-state Markov
+    chain ``T[a, b] = P(γ_{k+1}=b | γ_k=a)`` with stationary ``pi`` (Bernoulli: identical rows).
+
+    Backward enumeration over the recent arrival pattern (module docstring); returns a bracket.
+    """
+    Mm = as_bound(M, s.n)
+    Minv = np.linalg.inv(Mm)
+    Ainv = _require_invertible_A(s)
+    T = np.asarray(T, dtype=float)
+    pi = np.asarray(pi, dtype=float)
+    if np.any(pi <= 0):
+        raise ConfigError.at("channel", "the exact enumeration needs both arrivals and losses to be possible (0 < λ < 1)")
+    CRC = s.C.T @ np.linalg.solve(s.R, s.C)
+    Pst = riccati.pstar(s)
+    futures = [()] if lag is None else list(itertools.product((0, 1), repeat=lag + 1))
+    Js = [future_information(s, f) for f in futures]
+    # joint weight of each future pattern given the earliest future symbol
+    fw = []
+    for f in futures:
+        w = 1.0
+        for a, b in zip(f[:-1], f[1:]):
+            w *= T[a, b]
+        fw.append(w)
+    fw = np.array(fw)
+
+    def classify(P_lo: np.ndarray, Y_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ok_sure = np.zeros(len(futures), dtype=bool)
+        bad_sure = np.zeros(len(futures), dtype=bool)
+        for i, f in enumerate(futures):
+            if _psd_geq(Y_hi + Js[i], Minv):
+                ok_sure[i] = True
+            elif not bool(riccati.psd_leq(smoothed_from_prior(P_lo, s, f), Mm, tol=PSD_TOL)):
+                bad_sure[i] = True
+        return ok_sure, bad_sure
+
+    lower = 0.0
+    lost = 0.0
+    nodes = 0
+    # node: (suffix tuple oldest→newest, weights per future (unresolved only, else 0))
+    root_w = np.array([pi[f[0]] * fw[i] if f else 1.0 for i, f in enumerate(futures)])
+    level = [((), root_w)]
+    depth = 0
+    while level:
+        nxt = []
+        for suffix, w in level:
+            nodes += 1
+            P_lo = Pst
+            Y_hi = np.zeros((s.n, s.n))
+            for b in suffix:
+                P_lo = _cov_step(P_lo, s, bool(b))
+                Y_hi = _info_step(Y_hi, s, Ainv, CRC, bool(b))
+            ok, bad = classify(P_lo, Y_hi)
+            lower += float(w[ok].sum())
+            w = np.where(ok | bad, 0.0, w)
+            if w.sum() <= 0:
+                continue
+            if w.sum() < tol or depth >= max_depth:
+                lost += float(w.sum())
+                continue
+            for b in (0, 1):
+                if suffix:
+                    a = suffix[0]
+                    factor = np.full(len(futures), pi[b] * T[b, a] / pi[a])
+                elif futures[0]:
+                    factor = np.array([pi[b] * T[b, f[0]] / pi[f[0]] for f in futures])
+                else:
+                    factor = np.full(1, pi[b])
+                nxt.append(((b,) + suffix, w * factor))
+        if len(nxt) > max_nodes:
+            lost += float(sum(w.sum() for _, w in nxt))
+            nxt = []
+        level = nxt
+        depth += 1
+    return ExactProbability(lower=lower, upper=min(1.0, lower + lost), nodes=nodes, depth=depth)
+
+
+# --------------------------------------------------------------------------------------------
+# Exact stationary means (i.i.d. loss), Lemma 1
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ExactMean:
+    """Bracket on a stationary mean (matrices); ``inf`` entries mean E[·] is unbounded (λ ≤ λ_c)."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+
+    @property
+    def value(self) -> np.ndarray:
+        return 0.5 * (self.lower + self.upper)
+
+
+def _expect_bounded(phi, s: LinearSystem, lam: float, cap: np.ndarray, tol: float, max_depth: int):
+    """E[φ(P_{k|k−1})] under i.i.d. Bernoulli(λ) for a monotone φ with φ(P) ≤ ``cap`` (bracket).
+
+    φ is given as ``phi(P_lo, Y_hi) -> (φ(P_lo), φ(P_hi))``.
+    """
+    Ainv = _require_invertible_A(s)
+    CRC = s.C.T @ np.linalg.solve(s.R, s.C)
+    Pst = riccati.pstar(s)
+    lo_sum = np.zeros((s.n, s.n))
+    hi_sum = np.zeros((s.n, s.n))
+    level = [((), 1.0)]
+    depth = 0
+    while level:
+        nxt = []
+        for suffix, w in level:
+            P_lo = Pst
+            Y_hi = np.zeros((s.n, s.n))
+            for b in suffix:
+                P_lo = _cov_step(P_lo, s, bool(b))
+                Y_hi = _info_step(Y_hi, s, Ainv, CRC, bool(b))
+            f_lo, f_hi = phi(P_lo, Y_hi)
+            gap = float(np.trace(f_hi - f_lo)) if np.all(np.isfinite(f_hi)) else math.inf
+            if w * gap <= tol or w < 1e-300 or depth >= max_depth:
+                lo_sum += w * f_lo
+                hi_sum += w * (f_hi if np.all(np.isfinite(f_hi)) else cap)
+                continue
+            nxt.append(((1,) + suffix, w * lam))
+            nxt.append(((0,) + suffix, w * (1 - lam)))
+        level = nxt
+        depth += 1
+    return lo_sum, hi_sum
+
+
+def exact_mean(s: LinearSystem, lam: float, lag: int | None, *, tol: float = 1e-12, max_depth: int = 400) -> ExactMean:
+    """Stationary E[P_{k|k−1}] (``lag=None``) or E[P_{k|k+N}] (lag N ≥ 0) under i.i.d. loss, C invertible.
+
+    Decomposition over the last arrival (Bernoulli): with j losses since it,
+    P_{k|k−1} = hʲ(g(P')) with P' ~ the stationary law, independent of j, and hʲ affine, so
+        E[P_{k|k−1}] = V + (1−λ) W,  V = λ E[g(P)] + (1−λ) A V Aᵀ,  W = Q + (1−λ) A W Aᵀ,
+    finite iff (1−λ) ρ(A)² < 1, i.e. λ > λ_c (Lemma 1's threshold). E[g(P)] is the expectation of a
+    bounded (g ≤ M̄) monotone function, bracketed by enumeration. For the smoother,
+    P_{k|k+N} = (P⁻¹ + J(f))⁻¹ ≤ J(f)⁻¹ is bounded whenever f has an arrival, and equals P_{k|k−1}
+    when f is all losses (probability (1−λ)^{N+1}).
+    """
+    if not 0 < lam < 1:
+        raise ConfigError.at("analysis.lambdas", f"arrival rates must be in (0, 1) for the exact mean, got {lam}")
+    Mbar = leong_mbar(s)
+    CRC = s.C.T @ np.linalg.solve(s.R, s.C)
+    a2 = (1 - lam) * float(np.max(np.abs(np.linalg.eigvals(s.A)))) ** 2
+    inf = np.full((s.n, s.n), np.inf)
+
+    def pred_mean():
+        if a2 >= 1:
+            return inf, inf
+
+        def phi(P_lo, Y_hi):
+            lo = riccati.g(P_lo, s)
+            Yp = Y_hi + CRC  # PD since C invertible
+            hi = riccati.sym(s.A @ np.linalg.solve(Yp, s.A.T) + s.Q)
+            return lo, hi
+
+        Eg_lo, Eg_hi = _expect_bounded(phi, s, lam, Mbar, tol, max_depth)
+        As = math.sqrt(1 - lam) * s.A
+        W = scipy.linalg.solve_discrete_lyapunov(As, s.Q)
+        out = []
+        for Eg in (Eg_lo, Eg_hi):
+            V = scipy.linalg.solve_discrete_lyapunov(As, lam * Eg)
+            out.append(riccati.sym(V + (1 - lam) * W))
+        return out[0], out[1]
+
+    Ep_lo, Ep_hi = pred_mean()
+    if lag is None:
+        return ExactMean(Ep_lo, Ep_hi)
+    lo_total = (1 - lam) ** (lag + 1) * Ep_lo
+    hi_total = (1 - lam) ** (lag + 1) * Ep_hi
+    for f in itertools.product((0, 1), repeat=lag + 1):
+        if not any(f):
+            continue
+        pf = lam ** sum(f) * (1 - lam) ** (len(f) - sum(f))
+        J = future_information(s, f)
+        Jinv = np.linalg.inv(J)
+
+        def phi(P_lo, Y_hi, f=f, J=J):
+            lo = smoothed_from_prior(P_lo, s, f)
+            hi = riccati.sym(np.linalg.inv(Y_hi + J))
+            return lo, hi
+
+        e_lo, e_hi = _expect_bounded(phi, s, lam, Jinv, tol, max_depth)
+        lo_total = lo_total + pf * e_lo
+        hi_total = hi_total + pf * e_hi
+    return ExactMean(lo_total, hi_total)
+
+
+# --------------------------------------------------------------------------------------------
+# Retransmission (Sec. V)
+# --------------------------------------------------------------------------------------------
+
+
+def retransmission_f(n_max: int, N: int, p) -> list:
+    """f(0 … n_max) of eq. (10): total decision-probability of the ways to produce n successive 0's.
+
+    Works with floats or :class:`fractions.Fraction` (exact arithmetic).
+    """
+    one = p * 0 + 1
+    f = []
+
+    def F(i):
+        return f[i] if i >= 0 else 0 * one
+
+    for n in range(n_max + 1):
+        if n == 0:
+            f.append(one)
+            continue
+        total = 0 * one
+        for j in range(N):  # ask j times, all fail, then stop asking: p^j (1−p) f(n−j−1)
+            total += p**j * (1 - p) * F(n - j - 1)
+        total += p**N * F(n - N - 1)  # asked N times, all failed
+        f.append(total)
+    return f
+
+
+def retransmission_g(n_max: int, N: int, p) -> list:
+    """g(n) = f(n) + p f(n−1) + … + pᴺ f(n−N) (eq. 11); the paper shows g(n) = 1."""
+    f = retransmission_f(n_max, N, p)
+    return [sum((p**i * f[n - i] for i in range(N + 1) if n - i >= 0), 0 * p) for n in range(n_max + 1)]
+
+
+def enumerate_retransmission_ways(n: int, N: int, p) -> list[tuple[str, object]]:
+    """Every way the random-retransmission scheme produces "1 followed by n 0's", with its
+    decision probability (channel factors λ(1−λ)ⁿ excluded, as in the paper's n = 3, N = 2 example).
+
+    Brute force over events: the first measurement arrives after r ∈ {0 … N} retransmissions
+    (weight pʳ, occupies 1 + r positions, the r discarded slots read as 0); each later block is
+    a lost measurement retransmitted j times without success (1 + j positions), weight
+    pʲ(1 − p) if it then stops asking (j < N), pᴺ if the budget is exhausted (j = N).
+    Symbols: ``1``/``0`` original, ``R1``/``R0`` a retransmission's outcome, ``*`` "did not ask".
+    """
+    ways: list[tuple[str, object]] = []
+
+    def zeros(rem: int, prefix: str, w):
+        if rem == 0:
+            ways.append((prefix, w))
+            return
+        for j in range(0, N + 1):
+            if 1 + j > rem:
+                break
+            if j < N:
+                sym_ = "0" + "R0" * j + "*"
+                wj = p**j * (1 - p)
+            else:
+                sym_ = "0" + "R0" * N
+                wj = p**N
+            zeros(rem - 1 - j, prefix + " " + sym_, w * wj)
+
+    for r in range(0, N + 1):
+        if r > n:
+            break
+        head = "1" if r == 0 else "0" + "R0" * (r - 1) + "R1"
+        zeros(n - r, head, p**r)
+    return ways
+
+
+def simulate_retransmission(rng: np.random.Generator, runs: int, horizon: int, lam: float, N: int, p: float = 1.0) -> np.ndarray:
+    """Effective arrival pattern γ̃ (``(runs, horizon)``, bool) of the retransmission schemes of Sec. V.
+
+    One packet per slot over an i.i.d. Bernoulli(λ) channel. Not retransmitting: slot t sends
+    y_t. After a failure (of y_t or of a retransmission), with probability p (p = 1: the
+    deterministic scheme of Sec. V-A) ask for a retransmission of the same measurement, at most N
+    times; while retransmitting, the new measurements are discarded (γ̃ = 0). A successful
+    retransmission of y_t sets γ̃_t = 1 (it reaches the filter late, by at most N steps).
+    Vectorized over runs, loop over slots.
+    """
+    if not 0 <= p <= 1:
+        raise ConfigError.at("analysis.p", f"must be in [0, 1], got {p}")
+    out = np.zeros((runs, horizon), dtype=bool)
+    count = np.zeros(runs, dtype=np.int64)  # retransmissions used so far (0 = sending fresh)
+    pending = np.zeros(runs, dtype=np.int64)  # index of the measurement being retransmitted
+    retrying = np.zeros(runs, dtype=bool)
+    ar = np.arange(runs)
+    for t in range(horizon):
+        succ = rng.random(runs) < lam
+        ask = rng.random(runs) < p
+        fresh = ~retrying
+        # fresh transmissions of y_t
+        out[fresh, t] = succ[fresh]
+        start = fresh & ~succ & ask & (N > 0)
+        # retransmissions of y_pending (y_t discarded: out stays 0)
+        rr = retrying
+        won = rr & succ
+        out[ar[won], pending[won]] = True
+        cont = rr & ~succ & ask & (count < N)
+        # update state
+        new_retrying = start | cont
+        count = np.where(start, 1, np.where(cont, count + 1, 0))
+        pending = np.where(start, t, pending)
+        retrying = new_retrying
+    return out
+
+
+def g_identity_exact(n_max: int, N: int, p: Fraction) -> list[Fraction]:
+    """g(n) in exact rational arithmetic (eqs 10–11)."""
+    return retransmission_g(n_max, N, Fraction(p))

@@ -1,0 +1,119 @@
+"""Random packet delay with a receive buffer of length D (Shi, Xie & Murray 2009, Sec. 2.2–2.3).
+
+Each packet's delay d_k is i.i.d. with pmf f (eq. 3); missing mass is loss (f(∞)).
+Delays are sampled as integers; a lost packet gets :data:`LOST`.
+
+The buffer convention (which delays the estimator keeps) is a scenario field, because the
+paper is not self-consistent: Sec. 2.3 and eq. (4) discard delays ≥ D, while Example 3.10's
+printed θ values and the floors θ(k, k−1) of Sec. 3.4 follow "keep delays ≤ D"
+(evidence in ``experiments/shi2009/README.md``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal, Union
+
+import numpy as np
+from pydantic import Field, model_validator
+from scipy import stats
+
+from netkf_cli.spec import ChannelModel, NonNegFloat, PositiveInt, Probability, StrictModel
+
+LOST = np.iinfo(np.int32).max  # the delay of a packet that never arrives
+
+Convention = Literal["delay_le_D", "delay_lt_D"]
+DEFAULT_CONVENTION: Convention = "delay_le_D"
+CONVENTION_HELP = {
+    "delay_le_D": "a packet is kept iff its delay d_k ≤ D (Example 3.10, Sec. 3.4, the paper's figures)",
+    "delay_lt_D": "a packet is kept iff its delay d_k < D, i.e. d_k ≥ D is discarded (Sec. 2.3, eq. 4)",
+}
+
+
+def max_kept_delay(D: int, convention: Convention) -> int:
+    """The largest delay the buffer keeps: D under ``delay_le_D``, D − 1 under ``delay_lt_D``."""
+    return D if convention == "delay_le_D" else D - 1
+
+
+class PoissonDelay(StrictModel):
+    """f(i) = dⁱ e^{−d} / i!  (Example 3.10)."""
+
+    kind: Literal["poisson"] = "poisson"
+    mean: NonNegFloat = Field(description="mean delay d (time steps)")
+
+    def cdf(self, i: np.ndarray | int) -> np.ndarray:
+        return stats.poisson.cdf(np.asarray(i), self.mean)
+
+    def sample(self, rng: np.random.Generator, size) -> np.ndarray:
+        return rng.poisson(self.mean, size=size).astype(np.int32)
+
+    @property
+    def loss(self) -> float:
+        return 0.0
+
+
+class GeometricDelay(StrictModel):
+    """f(i) = p (1 − p)ⁱ, i = 0, 1, … (number of failed attempts before success)."""
+
+    kind: Literal["geometric"] = "geometric"
+    p: Annotated[float, Field(gt=0.0, le=1.0, description="per-step delivery probability")]
+
+    def cdf(self, i: np.ndarray | int) -> np.ndarray:
+        i = np.asarray(i)
+        return np.where(i < 0, 0.0, 1.0 - (1.0 - self.p) ** (np.maximum(i, -1) + 1))
+
+    def sample(self, rng: np.random.Generator, size) -> np.ndarray:
+        return (rng.geometric(self.p, size=size) - 1).astype(np.int32)
+
+    @property
+    def loss(self) -> float:
+        return 0.0
+
+
+class PmfDelay(StrictModel):
+    """An explicit pmf f(0), f(1), …, f(L); the missing mass 1 − Σ f is loss (f(∞))."""
+
+    kind: Literal["pmf"] = "pmf"
+    probs: list[Probability] = Field(min_length=1, description="f(0), f(1), …; missing mass = loss")
+
+    @model_validator(mode="after")
+    def _sums_to_at_most_one(self):
+        total = math.fsum(self.probs)
+        if total > 1 + 1e-9:
+            raise ValueError(f"probabilities must sum to at most 1 (the rest is loss), got {total:.6g}")
+        return self
+
+    def cdf(self, i: np.ndarray | int) -> np.ndarray:
+        c = np.concatenate([[0.0], np.cumsum(self.probs)])
+        i = np.asarray(i)
+        return c[np.clip(i + 1, 0, len(self.probs))]
+
+    def sample(self, rng: np.random.Generator, size) -> np.ndarray:
+        p = np.asarray(self.probs, dtype=float)
+        support = np.append(np.arange(len(p), dtype=np.int64), LOST)
+        probs = np.append(p, max(0.0, 1.0 - p.sum()))
+        probs /= probs.sum()
+        return rng.choice(support, size=size, p=probs).astype(np.int32)
+
+    @property
+    def loss(self) -> float:
+        return max(0.0, 1.0 - math.fsum(self.probs))
+
+
+DelayDistribution = Annotated[Union[PoissonDelay, GeometricDelay, PmfDelay], Field(discriminator="kind")]
+
+
+class DelayChannel(ChannelModel):
+    """``kind: delay`` — i.i.d. delays from ``delay`` and a receive buffer of length ``buffer`` (D)."""
+
+    kind: Literal["delay"]
+    delay: DelayDistribution
+    buffer: PositiveInt = Field(description="buffer length D")
+    convention: Convention = Field(DEFAULT_CONVENTION, description="; ".join(f"{k}: {v}" for k, v in CONVENTION_HELP.items()))
+
+    def cdf(self, i):
+        return self.delay.cdf(i)
+
+    @property
+    def D(self) -> int:
+        return self.buffer

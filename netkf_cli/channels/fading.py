@@ -1,0 +1,163 @@
+"""``kind: fading`` — wireless fading channel of Mostofi & Murray 2009 (Sec. 2.1, Sec. 4.1).
+
+The instantaneous received SNR is Υ[k] = Υ_ave |h[k]|² (eq. 3) with a unit-power complex
+Gaussian gain h (Rayleigh fading, so Υ is exponential with mean Υ_ave):
+
+* ``correlation: {model: iid}`` — h[k] independent from one transmission to the next (Sec. 2).
+* ``correlation: {model: jakes, carrier_hz, speed, interval_s}`` — E h[t]h*[t−k] = J₀(2π f_D k T),
+  f_D = s_mob F_c / c (eq. 65). Generated exactly (for the horizon) as a stationary complex
+  Gaussian sequence: the Toeplitz covariance Σ_ij = J₀(2π f_D T |i−j|) is factored once by a
+  symmetric eigendecomposition (negative rounding-level eigenvalues clipped) and
+  h = V √Λ z, z ~ CN(0, I). The sampled Jakes spectrum vanishes above f_D, so Σ is
+  ill-conditioned and a Cholesky factor would fail; the eigen square root does not.
+
+The communication-noise model σ_n²(Υ) lives here as well (``noise:``): ``model: ber`` is
+α + δ·Ω(√Υ) (Sec. 3.1) with α, δ given or derived from N_p and Δ; ``model: inverse_snr`` is
+β/Υ (eq. 50, Theorem 4).
+
+SNR values are never guessed: every SNR carries ``unit: linear | dB``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from netkf_cli.analysis import fading as fa
+from netkf_cli.spec import ChannelModel, FiniteFloat, NonNegFloat, PositiveFloat, PositiveInt, StrictModel
+
+
+class Snr(StrictModel):
+    """An SNR with its unit: ``{value: 20, unit: dB}`` or ``{value: 100, unit: linear}``."""
+
+    value: FiniteFloat
+    unit: Literal["linear", "dB"] = Field(description="'linear' (power ratio) or 'dB' (10 log10)")
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.unit == "linear" and self.value < 0:
+            raise ValueError(f"a linear SNR must be >= 0, got {self.value}")
+        return self
+
+    @property
+    def linear(self) -> float:
+        return float(fa.db_to_linear(self.value)) if self.unit == "dB" else float(self.value)
+
+
+class Speed(StrictModel):
+    value: NonNegFloat
+    unit: Literal["m/s", "mph", "km/h"]
+
+    @property
+    def mps(self) -> float:
+        return self.value * {"m/s": 1.0, "mph": fa.MPH, "km/h": 1 / 3.6}[self.unit]
+
+
+class IidCorrelation(StrictModel):
+    model: Literal["iid"]
+
+
+class JakesCorrelation(StrictModel):
+    model: Literal["jakes"]
+    carrier_hz: PositiveFloat = Field(description="carrier frequency F_c in Hz")
+    speed: Speed = Field(description="mobile speed s_mob")
+    interval_s: PositiveFloat = Field(description="time between consecutive transmissions in seconds")
+
+    @property
+    def doppler(self) -> float:
+        return fa.doppler_hz(self.speed.mps, self.carrier_hz)
+
+    def autocorr(self, lags):
+        return fa.jakes_autocorr(lags, self.doppler, self.interval_s)
+
+
+class NoiseModel(StrictModel):
+    """σ_n²(Υ). ``ber``: α + δ Ω(√Υ), give (alpha, delta) or (N_p, Delta). ``inverse_snr``: β/Υ (eq. 50)."""
+
+    model: Literal["ber", "inverse_snr"]
+    alpha: NonNegFloat | None = None
+    delta: NonNegFloat | None = None
+    N_p: PositiveInt | None = Field(None, description="bits per packet")
+    Delta: PositiveFloat | None = Field(None, description="quantization step Δ")
+    beta: NonNegFloat | None = Field(None, description="β of σ_n² = β/Υ (model inverse_snr)")
+
+    @model_validator(mode="after")
+    def _check(self):
+        given = {k for k in ("alpha", "delta", "N_p", "Delta", "beta") if getattr(self, k) is not None}
+        if self.model == "ber":
+            if given == {"alpha", "delta"} or given == {"N_p", "Delta"}:
+                return self
+            raise ValueError("model ber needs exactly one pair: (alpha, delta) or (N_p, Delta); "
+                             f"got {sorted(given) or 'none'}")
+        if given != {"beta"}:
+            raise ValueError(f"model inverse_snr needs exactly `beta`; got {sorted(given) or 'none'}")
+        return self
+
+    @property
+    def params(self) -> tuple[float, float]:
+        """(α, δ) for model ber."""
+        if self.alpha is not None:
+            return float(self.alpha), float(self.delta)
+        return fa.noise_params_from_bits(self.N_p, self.Delta)
+
+    def variance(self, snr):
+        """σ_n²(Υ) for an array of linear SNRs (inf for Υ = 0 under inverse_snr)."""
+        snr = np.asarray(snr, dtype=float)
+        if self.model == "ber":
+            a, d = self.params
+            return fa.sigma2_n(snr, a, d)
+        with np.errstate(divide="ignore"):
+            return self.beta / snr
+
+
+@dataclass(frozen=True)
+class FadingTrace:
+    """Linear SNR Υ[k] per run, shape ``(horizon, runs)`` (time-major: ``snr[k]`` is contiguous over runs)."""
+
+    snr: np.ndarray
+
+
+@lru_cache(maxsize=16)
+def _jakes_factor(horizon: int, phase_step: float) -> np.ndarray:
+    lags = np.arange(horizon)
+    r = fa.special.j0(phase_step * lags)
+    S = r[np.abs(lags[:, None] - lags[None, :])]
+    w, V = np.linalg.eigh(S)
+    w = np.clip(w, 0.0, None)
+    return np.ascontiguousarray(V * np.sqrt(w)[None, :])
+
+
+def sample_gain(rng: np.random.Generator, runs: int, horizon: int, corr) -> np.ndarray:
+    """Complex unit-power channel gains h, shape (horizon, runs)."""
+    z = (rng.standard_normal((horizon, runs)) + 1j * rng.standard_normal((horizon, runs))) / np.sqrt(2.0)
+    if corr.model == "iid":
+        return z
+    L = _jakes_factor(horizon, 2 * np.pi * corr.doppler * corr.interval_s)
+    return L @ z.real + 1j * (L @ z.imag)
+
+
+class FadingChannel(ChannelModel):
+    """``kind: fading`` — Rayleigh fading SNR Υ (exponential, mean ``snr_avg``), i.i.d. or Jakes-correlated."""
+
+    kind: Literal["fading"]
+    snr_avg: Snr = Field(description="average received SNR Υ_ave with its unit")
+    correlation: IidCorrelation | JakesCorrelation = Field(IidCorrelation(model="iid"), discriminator="model")
+    noise: NoiseModel = Field(description="communication-noise variance σ_n²(Υ)")
+
+    @model_validator(mode="after")
+    def _positive(self):
+        if not self.snr_avg.linear > 0:
+            raise ValueError("snr_avg must be > 0 (linear)")
+        return self
+
+    @property
+    def mean_snr(self) -> float:
+        return self.snr_avg.linear
+
+    def sample(self, rng: np.random.Generator, runs: int, horizon: int) -> FadingTrace:
+        h = sample_gain(rng, runs, horizon, self.correlation)
+        return FadingTrace(self.mean_snr * (h.real**2 + h.imag**2))

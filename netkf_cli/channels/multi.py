@@ -1,0 +1,91 @@
+"""N sensors, each behind its own lossy link (Chiuso & Schenato, eq. (2)).
+
+γ_t^i = 1 when the packet sent at time t by sensor i arrives, 0 when it is lost.
+NB: the paper's λ is the LOSS probability; here the field is called ``loss`` so a
+config can never be read the wrong way round (``arrival = 1 − loss``).
+
+Links are independent across sensors and i.i.d. in time (the paper's Bernoulli model).
+``loss`` is one number for every sensor or a list of N per-sensor rates.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from netkf_cli.spec import ChannelModel, PositiveInt, Probability
+
+
+def sample_multi_arrivals(
+    rng: np.random.Generator, runs: int, horizon: int, loss: float | np.ndarray, sensors: int | None = None
+) -> np.ndarray:
+    """Arrival indicators γ of shape ``(runs, horizon, N)``, bool, γ_t^i ~ Bernoulli(1 − loss_i).
+
+    ``loss`` is a scalar (then ``sensors`` gives N) or an array of N per-sensor loss probabilities.
+    """
+    loss_arr = np.atleast_1d(np.asarray(loss, dtype=float))
+    if loss_arr.ndim != 1:
+        raise ValueError("loss must be a scalar or a 1-D array of per-sensor probabilities")
+    if loss_arr.size == 1:
+        if sensors is None:
+            raise ValueError("sensors (N) is required when loss is a scalar")
+        loss_arr = np.full(int(sensors), float(loss_arr[0]))
+    elif sensors is not None and loss_arr.size != sensors:
+        raise ValueError(f"loss has {loss_arr.size} entries but sensors = {sensors}")
+    if np.any((loss_arr < 0) | (loss_arr > 1)):
+        raise ValueError("loss probabilities must lie in [0, 1]")
+    # u < 1 - loss  <=>  arrived; u in [0, 1) so loss = 0 always arrives and loss = 1 never does.
+    return rng.random((runs, horizon, loss_arr.size)) < (1.0 - loss_arr)
+
+
+def times_since_arrival(gamma: np.ndarray) -> np.ndarray:
+    """τ_t^i: steps since sensor i's last received packet, shape like ``gamma`` (runs, T, N), int32.
+
+    τ = 0 when the packet of time t arrived; a sensor with no packet yet has τ_t = t + 1
+    (its last "arrival" is the fictitious time −1, i.e. only the prior is known).
+    """
+    runs, T, N = gamma.shape
+    tau = np.empty((runs, T, N), dtype=np.int32)
+    last = np.full((runs, N), -1, dtype=np.int32)
+    for t in range(T):
+        last = np.where(gamma[:, t, :], t, last)
+        tau[:, t, :] = t - last
+    return tau
+
+
+class MultiChannel(ChannelModel):
+    """``kind: multi`` — N independent i.i.d. Bernoulli loss links, one per sensor (eq. (2))."""
+
+    kind: Literal["multi"]
+    sensors: PositiveInt = Field(description="number of sensors N (the paper's example: 25)")
+    loss: Probability | list[Probability] = Field(
+        description="packet LOSS probability (the paper's λ): one value for all sensors or a list of N"
+    )
+
+    @model_validator(mode="after")
+    def _check_loss_length(self):
+        if isinstance(self.loss, list) and len(self.loss) != self.sensors:
+            raise ValueError(f"loss: a list must have one entry per sensor ({self.sensors}), got {len(self.loss)}")
+        return self
+
+    @property
+    def loss_array(self) -> np.ndarray:
+        """Per-sensor loss probabilities, shape (N,)."""
+        if isinstance(self.loss, list):
+            return np.asarray(self.loss, dtype=float)
+        return np.full(self.sensors, float(self.loss))
+
+    @property
+    def common_loss(self) -> float | None:
+        """The loss probability if every sensor has the same one, else None."""
+        arr = self.loss_array
+        return float(arr[0]) if np.all(arr == arr[0]) else None
+
+    def with_loss(self, loss: float) -> "MultiChannel":
+        return self.model_copy(update={"loss": float(loss)})
+
+    def sample(self, rng: np.random.Generator, runs: int, horizon: int) -> np.ndarray:
+        """γ of shape (runs, horizon, N), bool."""
+        return sample_multi_arrivals(rng, runs, horizon, self.loss_array)

@@ -1,0 +1,316 @@
+"""The LMI-designed filter of Moayedi, Soh & Foo 2009, Sec. III (eqs 24–44).
+
+Filter (eqs 24, 41, 44):  x_s(k+1) = A_s(k) x_s(k) + G_s(k) y(k),  x_s(k|k) = x_s(k) + L(k) y(k).
+
+What is solved, exactly
+-----------------------
+``ζ(k) = [ξ(k); x_s(k)]`` with ξ the exact augmented state of
+:mod:`netkf_cli.estimators.markov_filters` (the paper's X(k) plus v(k−1), so the driving noise
+ε = [w; v] is white with covariance Σ = L_Σ L_Σᵀ, possibly singular). For mode q:
+
+    A_F,q = [[F_q, 0], [G_s H_q, A_s]],  B_F,q = [[G_q], [G_s J_q]]                 (eq. 29)
+    A_F,q(k|k) = [[I, 0], [L H_q, I]],   B_F,q(k|k) = [[0], [L J_q]]                 (eq. 36)
+    Γ_F = [I 0 0 0 −I]  (e = x − x_s),   Γ_0 = [I_d 0]  (the ξ block)                (eq. 28)
+
+Λ_j(k) is the design's second moment of ζ(k) given θ(k−1) = j; the design knows only the
+marginals ρ_q (not ρ_{q/j}) and mixes (eq. 34)
+
+    Φ_q(k) = Σ_j ρ_j Λ_j(k)                                  (q ≠ 2)
+    Φ_2(k) = Σ_{j≥2} ρ_j Λ_j(k) / Σ_{j≥2} ρ_j                 (precedence: no 1 → 2)
+
+**Prediction step** (eqs 34, 34a, 41), one SDP per k, variables A_s, G_s, Λ_q (q = 1..4):
+
+    minimize   Σ_q ρ_q tr(Γ_F Λ_q Γ_Fᵀ)
+    subject to [[Λ_q, A_F,q Φ_q^{1/2}, B_F,q L_Σ], [·, I, 0], [·, 0, I]] ⪰ 0      (34), q = 1..4
+               Γ_0 Λ_q Γ_0ᵀ ⪯ F_q Φ_q,ξ F_qᵀ + G_q Σ G_qᵀ + εI                        (34a)
+
+The first LMI is eq. (34) with the Schur complement taken through factors instead of
+Φ⁻¹ and Λ_W⁻¹ (Φ is singular at k = 0 and Σ is singular in Example 1); it is equivalent to
+Λ_q ⪰ A_F,q Φ_q A_F,qᵀ + B_F,q Σ B_F,qᵀ (eqs 30–32). The right side of (34a) is the paper's
+"minimum-trace Λ_ζ,q,0" in closed form (the ξ block does not depend on the gains).
+**Update step** (eqs 37, 37a, 43): the same with A_F,q(k|k), B_F,q(k|k), variable L and
+Γ_0 Λ_q(k|k) Γ_0ᵀ ⪯ Φ_q,ξ + εI.
+
+After each solve Λ_q(k+1) is *recomputed* as A_F,q Φ_q A_F,qᵀ + B_F,q Σ B_F,qᵀ with the
+solved gains (eq. 32) — the SDP's Λ_q is only an upper bound and is not unique off the
+error block, so propagating it would make the recursion depend on the solver's path.
+Why this matches the paper: the objective is their eq. (41)/(43) objective, the LMIs are
+(34)/(37) and (34a)/(37a), and the recursion is (32). Because A_F,q, B_F,q are affine in the
+gains, the problem is a convex quadratic in (A_s, G_s) (resp. L); :func:`step_closed_form`
+solves its normal equations, which the tests use to check the SDP.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from netkf_cli.estimators.markov_filters import (
+    N_MODES,
+    AugmentedModel,
+    LinearFilter,
+    pinv_psd,
+    psd_sqrt,
+)
+
+
+def design_weights(rho: np.ndarray, precedence: bool = True) -> np.ndarray:
+    """W with Φ_q = Σ_j W[q, j] Λ_j (eq. 34): ρ_j, and for q = 2 the precedence-renormalized row."""
+    rho = np.asarray(rho, float)
+    W = np.tile(rho, (N_MODES, 1))
+    if precedence:
+        w2 = rho.copy()
+        w2[0] = 0.0
+        if w2.sum() > 0:
+            W[1] = w2 / w2.sum()
+    return W
+
+
+@dataclass
+class LMIDesign:
+    """Result of :func:`lmi_design`: the filter plus per-step diagnostics."""
+
+    filter: LinearFilter
+    diagnostics: dict = field(default_factory=dict)
+
+
+class _Blocks:
+    """Constant matrices of the ζ system for a model."""
+
+    def __init__(self, model: AugmentedModel):
+        n, m, d, p = model.n, model.m, model.d, model.p
+        self.n, self.m, self.d, self.p, self.D = n, m, d, p, d + n
+        D = d + n
+        self.Gam = np.zeros((n, D))
+        self.Gam[:, :n] = np.eye(n)
+        self.Gam[:, d:] = -np.eye(n)
+        self.model = model
+
+    # ---- exact propagation with given gains
+    def AF(self, q, As, Gs):
+        md, d, n = self.model, self.d, self.n
+        M = np.zeros((self.D, self.D))
+        M[:d, :d] = md.F[q]
+        M[d:, :d] = Gs @ md.H[q]
+        M[d:, d:] = As
+        return M
+
+    def BF(self, q, Gs):
+        md, d = self.model, self.d
+        return np.concatenate([md.G[q], Gs @ md.J[q]], axis=0)
+
+    def AFu(self, q, L):
+        md, d, n = self.model, self.d, self.n
+        M = np.eye(self.D)
+        M[d:, :d] = L @ md.H[q]
+        return M
+
+    def BFu(self, q, L):
+        md, d = self.model, self.d
+        return np.concatenate([np.zeros((d, self.p)), L @ md.J[q]], axis=0)
+
+    def propagate(self, Phi, As, Gs):
+        S = self.model.Sigma
+        out = []
+        for q in range(N_MODES):
+            A, B = self.AF(q, As, Gs), self.BF(q, Gs)
+            L = A @ Phi[q] @ A.T + B @ S @ B.T
+            out.append((L + L.T) / 2)
+        return np.array(out)
+
+    def update(self, Phi, L):
+        S = self.model.Sigma
+        out = []
+        for q in range(N_MODES):
+            A, B = self.AFu(q, L), self.BFu(q, L)
+            M = A @ Phi[q] @ A.T + B @ S @ B.T
+            out.append((M + M.T) / 2)
+        return np.array(out)
+
+    def cost(self, rho, Lams):
+        return float(sum(rho[q] * np.trace(self.Gam @ Lams[q] @ self.Gam.T) for q in range(N_MODES)))
+
+
+def step_closed_form(blocks: _Blocks, rho, Phi):
+    """Minimizers of the prediction and update objectives (normal equations).
+
+    Prediction: e(k+1) = t_q − Θ u_q with Θ = [A_s G_s], t_q = [A 0 0 0 0] ζ + [I 0] ε,
+    u_q = [[0 I], [H_q 0]] ζ + [0; J_q] ε, so Θ = R_tu R_uu⁺ with
+    R_uu = Σ ρ_q (U_q Φ_q U_qᵀ + V_q Σ V_qᵀ), R_tu = Σ ρ_q (T Φ_q U_qᵀ + E_w Σ V_qᵀ).
+    Update: e(k|k) = Γ_F ζ − L (H̃_q ζ + J_q ε) ⇒ L = (Σ ρ_q Γ_F Φ_q H̃_qᵀ)(Σ ρ_q (H̃_q Φ_q H̃_qᵀ + J_q Σ J_qᵀ))⁺.
+    """
+    md = blocks.model
+    n, m, d, p, D = blocks.n, blocks.m, blocks.d, blocks.p, blocks.D
+    Sig = md.Sigma
+    T = np.zeros((n, D)); T[:, :n] = md.A
+    Ew = np.zeros((n, p)); Ew[:, :n] = np.eye(n)
+    Ruu = np.zeros((n + m, n + m)); Rtu = np.zeros((n, n + m))
+    Ryy = np.zeros((m, m)); Rey = np.zeros((n, m))
+    for q in range(N_MODES):
+        U = np.zeros((n + m, D)); U[:n, d:] = np.eye(n); U[n:, :d] = md.H[q]
+        V = np.zeros((n + m, p)); V[n:] = md.J[q]
+        Ruu += rho[q] * (U @ Phi[q] @ U.T + V @ Sig @ V.T)
+        Rtu += rho[q] * (T @ Phi[q] @ U.T + Ew @ Sig @ V.T)
+        Ht = np.zeros((m, D)); Ht[:, :d] = md.H[q]
+        Ryy += rho[q] * (Ht @ Phi[q] @ Ht.T + md.J[q] @ Sig @ md.J[q].T)
+        Rey += rho[q] * (blocks.Gam @ Phi[q] @ Ht.T)
+    Theta = Rtu @ pinv_psd(Ruu, np.trace(Ruu) + 1e-300, rtol=1e-12)
+    L = Rey @ pinv_psd(Ryy, np.trace(Ryy) + 1e-300, rtol=1e-12)
+    return Theta[:, :n], Theta[:, n:], L
+
+
+class _SDP:
+    """The prediction and update SDPs of one design, built once with cvxpy Parameters (DPP)."""
+
+    def __init__(self, blocks: _Blocks, rho, eps: float, solver: str, tol: float):
+        import cvxpy as cp
+
+        self.cp = cp
+        md = blocks.model
+        n, m, d, p, D = blocks.n, blocks.m, blocks.d, blocks.p, blocks.D
+        self.blocks, self.solver, self.tol = blocks, solver, tol
+        Gam, Ls = blocks.Gam, md.Lsig
+        I_D, I_p = np.eye(D), np.eye(p)
+        Z_Dp, Z_dn = np.zeros((D, p)), np.zeros((d, n))
+
+        def lmi(Lam, AFPh, BFL):
+            M = cp.bmat([[Lam, AFPh, BFL], [AFPh.T, I_D, Z_Dp], [BFL.T, Z_Dp.T, I_p]])
+            return (M + M.T) / 2 >> 0
+
+        # prediction
+        self.As = cp.Variable((n, n), name="A_s")
+        self.Gs = cp.Variable((n, m), name="G_s")
+        self.Lp = [cp.Variable((D, D), symmetric=True, name=f"Lambda_{q + 1}") for q in range(N_MODES)]
+        self.Php = [cp.Parameter((D, D), name=f"Phi_half_{q + 1}") for q in range(N_MODES)]
+        self.X0p = [cp.Parameter((d, d), name=f"X0_{q + 1}") for q in range(N_MODES)]
+        cons = []
+        for q in range(N_MODES):
+            AF = cp.bmat([[md.F[q], Z_dn], [self.Gs @ md.H[q], self.As]])
+            BF = cp.vstack([md.G[q], self.Gs @ md.J[q]])
+            cons.append(lmi(self.Lp[q], AF @ self.Php[q], BF @ Ls))
+            cons.append(self.X0p[q] + eps * np.eye(d) - self.Lp[q][:d, :d] >> 0)
+        obj = sum(rho[q] * cp.trace(Gam @ self.Lp[q] @ Gam.T) for q in range(N_MODES))
+        self.pred = cp.Problem(cp.Minimize(obj), cons)
+        # update
+        self.L = cp.Variable((n, m), name="L")
+        self.Lu = [cp.Variable((D, D), symmetric=True, name=f"Lambda_kk_{q + 1}") for q in range(N_MODES)]
+        self.Phu = [cp.Parameter((D, D), name=f"Phi_half_u_{q + 1}") for q in range(N_MODES)]
+        self.X0u = [cp.Parameter((d, d), name=f"X0_u_{q + 1}") for q in range(N_MODES)]
+        cons = []
+        for q in range(N_MODES):
+            AF = cp.bmat([[np.eye(d), Z_dn], [self.L @ md.H[q], np.eye(n)]])
+            BF = cp.vstack([np.zeros((d, p)), self.L @ md.J[q]])
+            cons.append(lmi(self.Lu[q], AF @ self.Phu[q], BF @ Ls))
+            cons.append(self.X0u[q] + eps * np.eye(d) - self.Lu[q][:d, :d] >> 0)
+        obj = sum(rho[q] * cp.trace(Gam @ self.Lu[q] @ Gam.T) for q in range(N_MODES))
+        self.upd = cp.Problem(cp.Minimize(obj), cons)
+
+    def _solve(self, prob):
+        cp = self.cp
+        if self.solver == "CLARABEL":
+            opts = dict(tol_gap_abs=self.tol, tol_gap_rel=self.tol, tol_feas=self.tol)
+        else:
+            opts = dict(eps_abs=self.tol, eps_rel=self.tol, max_iters=200000)
+        t = time.perf_counter()
+        prob.solve(solver=getattr(cp, self.solver), **opts)
+        dt = time.perf_counter() - t
+        if prob.status not in ("optimal", "optimal_inaccurate"):
+            raise RuntimeError(f"LMI solve failed: {prob.status}")
+        return dt
+
+    def predict(self, Phi):
+        md = self.blocks.model
+        d = self.blocks.d
+        for q in range(N_MODES):
+            self.Php[q].value = psd_sqrt(Phi[q])
+            X0 = md.F[q] @ Phi[q][:d, :d] @ md.F[q].T + md.G[q] @ md.Sigma @ md.G[q].T
+            self.X0p[q].value = (X0 + X0.T) / 2
+        dt = self._solve(self.pred)
+        return self.As.value, self.Gs.value, np.array([L.value for L in self.Lp]), self.pred.value, self.pred.status, dt
+
+    def update(self, Phi):
+        d = self.blocks.d
+        for q in range(N_MODES):
+            self.Phu[q].value = psd_sqrt(Phi[q])
+            X0 = Phi[q][:d, :d]
+            self.X0u[q].value = (X0 + X0.T) / 2
+        dt = self._solve(self.upd)
+        return self.L.value, np.array([L.value for L in self.Lu]), self.upd.value, self.upd.status, dt
+
+
+def lmi_design(model: AugmentedModel, rho, x0, P0, horizon: int, *, design: str = "sdp",
+               solver: str = "CLARABEL", tol: float = 1e-9, eps: float = 1e-9,
+               precedence: bool = True, progress=None) -> LMIDesign:
+    """Gains A_s(k), G_s(k), L(k), k = 0..horizon−1, by the conceptual algorithm of Sec. III-C.
+
+    Initialization (eq. 35, with the prior mean x̂0 = E x(0) instead of 0):
+    Λ_j(0) = E ζ(0)ζ(0)ᵀ + diag(0, εI), ζ(0) = [ξ(0); x̂0], for every j.
+    ``design='closed_form'`` replaces each SDP by :func:`step_closed_form`.
+    """
+    rho = np.asarray(rho, float)
+    blocks = _Blocks(model)
+    n, m, d, D = blocks.n, blocks.m, blocks.d, blocks.D
+    x0 = np.asarray(x0, float)
+    xbar, cov = model.initial_moments(x0, np.asarray(P0, float))
+    zbar = np.concatenate([xbar, x0])
+    Lam0 = np.outer(zbar, zbar)
+    Lam0[:d, :d] += cov
+    Lam0[d:, d:] += eps * np.eye(n)
+    Lam = np.repeat(Lam0[None], N_MODES, axis=0)
+    W = design_weights(rho, precedence)
+    sdp = _SDP(blocks, rho, eps, solver, tol) if design == "sdp" else None
+    K = horizon
+    As = np.zeros((K, n, n)); Gs = np.zeros((K, n, m)); Lf = np.zeros((K, n, m))
+    mse_p, mse_f = np.empty(K), np.empty(K)
+    diag = {"max_rel_excess_over_closed_form": 0.0, "max_rel_gap_sdp_vs_recomputed": 0.0,
+            "min_eig_bound_minus_recomputed": np.inf, "solve_seconds": 0.0, "solves": 0,
+            "statuses": set(), "max_gain_diff_vs_closed_form": 0.0}
+    for k in range(K):
+        Phi = np.einsum("qj,jab->qab", W, Lam)
+        mse_p[k] = blocks.cost(rho, Lam) if k > 0 else float(np.trace(blocks.Gam @ Lam0 @ blocks.Gam.T))
+        Asc, Gsc, Lc = step_closed_form(blocks, rho, Phi)
+        best_u = blocks.cost(rho, blocks.update(Phi, Lc))
+        if sdp is not None:
+            L, Lam_sdp, val, status, dt = sdp.update(Phi)
+            _record(diag, blocks, rho, val, status, dt, Lam_sdp, blocks.update(Phi, L), best_u, L - Lc)
+        else:
+            L = Lc
+        Lf[k] = L
+        mse_f[k] = blocks.cost(rho, blocks.update(Phi, L))
+        if k < K - 1:
+            best_p = blocks.cost(rho, blocks.propagate(Phi, Asc, Gsc))
+            if sdp is not None:
+                a, g, Lam_sdp, val, status, dt = sdp.predict(Phi)
+                Lam = blocks.propagate(Phi, a, g)
+                _record(diag, blocks, rho, val, status, dt, Lam_sdp, Lam, best_p,
+                        np.concatenate([a - Asc, g - Gsc], axis=1))
+            else:
+                a, g = Asc, Gsc
+                Lam = blocks.propagate(Phi, a, g)
+            As[k], Gs[k] = a, g
+        else:
+            As[k], Gs[k] = As[k - 1] if k else As[k], Gs[k - 1] if k else Gs[k]
+        if progress is not None:
+            progress(1)
+    diag["statuses"] = sorted(diag["statuses"])
+    diag.update(design=design, solver=solver if design == "sdp" else None, tol=tol, eps=eps,
+                precedence=precedence, rho=rho.tolist())
+    filt = LinearFilter("lmi", As, Gs, np.eye(n), np.repeat(np.eye(n)[None], K, axis=0), Lf,
+                        x0.copy(), np.eye(n), {"design_pred": mse_p, "design_filt": mse_f})
+    return LMIDesign(filt, diag)
+
+
+def _record(diag, blocks, rho, val, status, dt, Lam_sdp, Lam_exact, best, gain_diff):
+    exact = blocks.cost(rho, Lam_exact)
+    scale = max(abs(best), 1e-12)
+    diag["max_rel_excess_over_closed_form"] = max(diag["max_rel_excess_over_closed_form"], (exact - best) / scale)
+    diag["max_rel_gap_sdp_vs_recomputed"] = max(diag["max_rel_gap_sdp_vs_recomputed"], abs(val - exact) / scale)
+    mins = min(float(np.linalg.eigvalsh(((Ls - Le) + (Ls - Le).T) / 2).min() / max(1.0, np.abs(Le).max()))
+               for Ls, Le in zip(Lam_sdp, Lam_exact))
+    diag["min_eig_bound_minus_recomputed"] = min(diag["min_eig_bound_minus_recomputed"], mins)
+    diag["max_gain_diff_vs_closed_form"] = max(diag["max_gain_diff_vs_closed_form"], float(np.abs(gain_diff).max()))
+    diag["solve_seconds"] += dt
+    diag["solves"] += 1
+    diag["statuses"].add(status)

@@ -1,0 +1,156 @@
+"""The Scenario: one YAML file = one artefact (system, channel, estimator, analysis, Monte Carlo).
+
+Components are chosen by ``kind``. The unions are built from every subclass of
+:class:`~netkf_cli.spec.ChannelModel`, :class:`~netkf_cli.spec.EstimatorModel` and
+:class:`~netkf_cli.spec.AnalysisModel` defined in the modules of ``netkf_cli/channels``,
+``netkf_cli/estimators`` and ``netkf_cli/recipes``: a new kind is a new class in a new
+module, with no edit here.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from functools import lru_cache
+from typing import Annotated, Any, Literal, Union
+
+from pydantic import Field, create_model
+
+from netkf_cli import channels, estimators, recipes
+from netkf_cli.spec import (
+    AnalysisModel,
+    ChannelModel,
+    EstimatorModel,
+    Matrix,
+    NonNegInt,
+    PositiveInt,
+    StrictModel,
+)
+from netkf_cli.system import LinearSystem
+
+_PACKAGES = (channels, estimators, recipes)
+
+
+def _import_all() -> None:
+    for pkg in _PACKAGES:
+        for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda i: i.name):
+            if not info.name.startswith("_"):
+                importlib.import_module(f"{pkg.__name__}.{info.name}")
+
+
+def _subclasses(base: type) -> list[type]:
+    out, todo = [], list(base.__subclasses__())
+    while todo:
+        c = todo.pop(0)
+        todo.extend(c.__subclasses__())
+        if "kind" in getattr(c, "model_fields", {}):
+            out.append(c)
+    seen: dict[str, type] = {}
+    for c in out:
+        ann = c.model_fields["kind"].annotation
+        for k in getattr(ann, "__args__", ()):
+            if k in seen and seen[k] is not c:
+                raise TypeError(f"kind {k!r} defined twice: {seen[k].__module__} and {c.__module__}")
+            seen[k] = c
+    return sorted(out, key=lambda c: (c.__module__, c.__name__))
+
+
+def _union(base: type):
+    members = _subclasses(base)
+    if not members:
+        return None
+    if len(members) == 1:
+        return members[0]
+    return Annotated[Union[tuple(members)], Field(discriminator="kind")]
+
+
+def kinds(base: type) -> dict[str, type]:
+    """``{kind: model class}`` for a component family (after discovery)."""
+    _import_all()
+    out = {}
+    for c in _subclasses(base):
+        for k in c.model_fields["kind"].annotation.__args__:
+            out[k] = c
+    return out
+
+
+class SystemSpec(StrictModel):
+    """``system:`` x_{k+1} = A x_k + w_k, y_k = C x_k + v_k; w ~ N(0, Q), v ~ N(0, R), x_0 ~ N(0, P0)."""
+
+    A: Matrix
+    C: Matrix
+    Q: Matrix
+    R: Matrix
+    P0: Matrix | Literal["steady"] | None = Field(None, description="initial covariance, or 'steady' for P̄")
+
+    def build(self) -> LinearSystem:
+        return LinearSystem.from_spec(self)
+
+
+class MonteCarloSpec(StrictModel):
+    """``montecarlo:`` size and seeding. Chunk i draws from SeedSequence(seed, spawn_key=(i,))."""
+
+    runs: PositiveInt = Field(100_000, description="independent runs (samples)")
+    horizon: PositiveInt = Field(200, description="time steps per run")
+    burn_in: NonNegInt = Field(100, description="steps discarded before statistics are taken")
+    seed: NonNegInt = Field(0, description="root seed")
+    chunk: PositiveInt = Field(20_000, description="runs per chunk (memory bound; part of the random stream layout)")
+
+
+class OutputSpec(StrictModel):
+    """``output:`` where and how results are written."""
+
+    dir: str = Field("results", description="parent folder of the result folder <dir>/<name>/")
+    dpi: PositiveInt = 150
+
+
+@lru_cache(maxsize=1)
+def scenario_model() -> type[StrictModel]:
+    """Build the Scenario model from the discovered component kinds."""
+    _import_all()
+    ch, es, an = _union(ChannelModel), _union(EstimatorModel), _union(AnalysisModel)
+    fields: dict[str, Any] = {
+        "name": (Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]+$", description="artefact name (result folder)")], ...),
+        "description": (str, ""),
+        "system": (SystemSpec | None, None),
+        "channel": ((ch | None) if ch is not None else None, None),
+        "estimator": ((es | None) if es is not None else None, None),
+        "analysis": (an, ...),
+        "montecarlo": (MonteCarloSpec, MonteCarloSpec()),
+        "output": (OutputSpec, OutputSpec()),
+    }
+    return create_model("Scenario", __base__=ScenarioBase, **fields)
+
+
+class ScenarioBase(StrictModel):
+    """Shared behaviour of the generated Scenario model."""
+
+    def linear_system(self) -> LinearSystem:
+        from netkf_cli.errors import ConfigError
+
+        if self.system is None:  # type: ignore[attr-defined]
+            raise ConfigError.at("system", "this analysis needs a `system:` block (A, C, Q, R)")
+        return self.system.build()  # type: ignore[attr-defined]
+
+    def require_channel(self, *allowed: str):
+        from netkf_cli.errors import ConfigError
+
+        ch = self.channel  # type: ignore[attr-defined]
+        if ch is None or (allowed and ch.kind not in allowed):
+            got = "none" if ch is None else ch.kind
+            raise ConfigError.at("channel.kind", f"this analysis needs a channel of kind {' or '.join(allowed)}, got {got}")
+        return ch
+
+    def require_estimator(self, *allowed: str):
+        from netkf_cli.errors import ConfigError
+
+        es = self.estimator  # type: ignore[attr-defined]
+        if es is None or (allowed and es.kind not in allowed):
+            got = "none" if es is None else es.kind
+            raise ConfigError.at("estimator.kind", f"this analysis needs an estimator of kind {' or '.join(allowed)}, got {got}")
+        return es
+
+
+def json_schema() -> dict:
+    """JSON Schema of a scenario file (``netkf schema``), for editor completion."""
+    return scenario_model().model_json_schema()

@@ -1,0 +1,90 @@
+"""Pydantic building blocks shared by every scenario component.
+
+Components are chosen by ``kind`` (discriminated unions, built in ``scenario.py`` from
+every subclass of :class:`ChannelModel`, :class:`EstimatorModel`, :class:`AnalysisModel`
+found under ``netkf_cli/channels``, ``netkf_cli/estimators`` and ``netkf_cli/recipes``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any
+
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field
+
+
+class StrictModel(BaseModel):
+    """Unknown keys are errors (a typo must never be silently ignored); models are frozen."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ChannelModel(StrictModel):
+    """Base of every channel kind (``kind: delay | bernoulli | fading | ...``)."""
+
+
+class EstimatorModel(StrictModel):
+    """Base of every estimator kind (``kind: buffered | smart_sensor | ...``)."""
+
+
+class AnalysisModel(StrictModel):
+    """Base of every artefact family. Subclasses implement ``compute`` and ``plot``.
+
+    ``compute(scenario, ctx) -> Artefact`` and ``plot(tables, scenario) -> Figure``; the
+    figure is drawn from the tables alone.
+    """
+
+    def compute(self, scenario: Any, ctx: Any) -> Any:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def plot(self, tables: Any, scenario: Any) -> Any:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+def _to_matrix(value: Any) -> list[list[float]]:
+    """Accept a scalar, a flat list (a row... no: a column is ambiguous) or nested lists."""
+    if isinstance(value, bool):
+        raise ValueError("expected a number or a matrix (nested lists), got a boolean")
+    if isinstance(value, (int, float)):
+        rows = [[float(value)]]
+    elif isinstance(value, (list, tuple)):
+        if len(value) == 0:
+            raise ValueError("expected a non-empty matrix")
+        if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            rows = [[float(v) for v in value]]  # a flat list is one row
+        elif all(isinstance(v, (list, tuple)) for v in value):
+            rows = []
+            for i, row in enumerate(value):
+                if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in row):
+                    raise ValueError(f"row {i} must contain numbers only, got {row!r}")
+                rows.append([float(v) for v in row])
+            widths = {len(r) for r in rows}
+            if len(widths) != 1 or 0 in widths:
+                raise ValueError(f"rows have different lengths {sorted(widths)}: not a matrix")
+        else:
+            raise ValueError("expected a number, a list of numbers or a list of rows")
+    else:
+        raise ValueError(f"expected a number or a matrix (nested lists), got {type(value).__name__}")
+    for r in rows:
+        for v in r:
+            if not math.isfinite(v):
+                raise ValueError("entries must be finite numbers")
+    return rows
+
+
+Matrix = Annotated[list[list[float]], BeforeValidator(_to_matrix)]
+"""A real matrix: a scalar (1×1), a flat list (one row) or nested lists of rows."""
+
+
+def _finite(v: float) -> float:
+    if not math.isfinite(v):
+        raise ValueError("must be a finite number")
+    return v
+
+
+Probability = Annotated[float, Field(ge=0.0, le=1.0)]
+PositiveInt = Annotated[int, Field(gt=0)]
+NonNegInt = Annotated[int, Field(ge=0)]
+PositiveFloat = Annotated[float, Field(gt=0.0), AfterValidator(_finite)]
+NonNegFloat = Annotated[float, Field(ge=0.0), AfterValidator(_finite)]
+FiniteFloat = Annotated[float, AfterValidator(_finite)]

@@ -1,0 +1,189 @@
+"""Every command through typer's CliRunner, including every class of bad input."""
+
+import json
+import textwrap
+
+import pytest
+from typer.testing import CliRunner
+
+from netkf_cli.cli import app
+
+runner = CliRunner()
+
+GOOD = textwrap.dedent(
+    """\
+    name: t
+    system: {A: 1.4, C: 1, Q: 0.2, R: 0.5}
+    channel:
+      kind: delay
+      delay: {kind: poisson, mean: 5}
+      buffer: 10
+    analysis:
+      kind: theta_vs_buffer
+      M: [50, 150]
+      D_max: 8
+    """
+)
+
+
+def write(tmp_path, text, name="s.yaml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def invoke(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def test_help_lists_commands():
+    r = invoke("--help")
+    assert r.exit_code == 0
+    for cmd in ("run", "validate", "schema", "mind", "list", "reproduce"):
+        assert cmd in r.output
+
+
+def test_run_writes_csv_png_manifest_and_refuses_overwrite(tmp_path):
+    cfg = write(tmp_path, GOOD)
+    out = tmp_path / "res"
+    r = invoke("run", cfg, "--out", out)
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in out.iterdir()) == ["manifest.json", "t.csv", "t.png"]
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["meta"]["convention"] == "delay_le_D"
+    assert man["scenario"]["channel"]["convention"] == "delay_le_D"
+    assert "numpy" in man["versions"]
+    r = invoke("run", cfg, "--out", out)
+    assert r.exit_code == 1 and "already exists" in r.output
+    r = invoke("run", cfg, "--out", out, "--force")
+    assert r.exit_code == 0
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".res")]  # no temp folders left
+
+
+def test_failed_run_leaves_no_folder(tmp_path):
+    cfg = write(tmp_path, GOOD.replace("M: [50, 150]", "M: [50, 0.1]"))
+    out = tmp_path / "res"
+    r = invoke("run", cfg, "--out", out)
+    assert r.exit_code == 1
+    assert "analysis.M[1]" in r.output and "M̄ = 0.5" in r.output and "s.yaml:9" in r.output
+    assert not out.exists() and not list(tmp_path.glob(".res*"))
+
+
+def test_validate_ok_and_schema(tmp_path):
+    cfg = write(tmp_path, GOOD)
+    r = invoke("validate", cfg)
+    assert r.exit_code == 0 and "✓" in r.output
+    r = invoke("schema")
+    assert r.exit_code == 0
+    schema = json.loads(r.output)
+    assert "analysis" in schema["properties"]
+
+
+def test_list_kinds():
+    r = invoke("list")
+    assert r.exit_code == 0
+    for k in ("delay", "bernoulli", "theta_vs_buffer"):
+        assert k in r.output
+
+
+@pytest.mark.parametrize(
+    "old,new,path,line,needle",
+    [
+        ("  buffer: 10", "  bufer: 10", "channel.bufer", 6, "unknown key"),
+        ("A: 1.4,", "A: [[1, 2, 3], [4, 5, 6]],", "system.A", 2, "must be square"),
+        ("Q: 0.2,", "Q: -1,", "system.Q", 2, "positive semi-definite"),
+        ("R: 0.5", "R: 0", "system.R", 2, "positive definite"),
+        ("delay: {kind: poisson, mean: 5}", "delay: {kind: pmf, probs: [1.5]}", "channel.delay.probs[0]", 5, "less than or equal to 1"),
+        ("delay: {kind: poisson, mean: 5}", "delay: {kind: poisson, mean: -1}", "channel.delay.mean", 5, "greater than or equal to 0"),
+        ("delay: {kind: poisson, mean: 5}", "delay: {kind: uniform, mean: 5}", "channel.delay.kind", 5, "unknown kind"),
+        ("  kind: theta_vs_buffer", "  kind: nope", "analysis.kind", 8, "'nope'"),
+        ("  D_max: 8", "  D_max: 0", "analysis.D_max", 10, "greater than 0"),
+    ],
+)
+def test_bad_input_names_file_line_and_field(tmp_path, old, new, path, line, needle):
+    assert old in GOOD
+    cfg = write(tmp_path, GOOD.replace(old, new))
+    for cmd in (("validate", cfg), ("run", cfg, "--out", tmp_path / "o")):
+        r = invoke(*cmd)
+        assert r.exit_code == 1, r.output
+        assert f"s.yaml:{line} {path}:" in r.output, r.output
+        assert needle in r.output
+        assert "Traceback" not in r.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_several_problems_reported_at_once(tmp_path):
+    bad = GOOD.replace("  buffer: 10", "  bufer: 10").replace("Q: 0.2,", "Q: -1,")
+    r = invoke("validate", write(tmp_path, bad))
+    assert r.exit_code == 1
+    assert "channel.bufer" in r.output and "system.Q" in r.output
+
+
+def test_yaml_syntax_error_has_line_and_column(tmp_path):
+    r = invoke("validate", write(tmp_path, "name: t\nsystem: {A: 1\n  bad"))
+    assert r.exit_code == 1
+    assert "YAML syntax error, column" in r.output and "s.yaml:" in r.output
+
+
+def test_duplicate_key_is_an_error(tmp_path):
+    r = invoke("validate", write(tmp_path, GOOD + "name: again\n"))
+    assert r.exit_code == 1 and "duplicate key 'name'" in r.output
+
+
+def test_missing_file_and_usage_error(tmp_path):
+    r = invoke("run", tmp_path / "nope.yaml")
+    assert r.exit_code == 1 and "file not found" in r.output
+    r = invoke("run", "--bogus")
+    assert r.exit_code == 2
+
+
+# ---- netkf mind -------------------------------------------------------------------------
+
+def test_mind_m50_eps003_explains_infeasibility():
+    r = invoke("mind", "--M", 50, "--eps", 0.03)
+    assert r.exit_code == 0, r.output
+    assert "k1(M) = 7" in r.output and "k2(M) = 7" in r.output
+    assert "No buffer length can meet the requirement" in r.output and "0.03133" in r.output
+
+
+def test_mind_m150_necessary_but_no_sufficient():
+    r = invoke("mind", "--M", 150, "--eps", 0.001)
+    assert r.exit_code == 0
+    assert "D_n (necessary) = 7" in r.output and "No buffer length is guaranteed to suffice" in r.output
+
+
+def test_mind_json_keys_and_min_D():
+    r = invoke("mind", "--M", 50, "--eps", 0.05, "--json")
+    assert r.exit_code == 0
+    j = json.loads(r.output)
+    for key in ("k1", "k2", "mbar", "pbar", "theta_floor_1", "theta_floor_2", "D_s", "D_n", "D_star", "feasible", "convention"):
+        assert key in j
+    assert j["D_s"] == 6 and j["D_n"] == 6 and j["D_star"] is None and j["feasible"] is True
+    r = invoke("mind", "--M", 50, "--eps", 0.05, "--json", "--convention", "delay_lt_D")
+    assert json.loads(r.output)["D_s"] == 7  # one more under eq. (4)'s convention
+
+
+def test_mind_smart_sensor():
+    j = json.loads(invoke("mind", "--M", 150, "--eps", 0.001, "--sensor", "smart", "--json").output)
+    assert j["D_star"] == 7 and j["D_s"] is None and j["feasible"]
+
+
+def test_mind_refuses_M_below_mbar():
+    r = invoke("mind", "--M", 0.1)
+    assert r.exit_code == 1
+    assert "--M" in r.output and "M ≥ M̄ = 0.5" in r.output and "Thm 3.8" in r.output
+
+
+def test_mind_usage_errors():
+    assert invoke("mind", "--M", 50, "--sensor", "clever").exit_code == 2
+    assert invoke("mind", "--M", 50, "--eps", 1.5).exit_code == 2
+    assert invoke("mind").exit_code == 2
+
+
+def test_mind_from_config_and_d_max(tmp_path):
+    cfg = write(tmp_path, GOOD)
+    j = json.loads(invoke("mind", "--M", 50, "--eps", 0.05, "--config", cfg, "--json").output)
+    assert j["D_s"] == 6
+    j = json.loads(invoke("mind", "--M", 50, "--eps", 0.05, "--d", 5, "--D-max", 5, "--json").output)
+    assert j["D_s"] is None and j["feasible"] is False
+    assert invoke("mind", "--M", 50, "--config", cfg, "--d", 3).exit_code == 2

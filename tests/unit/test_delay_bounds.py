@@ -1,0 +1,89 @@
+"""Closed forms of Shi, Xie & Murray 2009: Example 3.10's printed numbers and structural properties."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from netkf_cli.analysis import delay_bounds as db
+from netkf_cli.channels.delay import GeometricDelay, PmfDelay, PoissonDelay
+from netkf_cli.errors import TheoremConditionError
+from netkf_cli.system import LinearSystem
+
+EX = LinearSystem.create(1.4, 1, 0.2, 0.5)
+D5 = PoissonDelay(mean=5).cdf
+
+
+def test_example_3_10_k_values():
+    assert (db.k1(50, EX), db.k2(50, EX)) == (7, 7)
+    assert (db.k1(150, EX), db.k2(150, EX)) == (8, 9)
+
+
+@pytest.mark.parametrize("k,D,printed", [(7, 6, 0.0313), (8, 7, 0.0042), (9, 8, 0.0003)])
+def test_example_3_10_printed_theta_under_delay_le_D(k, D, printed):
+    """The printed θ values follow 'keep delays ≤ D' with Poisson mean 5, to the printed 4 decimals."""
+    assert round(db.theta(k, D, D5, "delay_le_D"), 4) == printed
+
+
+@pytest.mark.parametrize("k,D,printed", [(7, 6, 0.0313), (8, 7, 0.0042), (9, 8, 0.0003)])
+def test_eq4_convention_does_not_give_the_printed_theta(k, D, printed):
+    """Under eq. (4) literally (delay ≥ D discarded) the same (k, D) give other numbers (0.0506, 0.0075, 0.0006)."""
+    assert round(db.theta(k, D, D5, "delay_lt_D"), 4) != printed
+
+
+def test_conventions_differ_by_a_shift_of_one():
+    for k in range(1, 12):
+        for D in range(1, 14):
+            assert db.theta(k, D + 1, D5, "delay_lt_D") == pytest.approx(db.theta(k, D, D5, "delay_le_D"), rel=1e-14)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(0.1, 8), st.integers(1, 15), st.sampled_from(["delay_le_D", "delay_lt_D"]))
+def test_theta_non_increasing_in_D_and_constant_beyond_saturation(d, k, conv):
+    cdf = PoissonDelay(mean=d).cdf
+    th = [db.theta(k, D, cdf, conv) for D in range(1, 25)]
+    assert all(a >= b - 1e-15 for a, b in zip(th, th[1:]))
+    sat = db.saturation_D(k, conv)
+    assert all(t == pytest.approx(db.theta(k, sat, cdf, conv), rel=1e-12) for t in th[sat - 1:])
+    assert db.theta_floor(k, cdf, conv) == pytest.approx(th[-1], rel=1e-12)
+
+
+def test_bounds_monotone_in_M_and_ordered():
+    Ms = np.linspace(0.5, 400, 200)
+    lo_hi = np.array([db.bounds(M, 10, EX, D5, "delay_le_D") for M in Ms])
+    assert np.all(lo_hi[:, 0] <= lo_hi[:, 1] + 1e-15)  # Lemma 3.6: k1 ≤ k2
+    assert np.all(np.diff(lo_hi[:, 0]) >= -1e-15) and np.all(np.diff(lo_hi[:, 1]) >= -1e-15)
+
+
+def test_min_buffer_binary_search_equals_linear_scan():
+    for d in (1, 3, 5, 7):
+        cdf = PoissonDelay(mean=d).cdf
+        for k in range(1, 12):
+            for eps in (0.5, 0.1, 0.03, 0.01, 1e-3, 1e-5):
+                for conv in ("delay_le_D", "delay_lt_D"):
+                    scan = next((D for D in range(1, 60) if db.theta(k, D, cdf, conv) <= eps), None)
+                    assert db.min_buffer(k, eps, cdf, conv) == scan
+
+
+def test_M_below_mbar_is_refused_with_the_reason():
+    with pytest.raises(TheoremConditionError, match=r"M ≥ M̄ = 0.5"):
+        db.k1(0.1, EX)
+
+
+def test_stable_system_can_have_infinite_k():
+    s = LinearSystem.create(0.5, 1, 0.2, 0.5)
+    assert math.isinf(db.k1(10, s))
+    assert db.theta(math.inf, 3, D5, "delay_le_D") == 0.0
+
+
+def test_delay_distributions_cdf_and_sampling_agree():
+    rng = np.random.default_rng(3)
+    n = 200_000
+    for dist in (PoissonDelay(mean=3), GeometricDelay(p=0.4), PmfDelay(probs=[0.5, 0.2, 0.1])):
+        x = dist.sample(rng, n)
+        for i in range(4):
+            p = float(dist.cdf(i))
+            emp = np.mean(x <= i)
+            assert abs(emp - p) <= 5 * math.sqrt(p * (1 - p) / n) + 1e-12
+    assert PmfDelay(probs=[0.5, 0.2, 0.1]).loss == pytest.approx(0.2)
