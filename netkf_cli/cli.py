@@ -186,7 +186,7 @@ def mind(
 def reproduce(
     topics: Annotated[Optional[list[str]], typer.Argument(help="Topics to run (default: all): shi2009, fading, smoothing, fusion, markov.")] = None,
     quick: Annotated[bool, typer.Option("--quick", help="Small Monte Carlo sizes; tolerances widened by their standard errors.")] = False,
-    out_dir: Annotated[Path, typer.Option("--out", help="Root folder of the results.")] = Path("results"),
+    out_dir: Annotated[Optional[Path], typer.Option("--out", help="Root folder of the results (default: results/, or build/quick-results/ with --quick).")] = None,
     check: Annotated[bool, typer.Option("--check", help="Exit 1 if a check expected to reproduce fails, or a golden CSV moved.")] = False,
     jobs: Annotated[int, typer.Option("--jobs", min=1, help="Artefacts run concurrently on this many local processes.")] = 1,
     report: Annotated[bool, typer.Option("--report/--no-report", help="Write <out>/REPORT.md.")] = True,

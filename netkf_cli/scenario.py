@@ -95,6 +95,10 @@ class MonteCarloSpec(StrictModel):
     burn_in: NonNegInt = Field(100, description="steps discarded before statistics are taken")
     seed: NonNegInt = Field(0, description="root seed")
     chunk: PositiveInt = Field(20_000, description="runs per chunk (memory bound; part of the random stream layout)")
+    quick_runs: PositiveInt | None = Field(None, description="Monte Carlo size under `netkf reproduce --quick` (default: min(runs, 2000))")
+
+    def quick_size(self) -> int:
+        return self.quick_runs if self.quick_runs is not None else min(self.runs, 2000)
 
 
 class OutputSpec(StrictModel):

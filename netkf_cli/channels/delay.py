@@ -117,3 +117,62 @@ class DelayChannel(ChannelModel):
     @property
     def D(self) -> int:
         return self.buffer
+
+
+# ---------------------------------------------------------------------------------------------
+# Vectorized samplers for the delay-buffer Monte Carlo (issue 3). Added below the models; the
+# models above are unchanged. Every function works for any channel with ``.cdf`` (delay or
+# bernoulli: f(0) = γ, f(∞) = 1 − γ).
+#
+# Sampling is by inverse CDF: a packet's delay is d = min{i : u < F(i)} with u ~ U[0, 1), so
+# the event "d ≤ i" is exactly "u < F(i)". This is an exact sampler of the pmf f (eq. 3),
+# including loss (F(∞) < 1 ⇒ u ≥ F(i) for every i with probability 1 − F(∞)), and it lets the
+# Monte Carlo kernels decide "received and kept by time k" with one comparison per packet.
+# ---------------------------------------------------------------------------------------------
+
+
+def cdf_table(channel, cap: int) -> np.ndarray:
+    """F(0), …, F(cap) as float64 (the delay cdf of ``channel``)."""
+    return np.asarray(channel.cdf(np.arange(cap + 1)), dtype=float).reshape(cap + 1)
+
+
+def delays_from_uniforms(u: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """Capped delays min(d, cap + 1) from uniforms u, with ``table`` = F(0..cap) (inverse CDF).
+
+    The value ``cap + 1`` means "later than cap, or lost". d ≤ i ⇔ u < F(i) for i ≤ cap.
+    """
+    return np.searchsorted(table, u, side="right").astype(np.int16)
+
+
+def sample_capped_delays(rng: np.random.Generator, channel, size, cap: int) -> np.ndarray:
+    """i.i.d. delays min(d, cap + 1) from ``channel``'s pmf (eq. 3), one per packet, int16."""
+    return delays_from_uniforms(rng.random(size), cdf_table(channel, cap))
+
+
+def kept_thresholds(channel, horizon: int) -> np.ndarray:
+    """Per packet s = 1..k (k = horizon) at time k: Pr[γ_s^{(k)} = 1] = F(min(k − s, D_max)) = γ̂_{k−s}(D).
+
+    Packet s is received and kept by time k iff u_s < threshold[s − 1] (eq. 4 under the
+    channel's convention: D_max = D under ``delay_le_D``, D − 1 under ``delay_lt_D``).
+    """
+    Dmax = max_kept_delay(channel.D, channel.convention)
+    age = horizon - np.arange(1, horizon + 1)
+    return np.asarray(channel.cdf(np.minimum(age, Dmax)), dtype=float).reshape(horizon)
+
+
+def kept_at(delays: np.ndarray, k: int, D: int, convention: Convention) -> np.ndarray:
+    """γ_s^{(k)} for packets s = 1..k from their delays (axis 0 = packet s − 1, any trailing run axes).
+
+    Packet s is received by time k iff d_s ≤ k − s, and kept iff d_s ≤ D_max (the buffer
+    discards older data before receiving it, Sec. 2.3).
+    """
+    age = (k - np.arange(1, delays.shape[0] + 1)).reshape((-1,) + (1,) * (delays.ndim - 1))
+    Dmax = max_kept_delay(D, convention)
+    return (delays.astype(np.int64) <= np.minimum(age, Dmax)) & (age >= 0)
+
+
+def arrivals_now(delays: np.ndarray, k: int, D: int, convention: Convention) -> np.ndarray:
+    """Packets arriving *exactly* at time k and kept: d_s = k − s ≤ D_max (axis 0 = packet s − 1)."""
+    age = (k - np.arange(1, delays.shape[0] + 1)).reshape((-1,) + (1,) * (delays.ndim - 1))
+    Dmax = max_kept_delay(D, convention)
+    return (delays.astype(np.int64) == age) & (age <= Dmax)

@@ -72,7 +72,7 @@ def _mmc(X, A):
 
 def _sandwich(A, X):
     """A X Aᵀ for constant A, batched X."""
-    return np.einsum("ij,jkb,lk->ilb", A, X, A, optimize=True)
+    return np.einsum("ikb,lk->ilb", np.einsum("ij,jkb->ikb", A, X), A)
 
 
 def _sym(X):

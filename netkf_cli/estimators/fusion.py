@@ -231,7 +231,7 @@ class OLPEFTables:
         flat = (np.arange(rows, dtype=np.int64)[:, None] * (K + 2) + tc).ravel()
         h = np.bincount(flat, minlength=rows * (K + 2)).reshape(rows, K + 2)[:, : K + 1].astype(float)
         T = self.T[: K + 1, : K + 1]
-        quad = np.einsum("ra,ab,rb->r", h, T, h, optimize=True)
+        quad = ((h @ T) * h).sum(axis=1)
         return self.sxx - 2 * h @ self.lin[: K + 1] + h @ self.diag[: K + 1] + quad
 
 

@@ -450,7 +450,8 @@ class MarkovLMIEstimator(EstimatorModel):
         "stationary", description="design marginals ρ_1..ρ_4 (sum 1) or 'stationary'")
     design: Literal["sdp", "closed_form"] = Field("sdp", description="how the per-step LMI problem is solved")
     solver: Literal["CLARABEL", "SCS"] = Field("CLARABEL", description="SDP solver used through cvxpy")
-    solver_tol: PositiveFloat = Field(1e-9, description="solver feasibility/gap tolerance")
-    eps: NonNegFloat = Field(1e-9, description="ε of eqs (33a), (34a), (35): slack of the X-block equality "
-                                             "and variance of x_s(0) around its value")
+    solver_tol: PositiveFloat = Field(1e-8, description="solver feasibility/gap tolerance (Clarabel tol_gap_abs, "
+                                                       "tol_gap_rel, tol_feas; SCS eps_abs, eps_rel)")
+    eps: PositiveFloat = Field(1e-5, description="ε of eqs (33a)/(34a)/(37a) (relative to the block size) and of "
+                                               "eq. (35) (variance of x_s(0) around its value)")
     precedence: bool = Field(True, description="use the precedence rule of eq. (34) for q = 2 (exclude j = 1 in Φ_2)")

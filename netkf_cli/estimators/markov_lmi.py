@@ -22,7 +22,10 @@ marginals ρ_q (not ρ_{q/j}) and mixes (eq. 34)
 
     minimize   Σ_q ρ_q tr(Γ_F Λ_q Γ_Fᵀ)
     subject to [[Λ_q, A_F,q Φ_q^{1/2}, B_F,q L_Σ], [·, I, 0], [·, 0, I]] ⪰ 0      (34), q = 1..4
-               Γ_0 Λ_q Γ_0ᵀ ⪯ F_q Φ_q,ξ F_qᵀ + G_q Σ G_qᵀ + εI                        (34a)
+               Γ_0 Λ_q Γ_0ᵀ ⪯ F_q Φ_q,ξ F_qᵀ + G_q Σ G_qᵀ + ε_q I                      (34a)
+
+with ε_q = ε·max(1, tr(F_q Φ_q,ξ F_qᵀ + G_q Σ G_qᵀ)/d) (ε relative to the block's size: an
+absolute ε ≈ 0 leaves the feasible set without interior and interior-point solvers fail).
 
 The first LMI is eq. (34) with the Schur complement taken through factors instead of
 Φ⁻¹ and Λ_W⁻¹ (Φ is singular at k = 0 and Σ is singular in Example 1); it is equivalent to
@@ -170,7 +173,7 @@ class _SDP:
         self.cp = cp
         md = blocks.model
         n, m, d, p, D = blocks.n, blocks.m, blocks.d, blocks.p, blocks.D
-        self.blocks, self.solver, self.tol = blocks, solver, tol
+        self.blocks, self.solver, self.tol, self.eps = blocks, solver, tol, eps
         Gam, Ls = blocks.Gam, md.Lsig
         I_D, I_p = np.eye(D), np.eye(p)
         Z_Dp, Z_dn = np.zeros((D, p)), np.zeros((d, n))
@@ -184,13 +187,13 @@ class _SDP:
         self.Gs = cp.Variable((n, m), name="G_s")
         self.Lp = [cp.Variable((D, D), symmetric=True, name=f"Lambda_{q + 1}") for q in range(N_MODES)]
         self.Php = [cp.Parameter((D, D), name=f"Phi_half_{q + 1}") for q in range(N_MODES)]
-        self.X0p = [cp.Parameter((d, d), name=f"X0_{q + 1}") for q in range(N_MODES)]
+        self.X0p = [cp.Parameter((d, d), name=f"X0_{q + 1}") for q in range(N_MODES)]  # includes +εI
         cons = []
         for q in range(N_MODES):
             AF = cp.bmat([[md.F[q], Z_dn], [self.Gs @ md.H[q], self.As]])
             BF = cp.vstack([md.G[q], self.Gs @ md.J[q]])
             cons.append(lmi(self.Lp[q], AF @ self.Php[q], BF @ Ls))
-            cons.append(self.X0p[q] + eps * np.eye(d) - self.Lp[q][:d, :d] >> 0)
+            cons.append(self.X0p[q] - self.Lp[q][:d, :d] >> 0)
         obj = sum(rho[q] * cp.trace(Gam @ self.Lp[q] @ Gam.T) for q in range(N_MODES))
         self.pred = cp.Problem(cp.Minimize(obj), cons)
         # update
@@ -203,7 +206,7 @@ class _SDP:
             AF = cp.bmat([[np.eye(d), Z_dn], [self.L @ md.H[q], np.eye(n)]])
             BF = cp.vstack([np.zeros((d, p)), self.L @ md.J[q]])
             cons.append(lmi(self.Lu[q], AF @ self.Phu[q], BF @ Ls))
-            cons.append(self.X0u[q] + eps * np.eye(d) - self.Lu[q][:d, :d] >> 0)
+            cons.append(self.X0u[q] - self.Lu[q][:d, :d] >> 0)
         obj = sum(rho[q] * cp.trace(Gam @ self.Lu[q] @ Gam.T) for q in range(N_MODES))
         self.upd = cp.Problem(cp.Minimize(obj), cons)
 
@@ -220,13 +223,18 @@ class _SDP:
             raise RuntimeError(f"LMI solve failed: {prob.status}")
         return dt
 
+    def _eps(self, X0):
+        """εI of (34a)/(37a), relative to the size of the block: ε·max(1, tr X0 / d)·I."""
+        d = X0.shape[0]
+        return self.eps * max(1.0, float(np.trace(X0)) / d) * np.eye(d)
+
     def predict(self, Phi):
         md = self.blocks.model
         d = self.blocks.d
         for q in range(N_MODES):
             self.Php[q].value = psd_sqrt(Phi[q])
             X0 = md.F[q] @ Phi[q][:d, :d] @ md.F[q].T + md.G[q] @ md.Sigma @ md.G[q].T
-            self.X0p[q].value = (X0 + X0.T) / 2
+            self.X0p[q].value = (X0 + X0.T) / 2 + self._eps(X0)
         dt = self._solve(self.pred)
         return self.As.value, self.Gs.value, np.array([L.value for L in self.Lp]), self.pred.value, self.pred.status, dt
 
@@ -235,13 +243,13 @@ class _SDP:
         for q in range(N_MODES):
             self.Phu[q].value = psd_sqrt(Phi[q])
             X0 = Phi[q][:d, :d]
-            self.X0u[q].value = (X0 + X0.T) / 2
+            self.X0u[q].value = (X0 + X0.T) / 2 + self._eps(X0)
         dt = self._solve(self.upd)
         return self.L.value, np.array([L.value for L in self.Lu]), self.upd.value, self.upd.status, dt
 
 
 def lmi_design(model: AugmentedModel, rho, x0, P0, horizon: int, *, design: str = "sdp",
-               solver: str = "CLARABEL", tol: float = 1e-9, eps: float = 1e-9,
+               solver: str = "CLARABEL", tol: float = 1e-8, eps: float = 1e-5,
                precedence: bool = True, progress=None) -> LMIDesign:
     """Gains A_s(k), G_s(k), L(k), k = 0..horizon−1, by the conceptual algorithm of Sec. III-C.
 
