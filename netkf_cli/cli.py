@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import functools
 import json
-import math
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -84,17 +84,29 @@ def run(
     force: Annotated[bool, typer.Option("--force", help="Replace an existing result folder.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary instead of text.")] = False,
+    jobs: Annotated[Optional[int], typer.Option("--jobs", "-j", min=1, help="Local processes for Monte Carlo chunks (default: all cores).")] = None,
+    executor: Annotated[str, typer.Option("--executor", help="local (process pool on --jobs cores) or dask.")] = "local",
+    scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="Dask scheduler address, or 'local' for a LocalCluster.")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Reuse the finished chunks of an interrupted run of the same scenario.")] = False,
 ):
     """Run a scenario: write <name>.csv, <name>.png and manifest.json into the result folder."""
     from netkf_cli.loader import load_scenario
     from netkf_cli.runner import run_scenario
 
+    if executor not in ("local", "dask"):
+        raise typer.BadParameter("must be 'local' or 'dask'", param_hint="--executor")
+    if scheduler is not None and executor != "dask":
+        raise typer.BadParameter("--scheduler goes with --executor dask", param_hint="--scheduler")
+    n_jobs = jobs or os.cpu_count() or 1
+    mode = "dask" if executor == "dask" else ("process" if n_jobs > 1 else "serial")
     scenario = load_scenario(config)
     with make_progress(quiet or as_json) as prog:
         task = prog.add_task(scenario.name, total=None)
         folder = run_scenario(
             scenario, source=config, out_dir=out_dir, runs=runs, force=force,
             progress=lambda n: prog.advance(task, n), set_total=lambda n: prog.update(task, total=n),
+            executor=mode, jobs=n_jobs, scheduler=scheduler or ("local" if executor == "dask" else None),
+            resume=resume,
         )
     manifest = json.loads((folder / "manifest.json").read_text())
     if as_json:

@@ -26,6 +26,7 @@ from netkf_cli.spec import (
     PositiveInt,
     StrictModel,
 )
+from netkf_cli.sweep import SweepSpec
 from netkf_cli.system import LinearSystem
 
 _PACKAGES = (channels, estimators, recipes)
@@ -122,6 +123,7 @@ def scenario_model() -> type[StrictModel]:
         "analysis": (an, ...),
         "montecarlo": (MonteCarloSpec, MonteCarloSpec()),
         "output": (OutputSpec, OutputSpec()),
+        "sweep": (SweepSpec | None, Field(None, description="optional parameter sweep over dotted field paths")),
     }
     return create_model("Scenario", __base__=ScenarioBase, **fields)
 

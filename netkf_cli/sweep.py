@@ -1,0 +1,193 @@
+"""Parameter sweeps: a ``sweep:`` block over dotted field paths of the scenario.
+
+    sweep:
+      channel.delay.mean: [1, 2, 3, 4, 5, 6]
+      channel.buffer: {from: 1, to: 15}        # integers from..to inclusive (optional step)
+      mode: product                            # or zip (all lists the same length)
+      plot: {series: monte_carlo, where: {M: 50}}
+
+Every point is validated before anything runs (a bad point fails with its coordinates);
+the artefact's tables get one column per swept field (named by its dotted path).
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+from pydantic import Field, model_validator
+
+from netkf_cli.errors import ConfigError, Problem
+from netkf_cli.spec import StrictModel
+
+
+class SweepRange(StrictModel):
+    from_: float = Field(alias="from")
+    to: float
+    step: float = 1.0
+
+    def values(self) -> list:
+        if self.step <= 0:
+            raise ValueError("step must be > 0")
+        n = int(np.floor((self.to - self.from_) / self.step + 1e-9)) + 1
+        vals = [self.from_ + i * self.step for i in range(max(n, 0))]
+        return [int(v) if float(v).is_integer() else v for v in vals]
+
+
+class SweepPlot(StrictModel):
+    x: str | None = Field(None, description="swept field on the x-axis (default: the first)")
+    series: str | None = Field(None, description="which `series` of the table to draw (default: the first)")
+    where: dict[str, Any] = Field(default_factory=dict, description="column == value filters (e.g. {M: 50})")
+    logy: bool = False
+
+
+class SweepSpec(StrictModel):
+    """``sweep:`` dotted field paths → values; ``mode: product | zip``; optional ``plot``."""
+
+    mode: Literal["product", "zip"] = "product"
+    plot: SweepPlot = Field(default_factory=SweepPlot)
+    axes: dict[str, list[Any]] = Field(default_factory=dict)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _collect_axes(cls, data):
+        if not isinstance(data, dict):
+            return data
+        data = dict(data)
+        axes = dict(data.pop("axes", {}) or {})
+        for key in list(data):
+            if key in ("mode", "plot"):
+                continue
+            val = data.pop(key)
+            if isinstance(val, dict):
+                val = SweepRange.model_validate(val).values()
+            if not isinstance(val, list) or not val:
+                raise ValueError(f"{key}: expected a non-empty list or {{from, to, step}}")
+            axes[key] = val
+        data["axes"] = axes
+        return data
+
+    @model_validator(mode="after")
+    def _check(self):
+        if not self.axes:
+            raise ValueError("a sweep needs at least one dotted field path with values")
+        if self.mode == "zip" and len({len(v) for v in self.axes.values()}) > 1:
+            raise ValueError(f"mode zip needs lists of equal length, got {[len(v) for v in self.axes.values()]}")
+        return self
+
+    def points(self) -> list[dict[str, Any]]:
+        keys = list(self.axes)
+        combos = zip(*self.axes.values()) if self.mode == "zip" else itertools.product(*self.axes.values())
+        return [dict(zip(keys, c)) for c in combos]
+
+
+def _set(data: dict, path: str, value: Any) -> None:
+    parts = path.split(".")
+    cur = data
+    for p in parts[:-1]:
+        if not isinstance(cur, dict) or p not in cur or not isinstance(cur[p], dict):
+            raise KeyError(p)
+        cur = cur[p]
+    if not isinstance(cur, dict):
+        raise KeyError(parts[-1])
+    cur[parts[-1]] = value
+
+
+def expand(scenario, file: str | None = None) -> list[tuple[dict, Any]]:
+    """All sweep points as (coordinates, validated Scenario); every bad point is reported at once."""
+    from pydantic import ValidationError
+
+    from netkf_cli.loader import validation_problems
+    from netkf_cli.scenario import scenario_model
+
+    base = scenario.model_dump(mode="json", by_alias=True, exclude={"sweep"})
+    Model = scenario_model()
+    out, problems = [], []
+    for coords in scenario.sweep.points():
+        data = _deep_copy(base)
+        where = ", ".join(f"{k}={v}" for k, v in coords.items())
+        bad = False
+        for path, v in coords.items():
+            try:
+                _set(data, path, v)
+            except KeyError:
+                problems.append(Problem(f"sweep.{path}", "is not a field path of this scenario", file))
+                bad = True
+        if bad:
+            continue
+        try:
+            out.append((coords, Model.model_validate(data)))
+        except ValidationError as exc:
+            for p in validation_problems(exc, data, {}, file):
+                problems.append(Problem(p.path, f"{p.message} (sweep point {where})", file))
+    if problems:
+        # de-duplicate (a bad path repeats at every point)
+        seen, uniq = set(), []
+        for p in problems:
+            if (p.path, p.message) not in seen:
+                seen.add((p.path, p.message))
+                uniq.append(p)
+        raise ConfigError(uniq)
+    return out
+
+
+def _deep_copy(x):
+    if isinstance(x, dict):
+        return {k: _deep_copy(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_deep_copy(v) for v in x]
+    return x
+
+
+def add_coords(df: pd.DataFrame, coords: dict) -> pd.DataFrame:
+    df = df.copy()
+    for i, (k, v) in enumerate(coords.items()):
+        df.insert(i, k, v)
+    return df
+
+
+def plot(tables, scenario):
+    """Default sweep figure: value against the first swept field, one line per value of the second."""
+    from netkf_cli.plotting import footnote, new_figure
+
+    t = tables["main"]
+    spec = scenario.sweep
+    axes = list(spec.axes)
+    x = spec.plot.x or axes[0]
+    others = [a for a in axes if a != x]
+    line = others[0] if others else None
+    if "series" in t.columns:
+        series = spec.plot.series or str(t["series"].iloc[0])
+        t = t[t["series"].astype(str) == series]
+    else:
+        series = "value"
+    for col, want in spec.plot.where.items():
+        if col in t.columns:
+            t = t[np.isclose(t[col].astype(float), float(want))] if isinstance(want, (int, float)) else t[t[col].astype(str) == str(want)]
+    fixed = []
+    key_cols = [c for c in t.columns if c not in {"value", "stderr", "n", "series", x} and c != line and c not in axes]
+    for c in key_cols:
+        if t[c].nunique(dropna=False) > 1:
+            first = t[c].iloc[0]
+            t = t[t[c] == first] if pd.notna(first) else t[t[c].isna()]
+            fixed.append(f"{c} = {first}")
+    fig, ax = new_figure()
+    groups = t.groupby(line, sort=True) if line else [(None, t)]
+    for val, g in groups:
+        g = g.sort_values(x)
+        label = f"{line} = {val}" if line else series
+        if "stderr" in g.columns and g["stderr"].notna().any():
+            ax.errorbar(g[x], g["value"], yerr=g["stderr"], marker="o", ms=3, capsize=2, label=label)
+        else:
+            ax.plot(g[x], g["value"], marker="o", ms=3, label=label)
+    if spec.plot.logy:
+        ax.set_yscale("log")
+    ax.set_xlabel(x)
+    ax.set_ylabel(series)
+    ax.set_title(f"{scenario.name}: {series} over the sweep" + (f" ({', '.join(fixed)})" if fixed else ""), fontsize=10)
+    if line:
+        ax.legend(fontsize=7, ncol=2)
+    footnote(fig, f"sweep ({spec.mode}) over {', '.join(axes)}; {len(spec.points())} points")
+    return fig

@@ -1,0 +1,66 @@
+"""Sweeps: one row per point with the swept columns; a bad point is rejected before any work starts."""
+
+import textwrap
+
+import pandas as pd
+from typer.testing import CliRunner
+
+from netkf_cli.cli import app
+
+runner = CliRunner()
+
+BASE = textwrap.dedent(
+    """\
+    name: sw
+    system: {{A: 1.4, C: 1, Q: 0.2, R: 0.5}}
+    channel: {{kind: delay, delay: {{kind: poisson, mean: 5}}, buffer: 10}}
+    analysis: {{kind: theta_vs_buffer, M: [50], D_max: 4}}
+    sweep:
+      channel.delay.mean: {means}
+      analysis.D_max: {{from: 2, to: 4}}
+      {extra}
+    """
+)
+
+
+def test_product_sweep_table_and_figure(tmp_path):
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(BASE.format(means="[3, 5]", extra="plot: {series: theta_k1, logy: true}"))
+    r = runner.invoke(app, ["run", str(cfg), "--out", str(tmp_path / "o"), "-j", "1"])
+    assert r.exit_code == 0, r.output
+    t = pd.read_csv(tmp_path / "o" / "sw.csv")
+    assert list(t.columns[:2]) == ["channel.delay.mean", "analysis.D_max"]
+    pts = t[["channel.delay.mean", "analysis.D_max"]].drop_duplicates()
+    assert len(pts) == 2 * 3
+    # each point's rows equal an unswept run of that point
+    one = t[(t["channel.delay.mean"] == 3) & (t["analysis.D_max"] == 2) & (t.series == "theta_k1")]
+    assert one.D.tolist() == [1, 2]
+    assert (tmp_path / "o" / "sw.png").stat().st_size > 10_000
+
+
+def test_zip_sweep(tmp_path):
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(BASE.format(means="[3, 4, 5]", extra="mode: zip"))
+    r = runner.invoke(app, ["run", str(cfg), "--out", str(tmp_path / "o"), "-j", "1"])
+    assert r.exit_code == 0, r.output
+    t = pd.read_csv(tmp_path / "o" / "sw.csv")
+    assert len(t[["channel.delay.mean", "analysis.D_max"]].drop_duplicates()) == 3
+
+
+def test_bad_point_rejected_before_running(tmp_path):
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(BASE.format(means="[3, -1]", extra=""))
+    r = runner.invoke(app, ["run", str(cfg), "--out", str(tmp_path / "o")])
+    assert r.exit_code == 1
+    assert "channel.delay.mean" in r.output and "sweep point channel.delay.mean=-1" in r.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_unknown_path_and_zip_length(tmp_path):
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(BASE.format(means="[3]", extra="channel.bogus: [1]"))
+    r = runner.invoke(app, ["run", str(cfg), "--out", str(tmp_path / "o")])
+    assert r.exit_code == 1 and "channel.bogus" in r.output
+    cfg.write_text(BASE.format(means="[3, 4]", extra="mode: zip"))
+    r = runner.invoke(app, ["validate", str(cfg)])
+    assert r.exit_code == 1 and "zip needs lists of equal length" in r.output
