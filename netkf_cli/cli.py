@@ -154,7 +154,7 @@ def list_kinds():
     for title, base in (("channel", ChannelModel), ("estimator", EstimatorModel), ("analysis", AnalysisModel)):
         out.print(f"[bold]{title} kinds[/]")
         for k, cls in sorted(kinds(base).items()):
-            doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
+            doc = (cls.__doc__ or "").strip().splitlines()[0].replace("``", "") if cls.__doc__ else ""
             out.print(f"  {k:<22} {doc}", highlight=False, markup=False)
 
 

@@ -171,6 +171,8 @@ class ScalarFusionModel:
         """Slope and intercept of L_f^LB(P, ℓ) = slope·P + icpt, the chord of eq. (17)."""
         pm, pM = self.pm, self.pM
         fm, fM = self.phi_f(pm, ell), self.phi_f(pM, ell)
+        if pM - pm <= 1e-12 * pM:  # degenerate interval (A = 0 or C = 0): any line through the point; take slope 0
+            return np.zeros_like(np.asarray(fm, dtype=float)), fm
         slope = (fM - fm) / (pM - pm)
         return slope, fm - slope * pm
 

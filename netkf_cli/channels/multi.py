@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from netkf_cli.spec import ChannelModel, PositiveInt, Probability
 
@@ -64,11 +64,13 @@ class MultiChannel(ChannelModel):
         description="packet LOSS probability (the paper's λ): one value for all sensors or a list of N"
     )
 
-    @model_validator(mode="after")
-    def _check_loss_length(self):
-        if isinstance(self.loss, list) and len(self.loss) != self.sensors:
-            raise ValueError(f"loss: a list must have one entry per sensor ({self.sensors}), got {len(self.loss)}")
-        return self
+    @field_validator("loss")
+    @classmethod
+    def _check_loss_length(cls, v, info: ValidationInfo):
+        n = info.data.get("sensors")
+        if isinstance(v, list) and n is not None and len(v) != n:
+            raise ValueError(f"a list must have one entry per sensor ({n}), got {len(v)}")
+        return v
 
     @property
     def loss_array(self) -> np.ndarray:

@@ -203,6 +203,11 @@ class FusionVsMuQ(AnalysisModel):
         ax2.axhline(1.0, color=COLOR["ibf"], lw=1, ls=":")
         ax2.set_xscale("log")
         ax2.set_yscale("log")
+        from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+        ax2.yaxis.set_major_formatter(ScalarFormatter())
+        ax2.yaxis.set_minor_formatter(NullFormatter())
+        ax2.set_yticks([1, 1.1, 1.25, 1.5, 2, 3, 5])
         ax2.set_xlabel("μ_Q")
         ax2.set_ylabel("ratio to IBF error variance")
         ax2.set_title("ratios to the optimal IBF")

@@ -66,8 +66,8 @@ class MarkovFiltersAnalysis(AnalysisModel):
                                                       "(the paper's x_s(0)); default = x0. The MSE runs start from x0")
     trajectory_seed: NonNegInt = Field(0, description="which realization to plot: stream SeedSequence(seed, "
                                                       "spawn_key=(2**20 + trajectory_seed,))")
-    plot_estimate: Literal["filtered", "predicted"] = Field("filtered", description="estimate drawn in the "
-                                                                                    "trajectory panels")
+    plot_estimate: Literal["filtered", "predicted"] = Field("predicted", description="estimate drawn in the "
+                                                                                     "panels: predicted = x_s(k) of eq. (24), the estimate the paper designs")
 
     # ------------------------------------------------------------------ setup
     def _setup(self, scenario):
@@ -198,7 +198,9 @@ class MarkovFiltersAnalysis(AnalysisModel):
             if len(kk):
                 y0 = ax0.get_ylim()[0]
                 ax0.plot(kk, np.full(len(kk), y0), mk, ms=3, color="0.4", label=f"mode {q} ({MODE_NAMES[q - 1]})")
-        axes[0].legend(ncol=3, fontsize=7, loc="upper right")
+        lo, hi = ax0.get_ylim()
+        ax0.set_ylim(lo, hi + 0.45 * (hi - lo))  # head-room for the legend
+        ax0.legend(ncol=3, fontsize=7, loc="upper center")
         ax = axes[-1]
         for f in FILTERS:
             r = mse_t[(mse_t["filter"] == f) & (mse_t["estimate"] == est) & (mse_t["quantity"] == "mc")]
@@ -209,14 +211,16 @@ class MarkovFiltersAnalysis(AnalysisModel):
             ex = mse_t[(mse_t["filter"] == f) & (mse_t["estimate"] == est) & (mse_t["quantity"] == "exact")]
             if len(ex):
                 ax.plot(ex["k"], ex["value"], color="black", lw=0.7, ls=":")
-        ax.set_yscale("log")
+        ax.set_ylim(bottom=0)
+        lo, hi = ax.get_ylim()
+        ax.set_ylim(0, hi * 1.35)
         ax.set_xlabel("time step k")
         ax.set_ylabel("E‖x(k) − x̂(k|k)‖²" if est == "filtered" else "E‖x(k) − x̂(k|k−1)‖²")
         n_runs = int(mse["n_runs"].max())
         w = mse["window"].iloc[0]
         ax.set_title(f"mean squared error over {n_runs} runs (band ±2 s.e.; dotted = exact); legend: mean over {w}",
                      fontsize=9)
-        ax.legend(fontsize=7, loc="upper right")
+        ax.legend(fontsize=7, loc="upper center", ncol=2)
         footnote(fig, f"{scenario.name}: Moayedi, Soh & Foo 2009 — modes 2 delay, 3 missing, 4 dropout; "
                       f"every filter starts from x_s(0) in the top panels, from E x(0) in the MSE runs")
         return fig
