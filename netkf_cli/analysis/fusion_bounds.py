@@ -23,7 +23,6 @@ The bounds that use L^LB (Prop. 1, Prop. 2 for k ≥ 2) are restricted to scalar
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -405,5 +404,5 @@ def binom_mean(N: int, loss: float) -> float:
 __all__ = [
     "phi_f", "phi", "l_f", "kalman_gain", "p_m", "p_M", "ScalarFusionModel", "psi", "mf_upper_bound",
     "mf_lower_bound", "backward_transition", "ibf_lower_bound", "ibf_lower_bounds", "ibf_truncated_exact",
-    "IBFBoundSequence", "lemma1_violations", "binom_mean", "math",
+    "IBFBoundSequence", "lemma1_violations", "binom_mean",
 ]

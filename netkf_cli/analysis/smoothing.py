@@ -91,11 +91,12 @@ def k1(s: LinearSystem, M, Mbar: np.ndarray | None = None, k_max: int = K_MAX) -
             "analysis.M", f"must satisfy M ≥ M̄ = {np.array2string(X, precision=4)} for the guarantee of eq. (7) to make sense"
         )
     for k in range(1, k_max + 1):
-        X = riccati.h(X, s)
-        if not bool(riccati.psd_leq(X, Mm)):
+        Xn = riccati.h(X, s)
+        if not bool(riccati.psd_leq(Xn, Mm)) or not np.all(np.isfinite(Xn)):
             return float(k)
-        if not np.all(np.isfinite(X)):
-            return float(k)
+        if np.abs(Xn - X).max() <= 1e-15 * max(1.0, float(np.abs(X).max())):
+            return math.inf  # converged to the fixed point of h below M (stable A)
+        X = Xn
     return math.inf
 
 
@@ -241,6 +242,85 @@ def _psd_geq(X: np.ndarray, Y: np.ndarray, tol: float = PSD_TOL) -> bool:
     return float(np.linalg.eigvalsh(D)[0]) >= -tol * scale
 
 
+class _Batch:
+    """Batched (leading axis = node) Riccati maps in covariance and information form."""
+
+    def __init__(self, s: LinearSystem):
+        self.s = s
+        self.Ainv = _require_invertible_A(s)
+        self.CRC = riccati.sym(s.C.T @ np.linalg.solve(s.R, s.C))
+        self.Pst = riccati.pstar(s)
+        self.I = np.eye(s.n)
+
+    @staticmethod
+    def sym(X):
+        return 0.5 * (X + np.swapaxes(X, -1, -2))
+
+    def cov_step(self, P: np.ndarray, gam: np.ndarray) -> np.ndarray:
+        """P ← A P Aᵀ + Q − γ A P Cᵀ (C P Cᵀ + R)⁻¹ C P Aᵀ, batched."""
+        s = self.s
+        CP = s.C @ P
+        S = CP @ s.C.T + s.R
+        corr = np.swapaxes(CP, -1, -2) @ np.linalg.solve(S, CP)
+        Pu = P - gam[:, None, None] * corr
+        return self.sym(s.A @ Pu @ s.A.T + s.Q)
+
+    def info_step(self, Y: np.ndarray, gam: np.ndarray) -> np.ndarray:
+        """Y ← Z (I + Q Z)⁻¹, Z = A⁻ᵀ (Y + γ CᵀR⁻¹C) A⁻¹ (valid for singular Y, i.e. P = ∞ directions)."""
+        Z = self.Ainv.T @ (Y + gam[:, None, None] * self.CRC) @ self.Ainv
+        K = self.I + self.s.Q @ Z
+        out = np.swapaxes(np.linalg.solve(np.swapaxes(K, -1, -2), np.swapaxes(Z, -1, -2)), -1, -2)
+        return self.sym(out)
+
+    def evaluate(self, bits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For suffixes ``bits`` (B, j) (oldest first): P_lo = Φ_s(P*), Y_hi = (Φ_s(∞))⁻¹ (information)."""
+        B = bits.shape[0]
+        n = self.s.n
+        P = np.broadcast_to(self.Pst, (B, n, n)).copy()
+        Y = np.zeros((B, n, n))
+        for c in range(bits.shape[1]):
+            gam = bits[:, c].astype(float)
+            P = self.cov_step(P, gam)
+            Y = self.info_step(Y, gam)
+        return P, Y
+
+    def smoothed(self, P: np.ndarray, pattern) -> np.ndarray:
+        """Batched :func:`smoothed_from_prior`: P − P Hᵀ (H P Hᵀ + Σ_η)⁻¹ H P."""
+        H, Sig = _future_model(self.s, pattern)
+        if H is None:
+            return P
+        PH = P @ H.T
+        S = H @ PH + Sig
+        return self.sym(P - PH @ np.linalg.solve(S, np.swapaxes(PH, -1, -2)))
+
+
+def _future_model(s: LinearSystem, pattern):
+    """(H, Σ_η) of the received future measurements y_{k+i} = C Aⁱ x_k + η_i (see :func:`future_information`)."""
+    f = [int(b) for b in pattern]
+    idx = [i for i, b in enumerate(f) if b]
+    if not idx:
+        return None, None
+    n, m = s.n, s.m
+    Ap = [np.eye(n)]
+    for _ in range(max(idx) + 1):
+        Ap.append(s.A @ Ap[-1])
+    H = np.vstack([s.C @ Ap[i] for i in idx])
+    Sig = np.zeros((len(idx) * m, len(idx) * m))
+    for a, i in enumerate(idx):
+        for b, j in enumerate(idx):
+            acc = np.zeros((n, n))
+            for l in range(min(i, j)):
+                acc += Ap[i - 1 - l] @ s.Q @ Ap[j - 1 - l].T
+            Sig[a * m:(a + 1) * m, b * m:(b + 1) * m] = s.C @ acc @ s.C.T + (s.R if i == j else 0.0)
+    return H, Sig
+
+
+def _min_eig(X: np.ndarray) -> np.ndarray:
+    if X.shape[-1] == 1:
+        return X[..., 0, 0]
+    return np.linalg.eigvalsh(0.5 * (X + np.swapaxes(X, -1, -2)))[..., 0]
+
+
 @dataclass(frozen=True)
 class ExactProbability:
     """A certified bracket lower ≤ P(·) ≤ upper; ``value`` is its midpoint, ``width`` = upper − lower."""
@@ -273,75 +353,59 @@ def exact_probability(
     """Stationary P(P_{k|k+N} ≤ M) (``lag=N``; ``lag=None`` for P_{k|k−1}), arrivals a 2-state Markov
     chain ``T[a, b] = P(γ_{k+1}=b | γ_k=a)`` with stationary ``pi`` (Bernoulli: identical rows).
 
-    Backward enumeration over the recent arrival pattern (module docstring); returns a bracket.
+    Backward enumeration over the recent arrival pattern (module docstring), vectorized over the
+    nodes of one level; returns a certified bracket. Nodes of joint weight < ``tol`` that are still
+    undecided are dropped into the bracket's width.
     """
     Mm = as_bound(M, s.n)
     Minv = np.linalg.inv(Mm)
-    Ainv = _require_invertible_A(s)
+    bt = _Batch(s)
     T = np.asarray(T, dtype=float)
     pi = np.asarray(pi, dtype=float)
     if np.any(pi <= 0):
         raise ConfigError.at("channel", "the exact enumeration needs both arrivals and losses to be possible (0 < λ < 1)")
-    CRC = s.C.T @ np.linalg.solve(s.R, s.C)
-    Pst = riccati.pstar(s)
     futures = [()] if lag is None else list(itertools.product((0, 1), repeat=lag + 1))
+    F = len(futures)
     Js = [future_information(s, f) for f in futures]
-    # joint weight of each future pattern given the earliest future symbol
-    fw = []
-    for f in futures:
-        w = 1.0
-        for a, b in zip(f[:-1], f[1:]):
-            w *= T[a, b]
-        fw.append(w)
-    fw = np.array(fw)
-
-    def classify(P_lo: np.ndarray, Y_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        ok_sure = np.zeros(len(futures), dtype=bool)
-        bad_sure = np.zeros(len(futures), dtype=bool)
+    fw = np.array([np.prod([T[a, b] for a, b in zip(f[:-1], f[1:])]) if f else 1.0 for f in futures])
+    first = np.array([f[0] if f else -1 for f in futures])
+    scale = max(1.0, float(np.abs(Minv).max()))
+    lower, lost, nodes, depth = 0.0, 0.0, 0, 0
+    bits = np.zeros((1, 0), dtype=np.int8)
+    W = np.array([[pi[f[0]] * fw[i] if f else 1.0 for i, f in enumerate(futures)]])
+    while bits.shape[0]:
+        nodes += bits.shape[0]
+        P_lo, Y_hi = bt.evaluate(bits)
+        ok = np.zeros(W.shape, dtype=bool)
+        bad = np.zeros(W.shape, dtype=bool)
         for i, f in enumerate(futures):
-            if _psd_geq(Y_hi + Js[i], Minv):
-                ok_sure[i] = True
-            elif not bool(riccati.psd_leq(smoothed_from_prior(P_lo, s, f), Mm, tol=PSD_TOL)):
-                bad_sure[i] = True
-        return ok_sure, bad_sure
-
-    lower = 0.0
-    lost = 0.0
-    nodes = 0
-    # node: (suffix tuple oldest→newest, weights per future (unresolved only, else 0))
-    root_w = np.array([pi[f[0]] * fw[i] if f else 1.0 for i, f in enumerate(futures)])
-    level = [((), root_w)]
-    depth = 0
-    while level:
-        nxt = []
-        for suffix, w in level:
-            nodes += 1
-            P_lo = Pst
-            Y_hi = np.zeros((s.n, s.n))
-            for b in suffix:
-                P_lo = _cov_step(P_lo, s, bool(b))
-                Y_hi = _info_step(Y_hi, s, Ainv, CRC, bool(b))
-            ok, bad = classify(P_lo, Y_hi)
-            lower += float(w[ok].sum())
-            w = np.where(ok | bad, 0.0, w)
-            if w.sum() <= 0:
-                continue
-            if w.sum() < tol or depth >= max_depth:
-                lost += float(w.sum())
-                continue
-            for b in (0, 1):
-                if suffix:
-                    a = suffix[0]
-                    factor = np.full(len(futures), pi[b] * T[b, a] / pi[a])
-                elif futures[0]:
-                    factor = np.array([pi[b] * T[b, f[0]] / pi[f[0]] for f in futures])
-                else:
-                    factor = np.full(1, pi[b])
-                nxt.append(((b,) + suffix, w * factor))
-        if len(nxt) > max_nodes:
-            lost += float(sum(w.sum() for _, w in nxt))
-            nxt = []
-        level = nxt
+            ok[:, i] = _min_eig(Y_hi + Js[i] - Minv) >= -PSD_TOL * scale
+            Ps = bt.smoothed(P_lo, f)
+            bad[:, i] = ~ok[:, i] & (_min_eig(Mm - Ps) < -PSD_TOL * max(1.0, float(np.abs(Mm).max())))
+        lower += float(W[ok].sum())
+        W = np.where(ok | bad, 0.0, W)
+        tot = W.sum(axis=1)
+        small = (tot > 0) & ((tot < tol) | (depth >= max_depth))
+        lost += float(tot[small].sum())
+        keep = (tot > 0) & ~small
+        bits, W = bits[keep], W[keep]
+        if not bits.shape[0]:
+            break
+        if 2 * bits.shape[0] > max_nodes:
+            lost += float(W.sum())
+            break
+        kids_bits, kids_W = [], []
+        for b in (0, 1):
+            if bits.shape[1]:
+                a = bits[:, 0].astype(int)
+                factor = (pi[b] * T[b, a] / pi[a])[:, None] * np.ones((1, F))
+            elif futures[0]:
+                factor = np.broadcast_to(pi[b] * T[b, first] / pi[first], W.shape)
+            else:
+                factor = np.full(W.shape, pi[b])
+            kids_bits.append(np.hstack([np.full((bits.shape[0], 1), b, dtype=np.int8), bits]))
+            kids_W.append(W * factor)
+        bits, W = np.vstack(kids_bits), np.vstack(kids_W)
         depth += 1
     return ExactProbability(lower=lower, upper=min(1.0, lower + lost), nodes=nodes, depth=depth)
 
@@ -363,40 +427,46 @@ class ExactMean:
         return 0.5 * (self.lower + self.upper)
 
 
-def _expect_bounded(phi, s: LinearSystem, lam: float, cap: np.ndarray, tol: float, max_depth: int):
-    """E[φ(P_{k|k−1})] under i.i.d. Bernoulli(λ) for a monotone φ with φ(P) ≤ ``cap`` (bracket).
+def _expect_bounded(phis, caps, weights, bt: _Batch, lam: float, tol: float, max_depth: int, max_nodes: int):
+    """E[φ_i(P_{k|k−1})] under i.i.d. Bernoulli(λ) for monotone φ_i with φ_i ≤ ``caps[i]`` (brackets).
 
-    φ is given as ``phi(P_lo, Y_hi) -> (φ(P_lo), φ(P_hi))``.
+    ``phis[i](P_lo, Y_hi) -> (φ(P_lo), φ(P_hi))`` batched; a node is refined while
+    weight × Σ_i weights[i]·tr(φ_i(P_hi) − φ_i(P_lo)) > tol.
     """
-    Ainv = _require_invertible_A(s)
-    CRC = s.C.T @ np.linalg.solve(s.R, s.C)
-    Pst = riccati.pstar(s)
-    lo_sum = np.zeros((s.n, s.n))
-    hi_sum = np.zeros((s.n, s.n))
-    level = [((), 1.0)]
+    n = bt.s.n
+    K = len(phis)
+    lo_sum = [np.zeros((n, n)) for _ in range(K)]
+    hi_sum = [np.zeros((n, n)) for _ in range(K)]
+    bits = np.zeros((1, 0), dtype=np.int8)
+    w = np.ones(1)
     depth = 0
-    while level:
-        nxt = []
-        for suffix, w in level:
-            P_lo = Pst
-            Y_hi = np.zeros((s.n, s.n))
-            for b in suffix:
-                P_lo = _cov_step(P_lo, s, bool(b))
-                Y_hi = _info_step(Y_hi, s, Ainv, CRC, bool(b))
-            f_lo, f_hi = phi(P_lo, Y_hi)
-            gap = float(np.trace(f_hi - f_lo)) if np.all(np.isfinite(f_hi)) else math.inf
-            if w * gap <= tol or w < 1e-300 or depth >= max_depth:
-                lo_sum += w * f_lo
-                hi_sum += w * (f_hi if np.all(np.isfinite(f_hi)) else cap)
-                continue
-            nxt.append(((1,) + suffix, w * lam))
-            nxt.append(((0,) + suffix, w * (1 - lam)))
-        level = nxt
+    while bits.shape[0]:
+        P_lo, Y_hi = bt.evaluate(bits)
+        vals = [phi(P_lo, Y_hi) for phi in phis]
+        gap = np.zeros(bits.shape[0])
+        for i, (lo, hi) in enumerate(vals):
+            fin = np.all(np.isfinite(hi), axis=(1, 2))
+            gi = np.where(fin, np.trace(np.where(fin[:, None, None], hi - lo, 0.0), axis1=1, axis2=2), np.inf)
+            gap += weights[i] * gi
+        stop = (w * gap <= tol) | (depth >= max_depth) | (w < 1e-300)
+        if 2 * int((~stop).sum()) > max_nodes:
+            stop[:] = True
+        for i, (lo, hi) in enumerate(vals):
+            fin = np.all(np.isfinite(hi), axis=(1, 2))
+            hi_c = np.where(fin[:, None, None], hi, caps[i])
+            lo_sum[i] += np.einsum("b,bij->ij", w[stop], lo[stop])
+            hi_sum[i] += np.einsum("b,bij->ij", w[stop], hi_c[stop])
+        bits, w = bits[~stop], w[~stop]
+        if not bits.shape[0]:
+            break
+        bits = np.vstack([np.hstack([np.full((bits.shape[0], 1), b, dtype=np.int8), bits]) for b in (1, 0)])
+        w = np.concatenate([w * lam, w * (1 - lam)])
         depth += 1
     return lo_sum, hi_sum
 
 
-def exact_mean(s: LinearSystem, lam: float, lag: int | None, *, tol: float = 1e-12, max_depth: int = 400) -> ExactMean:
+def exact_mean(s: LinearSystem, lam: float, lag: int | None, *, tol: float = 1e-9, max_depth: int = 400,
+               max_nodes: int = 400_000) -> ExactMean:
     """Stationary E[P_{k|k−1}] (``lag=None``) or E[P_{k|k+N}] (lag N ≥ 0) under i.i.d. loss, C invertible.
 
     Decomposition over the last arrival (Bernoulli): with j losses since it,
@@ -405,55 +475,50 @@ def exact_mean(s: LinearSystem, lam: float, lag: int | None, *, tol: float = 1e-
     finite iff (1−λ) ρ(A)² < 1, i.e. λ > λ_c (Lemma 1's threshold). E[g(P)] is the expectation of a
     bounded (g ≤ M̄) monotone function, bracketed by enumeration. For the smoother,
     P_{k|k+N} = (P⁻¹ + J(f))⁻¹ ≤ J(f)⁻¹ is bounded whenever f has an arrival, and equals P_{k|k−1}
-    when f is all losses (probability (1−λ)^{N+1}).
+    when f is all losses (probability (1−λ)^{N+1}). ``tol`` bounds each bracket's trace width
+    contribution per node (the total width is reported in ``upper − lower``).
     """
     if not 0 < lam < 1:
         raise ConfigError.at("analysis.lambdas", f"arrival rates must be in (0, 1) for the exact mean, got {lam}")
     Mbar = leong_mbar(s)
-    CRC = s.C.T @ np.linalg.solve(s.R, s.C)
-    a2 = (1 - lam) * float(np.max(np.abs(np.linalg.eigvals(s.A)))) ** 2
+    bt = _Batch(s)
+    A, Q = s.A, s.Q
+    a2 = (1 - lam) * float(np.max(np.abs(np.linalg.eigvals(A)))) ** 2
     inf = np.full((s.n, s.n), np.inf)
 
-    def pred_mean():
-        if a2 >= 1:
-            return inf, inf
+    def phi_g(P_lo, Y_hi):
+        lo = bt.cov_step(P_lo, np.ones(P_lo.shape[0]))
+        hi = bt.sym(A @ np.linalg.solve(Y_hi + bt.CRC, np.broadcast_to(A.T, Y_hi.shape)) + Q)
+        return lo, hi
 
-        def phi(P_lo, Y_hi):
-            lo = riccati.g(P_lo, s)
-            Yp = Y_hi + CRC  # PD since C invertible
-            hi = riccati.sym(s.A @ np.linalg.solve(Yp, s.A.T) + s.Q)
-            return lo, hi
-
-        Eg_lo, Eg_hi = _expect_bounded(phi, s, lam, Mbar, tol, max_depth)
-        As = math.sqrt(1 - lam) * s.A
-        W = scipy.linalg.solve_discrete_lyapunov(As, s.Q)
-        out = []
-        for Eg in (Eg_lo, Eg_hi):
-            V = scipy.linalg.solve_discrete_lyapunov(As, lam * Eg)
-            out.append(riccati.sym(V + (1 - lam) * W))
-        return out[0], out[1]
-
-    Ep_lo, Ep_hi = pred_mean()
-    if lag is None:
-        return ExactMean(Ep_lo, Ep_hi)
-    lo_total = (1 - lam) ** (lag + 1) * Ep_lo
-    hi_total = (1 - lam) ** (lag + 1) * Ep_hi
-    for f in itertools.product((0, 1), repeat=lag + 1):
-        if not any(f):
-            continue
-        pf = lam ** sum(f) * (1 - lam) ** (len(f) - sum(f))
+    phis, caps, wts = [phi_g], [Mbar], [1.0 if a2 < 1 else 0.0]
+    futs = [] if lag is None else [f for f in itertools.product((0, 1), repeat=lag + 1) if any(f)]
+    for f in futs:
         J = future_information(s, f)
-        Jinv = np.linalg.inv(J)
+        pf = lam ** sum(f) * (1 - lam) ** (len(f) - sum(f))
 
-        def phi(P_lo, Y_hi, f=f, J=J):
-            lo = smoothed_from_prior(P_lo, s, f)
-            hi = riccati.sym(np.linalg.inv(Y_hi + J))
-            return lo, hi
+        def phi_f(P_lo, Y_hi, f=f, J=J):
+            return bt.smoothed(P_lo, f), bt.sym(np.linalg.inv(Y_hi + J))
 
-        e_lo, e_hi = _expect_bounded(phi, s, lam, Jinv, tol, max_depth)
-        lo_total = lo_total + pf * e_lo
-        hi_total = hi_total + pf * e_hi
-    return ExactMean(lo_total, hi_total)
+        phis.append(phi_f)
+        caps.append(np.linalg.inv(J))
+        wts.append(pf)
+    lo_s, hi_s = _expect_bounded(phis, caps, wts, bt, lam, tol, max_depth, max_nodes)
+    if a2 >= 1:
+        Ep = (inf, inf)
+    else:
+        As = math.sqrt(1 - lam) * A
+        W = scipy.linalg.solve_discrete_lyapunov(As, Q)
+        Ep = tuple(riccati.sym(scipy.linalg.solve_discrete_lyapunov(As, lam * Eg) + (1 - lam) * W) for Eg in (lo_s[0], hi_s[0]))
+    if lag is None:
+        return ExactMean(*Ep)
+    out = []
+    for b, sums in enumerate((lo_s, hi_s)):
+        tot = (1 - lam) ** (lag + 1) * Ep[b]
+        for i, f in enumerate(futs):
+            tot = tot + wts[i + 1] * sums[i + 1]
+        out.append(tot)
+    return ExactMean(out[0], out[1])
 
 
 # --------------------------------------------------------------------------------------------

@@ -327,21 +327,33 @@ def buffered_mc_kernel(s: LinearSystem, channel, span: int, horizon: int, M_grid
     MKF over the availability pattern, and return additive statistics:
 
     * ``count_leq[j]`` — #runs with P_k ≤ M_j·I,   ``n`` — #runs,   ``overflow`` — #non-finite P_k;
-    * ``sum_P``, ``sumsq_P`` — Σ P_k and Σ P_k² entrywise (for E[P_k]);
+    * ``sum_P``, ``sumsq_P`` — Σ P_k and Σ P_k² entrywise (for E[P_k]); ``sum_trace``, ``sumsq_trace``;
     * ``sum_updates``, ``sumsq_updates`` — MKF runs at time k (Prop. 3.1: 1 + age of the oldest
       packet arriving exactly at k, or 1 if none), with arrivals d_s = k − s ⇔ F(k−s−1) ≤ u_s < F(k−s).
-    """
-    thr = leq_threshold(np.asarray(M_grid, dtype=float))
-    P0 = riccati.pbar(s) if P0 is None else np.asarray(P0, dtype=float)
-    Dmax = max_kept_delay(channel.D, channel.convention)
-    ages = horizon - np.arange(1, horizon + 1)
-    F_keep = np.asarray(channel.cdf(np.minimum(ages, Dmax)), dtype=float)  # γ̂_{k−s}(D)
-    F_prev = np.where(ages >= 1, np.asarray(channel.cdf(np.maximum(ages - 1, 0)), dtype=float), 0.0)
-    n = s.n
 
-    def kernel(rng: np.random.Generator, runs: int):
+    The kernel is a picklable object, so process/dask executors can ship it to workers.
+    """
+    return BufferedMCKernel(s, channel, span, horizon, M_grid, P0)
+
+
+class BufferedMCKernel:
+    """Picklable kernel ``(rng, runs) -> stats`` (see :func:`buffered_mc_kernel`)."""
+
+    def __init__(self, s: LinearSystem, channel, span: int, horizon: int, M_grid, P0=None):
+        self.s, self.span, self.horizon = s, int(span), int(horizon)
+        self.thr = leq_threshold(np.asarray(M_grid, dtype=float))
+        self.P0 = riccati.pbar(s) if P0 is None else np.asarray(P0, dtype=float)
+        self.Dmax = max_kept_delay(channel.D, channel.convention)
+        self.ages = horizon - np.arange(1, horizon + 1)
+        self.F_keep = np.asarray(channel.cdf(np.minimum(self.ages, self.Dmax)), dtype=float)  # γ̂_{k−s}(D)
+        self.F_prev = np.where(self.ages >= 1, np.asarray(channel.cdf(np.maximum(self.ages - 1, 0)), dtype=float), 0.0)
+
+    def __call__(self, rng: np.random.Generator, runs: int):
+        s, span, horizon, ages, Dmax = self.s, self.span, self.horizon, self.ages, self.Dmax
+        F_keep, F_prev = self.F_keep, self.F_prev
+        n = s.n
         mkf = MKFBatch(s, runs)
-        mkf.set(P0)
+        mkf.set(self.P0)
         u = np.empty(runs)
         kept_prev = np.empty(runs, dtype=bool)
         kept_cur = np.empty(runs, dtype=bool)
@@ -367,11 +379,14 @@ def buffered_mc_kernel(s: LinearSystem, channel, span: int, horizon: int, M_grid
             mkf.step(kept_prev)  # time k: only packet k can carry y_k
         lam = mkf.lam_max()
         finite = np.isfinite(lam)
-        count = np.count_nonzero(lam[:, None] <= thr[None, :], axis=0)
+        count = np.count_nonzero(lam[:, None] <= self.thr[None, :], axis=0)
         Pm = mkf.matrices()
         Pm[~finite] = 0.0
         updates = 1.0 + oldest
+        tr = np.trace(Pm, axis1=1, axis2=2)
         return {
+            "sum_trace": float(tr.sum()),
+            "sumsq_trace": float((tr**2).sum()),
             "count_leq": count.astype(np.int64),
             "n": np.int64(runs),
             "overflow": np.int64(runs - np.count_nonzero(finite)),
@@ -380,8 +395,6 @@ def buffered_mc_kernel(s: LinearSystem, channel, span: int, horizon: int, M_grid
             "sum_updates": float(updates.sum()),
             "sumsq_updates": float((updates**2).sum()),
         }
-
-    return kernel
 
 
 # ---------------------------------------------------------------------------------------------

@@ -67,27 +67,31 @@ def h_power_lam_max(s: LinearSystem, t_max: int, X0: np.ndarray | None = None) -
 
 
 def smart_mc_kernel(s: LinearSystem, channel, M_grid):
-    """Kernel for ``run_chunked``: P_k = h^{N_k}(P̄) per run; counts of P_k ≤ M_j·I and Σ N_k."""
-    thr = leq_threshold(np.asarray(M_grid, dtype=float))
-    cache: dict[str, np.ndarray] = {"lam": h_power_lam_max(s, 64)}
+    """Kernel for ``run_chunked``: P_k = h^{N_k}(P̄) per run; counts of P_k ≤ M_j·I and Σ N_k (picklable)."""
+    return SmartMCKernel(s, channel, M_grid)
 
-    def lam_of(N: np.ndarray) -> np.ndarray:
+
+class SmartMCKernel:
+    """Picklable kernel ``(rng, runs) -> stats`` (see :func:`smart_mc_kernel`)."""
+
+    def __init__(self, s: LinearSystem, channel, M_grid):
+        self.s, self.channel = s, channel
+        self.thr = leq_threshold(np.asarray(M_grid, dtype=float))
+        self.lam_tab = h_power_lam_max(s, 64)
+
+    def lam_of(self, N: np.ndarray) -> np.ndarray:
+        """λ_max(h^N(P̄)); beyond H_POWER_MAX the last value (converged for stable A, ∞ for unstable A)."""
         need = int(min(N.max(initial=0), H_POWER_MAX))
-        if need >= len(cache["lam"]):
-            cache["lam"] = h_power_lam_max(s, max(need, 2 * len(cache["lam"])))
-        lam_tab = cache["lam"]
-        last = lam_tab[-1]
-        lam = np.where(N < len(lam_tab), lam_tab[np.minimum(N, len(lam_tab) - 1)], last)
-        # beyond H_POWER_MAX: the last value (converged for stable A, ∞ for unstable A)
-        return lam
+        if need >= len(self.lam_tab):
+            self.lam_tab = h_power_lam_max(self.s, max(need, 2 * len(self.lam_tab)))
+        tab = self.lam_tab
+        return np.where(N < len(tab), tab[np.minimum(N, len(tab) - 1)], tab[-1])
 
-    def kernel(rng: np.random.Generator, runs: int):
-        N = sample_N(rng, runs, channel)
-        lam = lam_of(N)
-        count = np.count_nonzero(lam[:, None] <= thr[None, :], axis=0)
+    def __call__(self, rng: np.random.Generator, runs: int):
+        N = sample_N(rng, runs, self.channel)
+        lam = self.lam_of(N)
+        count = np.count_nonzero(lam[:, None] <= self.thr[None, :], axis=0)
         Nf = np.minimum(N, H_POWER_MAX).astype(float)
         return {"count_leq": count.astype(np.int64), "n": np.int64(runs),
                 "overflow": np.int64(np.count_nonzero(~np.isfinite(lam))),
                 "sum_N": float(Nf.sum()), "sumsq_N": float((Nf**2).sum())}
-
-    return kernel

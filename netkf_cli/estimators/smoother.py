@@ -167,6 +167,8 @@ def fixed_lag_smoother(
     """Run eqs (3)–(4) over arrivals ``gamma`` (``(runs, horizon)``) and record P_{t|t−1}, P_{t|t+N}
     (N = 0 … lag) at ``times`` (default: every t with t + lag < horizon). Batched over runs."""
     gamma = np.asarray(gamma)
+    if gamma.ndim != 2:
+        raise ValueError(f"gamma must be (runs, horizon), got shape {gamma.shape}")
     runs, horizon = gamma.shape
     if times is None:
         times = np.arange(0, horizon - lag)

@@ -97,6 +97,13 @@ def _claim(claim: str, holds: bool, lhs: float, rhs: float, margin: float, detai
     return dict(claim=claim, value=1.0 if holds else 0.0, lhs=float(lhs), rhs=float(rhs), margin=float(margin), detail=detail)
 
 
+def _claim_tables(claims: list[dict]) -> dict[str, pd.DataFrame]:
+    """``claims`` (claim, value ∈ {0, 1}: what published.yaml checks) and ``claims_evidence`` (the numbers
+    compared; no ``value`` column, so run-size dependent numbers never enter golden comparisons)."""
+    df = pd.DataFrame(claims, columns=["claim", "value", "lhs", "rhs", "margin", "detail"])
+    return {"claims": df[["claim", "value"]], "claims_evidence": df[["claim", "lhs", "rhs", "margin", "detail"]]}
+
+
 def _strategies(es) -> list[str]:
     return [s for s in STRATEGIES if s in es.strategies]
 
@@ -140,13 +147,13 @@ class FusionVsMuQ(AnalysisModel):
             # no-loss reference: centralized KF steady state Φ_f(P_m, N)
             pm = fb.p_m(s.A, s.C, Q, s.R, ch.sensors)
             ckf = float(np.trace(fb.phi_f(pm, np.float64(ch.sensors), s.C, s.R)))
-            rows.append(dict(mu_Q=mu, series="ckf_no_loss", quantity="filtering", value=ckf, stderr=0.0, n=0))
+            rows.append(dict(mu_Q=mu, series="ckf_no_loss", quantity="filtering", value=ckf, stderr=np.nan, n=np.nan))
         table = pd.DataFrame(rows, columns=["mu_Q", "series", "quantity", "value", "stderr", "n"])
         if {"mf", "ibf", "olpef"} <= set(strategies):
             claims = self._claims(table)
         meta = {"conventions": CONVENTIONS, "Q": "Q = mu_Q * system.Q", "loss": ch.loss, "sensors": ch.sensors,
                 "runs_per_point": runs, "strategies": strategies}
-        extra = {"claims": pd.DataFrame(claims, columns=["claim", "value", "lhs", "rhs", "margin", "detail"])} if claims else {}
+        extra = _claim_tables(claims) if claims else {}
         return Artefact(table, meta=meta, extra_tables=extra)
 
     @staticmethod
@@ -262,7 +269,7 @@ class FusionBoundingFunctions(AnalysisModel):
         table = pd.DataFrame(rows, columns=["P", "ell", "series", "value"])
         marks = pd.DataFrame([dict(name="P_m", value=pm), dict(name="P_M", value=pM)])
         meta = {"conventions": CONVENTIONS, "P_m": pm, "P_M": pM, "sensors": self.sensors}
-        return Artefact(table, meta=meta, extra_tables={"checks": ck, "claims": pd.DataFrame(claims), "marks": marks})
+        return Artefact(table, meta=meta, extra_tables={"checks": ck, "marks": marks, **_claim_tables(claims)})
 
     def plot(self, tables, scenario):
         t, marks = tables["main"], tables["marks"].set_index("name")["value"]
@@ -350,8 +357,8 @@ class FusionVsLoss(AnalysisModel):
             for k in (1, 2, 3):
                 bounds[f"ibf_truncated_exact_k{k}"] = fb.ibf_truncated_exact(k, lam, model)
             for name, (p, f) in bounds.items():
-                rows.append(dict(loss=lam, series=name, quantity="prediction", value=float(p), stderr=0.0, n=0))
-                rows.append(dict(loss=lam, series=name, quantity="filtering", value=float(f), stderr=0.0, n=0))
+                rows.append(dict(loss=lam, series=name, quantity="prediction", value=float(p), stderr=np.nan, n=np.nan))
+                rows.append(dict(loss=lam, series=name, quantity="filtering", value=float(f), stderr=np.nan, n=np.nan))
             for k, p, f in zip(seq.k, seq.pred, seq.filt):
                 krows.append(dict(loss=lam, k=int(k), pred=float(p), filt=float(f), stopped=int(k) == seq.k_stop))
         table = pd.DataFrame(rows, columns=["loss", "series", "quantity", "value", "stderr", "n"])
@@ -359,7 +366,7 @@ class FusionVsLoss(AnalysisModel):
         claims = self._claims(table, ktab, strategies)
         meta = {"conventions": CONVENTIONS, "sensors": N, "runs_per_point": runs, "P_m": model.pm, "P_M": model.pM,
                 "k_rule": f"Prop. 2 for k = 1, 2, ... until the filtering bound improves by < {self.k_rtol:g} (relative), k >= 3"}
-        return Artefact(table, meta=meta, extra_tables={"ibf_k": ktab, "claims": pd.DataFrame(claims)})
+        return Artefact(table, meta=meta, extra_tables={"ibf_k": ktab, **_claim_tables(claims)})
 
     @staticmethod
     def _claims(t: pd.DataFrame, ktab: pd.DataFrame, strategies) -> list[dict]:

@@ -1,0 +1,161 @@
+"""Delay sampler (inverse CDF), kept indicators, and the batched MKF kernel against references."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from netkf_cli import riccati
+from netkf_cli.channels.delay import (LOST, arrivals_now, cdf_table, delays_from_uniforms, kept_at,
+                                      kept_thresholds, sample_capped_delays)
+from netkf_cli.estimators.buffered import (MKFBatch, availability, buffered_mc_kernel, covariance_from_kept,
+                                           leq_threshold)
+from netkf_cli.system import LinearSystem
+
+from ._systems import bernoulli, pmf, poisson, scalar_system, vehicle_system
+
+
+@pytest.mark.parametrize("ch", [poisson(3, 5), pmf([0.5, 0.2, 0.1], 4), bernoulli(0.7)])
+def test_inverse_cdf_delays_have_the_channel_pmf(ch):
+    """Capped delays from uniforms have pmf f(0..cap) and mass 1 − F(cap) at cap+1.
+
+    Each bin count is Binomial(n, f): |count/n − f| ≤ 5·√(f(1−f)/n) (5σ per bin).
+    """
+    n, cap = 200_000, 6
+    d = sample_capped_delays(np.random.default_rng(1), ch, n, cap)
+    F = cdf_table(ch, cap)
+    f = np.diff(np.concatenate([[0.0], F, [1.0]]))
+    emp = np.bincount(d, minlength=cap + 2) / n
+    assert np.all(np.abs(emp - f) <= 5 * np.sqrt(f * (1 - f) / n) + 1e-12)
+
+
+def test_inverse_cdf_agrees_with_the_model_sampler():
+    """The channel model's own sampler (rng.poisson) and the inverse-CDF path give the same pmf (5σ per bin)."""
+    ch = poisson(5, 10)
+    n, cap = 200_000, 12
+    a = np.minimum(ch.delay.sample(np.random.default_rng(2), n), cap + 1)
+    b = sample_capped_delays(np.random.default_rng(3), ch, n, cap)
+    pa, pb = np.bincount(a, minlength=cap + 2) / n, np.bincount(b, minlength=cap + 2) / n
+    # difference of two independent proportions: s.e. √(2 p(1−p)/n)
+    p = (pa + pb) / 2
+    assert np.all(np.abs(pa - pb) <= 5 * np.sqrt(2 * p * (1 - p) / n) + 1e-12)
+
+
+@pytest.mark.parametrize("conv,Dmax", [("delay_le_D", 3), ("delay_lt_D", 2)])
+def test_kept_and_arrivals_follow_the_convention(conv, Dmax):
+    k = 8
+    delays = np.array([0, 1, 2, 3, 4, 9, LOST, 0])  # packets s = 1..8
+    kept = kept_at(delays, k, 3, conv)
+    age = k - np.arange(1, k + 1)
+    expect = (delays.astype(np.int64) <= np.minimum(age, Dmax))
+    assert np.array_equal(kept, expect)
+    now = arrivals_now(delays, k, 3, conv)
+    assert np.array_equal(now, (delays == age) & (age <= Dmax))
+    # kept_thresholds = Pr[kept by k] = F(min(age, Dmax))
+    ch = poisson(2, 3, conv)
+    th = kept_thresholds(ch, k)
+    assert np.allclose(th, ch.cdf(np.minimum(age, Dmax)))
+
+
+def _loop_mkf(s: LinearSystem, P0, avail_seq):
+    """Per-run, per-step reference: P ← g̃(h(P)) if available else h(P) (Sec. 3.1).
+
+    Also returns the largest |P⁻| met: the update P⁻ − K S Kᵀ cancels digits in proportion to it.
+    """
+    P, big = P0, 1.0
+    for a in avail_seq:
+        P = riccati.h(P, s)
+        big = max(big, float(np.abs(P).max()))
+        if a:
+            P = riccati.gtilde(P, s)
+    return P, big
+
+
+def _random_system(draw, n, m):
+    rng = np.random.default_rng(draw(st.integers(0, 2**31)))
+    A = rng.normal(size=(n, n))
+    # spectral radius in [0.3, 1.2]: long outages stay moderate, so both paths keep their digits
+    # (the update P⁻ − K S Kᵀ loses ~ eps·|P⁻|²/|R| when P⁻ explodes; that is conditioning, not a bug)
+    A *= draw(st.floats(0.3, 1.2)) / max(np.max(np.abs(np.linalg.eigvals(A))), 1e-3)
+    C = rng.normal(size=(m, n))
+    Lq = rng.normal(size=(n, n))
+    Lr = rng.normal(size=(m, m))
+    return LinearSystem.create(A, C, Lq @ Lq.T + 0.1 * np.eye(n), Lr @ Lr.T + 0.2 * np.eye(m)), rng
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.data(), st.integers(1, 4), st.integers(1, 3))
+def test_batched_mkf_equals_per_run_loop(data, n, m):
+    """The entry-wise batched MKF equals the plain loop for random systems (any n, m; m ≤ 2 closed form)."""
+    s, rng = _random_system(data.draw, n, m)
+    runs, T = 7, 12
+    avail = rng.random((T, runs)) < 0.6
+    mkf = MKFBatch(s, runs)
+    P0 = np.eye(n) * 0.5
+    mkf.set(P0)
+    for t in range(T):
+        mkf.step(avail[t])
+    got = mkf.matrices()
+    for r in range(runs):
+        ref, big = _loop_mkf(s, P0, avail[:, r])
+        # both paths round differently; the error is ~ machine eps × the largest prior met
+        assert np.allclose(got[r], ref, rtol=1e-8, atol=1e-11 * big)
+        assert np.array_equal(got[r], got[r].T)
+        assert np.linalg.eigvalsh(got[r])[0] >= -1e-11 * big
+
+
+def test_all_packets_kept_gives_the_standard_filter():
+    """γ ≡ 1 ⇒ the MKF is the Kalman filter: P_k → P̄ = g̃(P*) (scipy DARE)."""
+    for s in (scalar_system(), vehicle_system()):
+        mkf = covariance_from_kept(s, np.ones((200, 3), dtype=bool), 1, P0=np.eye(s.n))
+        assert np.allclose(mkf.matrices(), riccati.pbar(s)[None], rtol=1e-9, atol=1e-12)
+
+
+def test_overflow_is_counted_not_nan():
+    """An unstable run with no packets overflows to ∞: λ_max = ∞, counted as P ≰ M (never NaN)."""
+    s = LinearSystem.create(np.diag([3.0, 2.0]), np.eye(2), np.eye(2), np.eye(2))
+    mkf = MKFBatch(s, 2)
+    mkf.set(np.eye(2))
+    with np.errstate(all="ignore"):
+        for _ in range(800):
+            mkf.step(np.array([False, True]))
+    lam = mkf.lam_max()
+    assert np.isinf(lam[0]) and np.isfinite(lam[1])
+    s1 = LinearSystem.create(3.0, 1, 1, 1)
+    m1 = MKFBatch(s1, 1)
+    m1.set(np.eye(1))
+    with np.errstate(all="ignore"):
+        for _ in range(800):
+            m1.step(np.array([False]))
+        assert np.isinf(m1.lam_max()[0])
+        m1.step(np.array([True]))  # information form recovers exactly r/c²
+    assert m1.lam_max()[0] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("which", ["scalar", "vehicle"])
+def test_kernel_equals_reference_on_the_same_delays(which):
+    """The hot kernel (u < F(min(age, D_max))) gives exactly the P_k of the reference path
+    (delays from the same uniforms → kept_at → covariance_from_kept)."""
+    s, ch, span = (scalar_system(), poisson(5, 10), 1) if which == "scalar" else (vehicle_system(), poisson(3, 5), 2)
+    runs, k = 500, 40
+    M = np.array([0.5, 2.0, 10.0]) if which == "scalar" else np.array([0.06, 0.1, 0.3])
+    out = buffered_mc_kernel(s, ch, span, k, M)(np.random.default_rng(7), runs)
+    rng = np.random.default_rng(7)
+    u = np.stack([rng.random(runs) for _ in range(k)])
+    delays = delays_from_uniforms(u, cdf_table(ch, 11))
+    kept = kept_at(delays, k, ch.D, ch.convention)
+    ref = covariance_from_kept(s, kept, span)
+    lam = ref.lam_max()
+    assert np.array_equal(out["count_leq"], (lam[:, None] <= leq_threshold(M)[None]).sum(axis=0))
+    assert np.allclose(out["sum_P"], ref.matrices().sum(axis=0), rtol=1e-12)
+    # MKF runs at k: 1 + oldest age arriving exactly now
+    now = arrivals_now(delays, k, ch.D, ch.convention)
+    ages = (k - np.arange(1, k + 1))[:, None]
+    R = 1 + np.max(np.where(now, ages, 0), axis=0)
+    assert out["sum_updates"] == pytest.approx(R.sum())
+
+
+def test_availability_pair_packets():
+    kept = np.array([[0], [1], [0], [0], [1]], dtype=bool)
+    assert availability(kept, 2)[:, 0].tolist() == [True, True, False, True, True]
+    assert availability(kept, 1)[:, 0].tolist() == kept[:, 0].tolist()

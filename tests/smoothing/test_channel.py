@@ -1,0 +1,96 @@
+"""Gilbert–Elliott channel: validation and the sampler's stationary loss rate and burst length."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from netkf_cli.channels.bernoulli import BernoulliChannel
+from netkf_cli.channels.gilbert_elliott import (
+    GilbertElliottChannel,
+    arrivals_for,
+    markov_chain_of,
+    sample_gilbert_elliott,
+)
+
+
+def ge(**kw):
+    return GilbertElliottChannel(kind="gilbert_elliott", **kw)
+
+
+def test_parameterisations_agree():
+    a = ge(loss_rate=0.3, mean_burst=4.0)
+    p_gb, p_bg = a.transition
+    assert p_bg == pytest.approx(0.25) and p_gb == pytest.approx(0.3 * 0.25 / 0.7)
+    b = ge(p_gb=p_gb, p_bg=p_bg)
+    assert b.arrival == pytest.approx(0.7) and b.burst_mean == pytest.approx(4.0)
+    T, pi = markov_chain_of(a)
+    assert np.allclose(T.sum(axis=1), 1) and np.allclose(pi @ T, pi)
+
+
+@pytest.mark.parametrize(
+    "kw, needle",
+    [
+        (dict(loss_rate=0.8, mean_burst=2.0), "mean_burst"),  # needs L_B ≥ 0.8/0.2 = 4
+        (dict(loss_rate=0.3, p_gb=0.2), "not a mix"),
+        (dict(loss_rate=0.3), "mean_burst is required"),
+        (dict(p_bg=0.3), "p_gb is required"),
+        (dict(), "needs loss_rate"),
+        (dict(loss_rate=1.2, mean_burst=3), "loss_rate"),
+        (dict(loss_rate=0.2, mean_burst=0.5), "mean_burst"),
+        (dict(p_gb=0.0, p_bg=0.5), "p_gb"),
+    ],
+)
+def test_bad_parameters_are_rejected_with_the_field(kw, needle):
+    with pytest.raises(ValidationError) as e:
+        ge(**kw)
+    assert needle in str(e.value)
+
+
+def test_bernoulli_is_the_iid_special_case():
+    lam = 0.6
+    c = ge(loss_rate=1 - lam, mean_burst=1 / lam)
+    T, _ = markov_chain_of(c)
+    Tb, _ = markov_chain_of(BernoulliChannel(kind="bernoulli", arrival=lam))
+    assert np.allclose(T, Tb)
+
+
+@pytest.mark.parametrize("loss, burst", [(0.3, 4.0), (0.5, 1.5), (0.1, 1.0)])
+def test_sampler_stationary_loss_and_mean_burst(loss, burst):
+    c = ge(loss_rate=loss, mean_burst=burst)
+    p_gb, p_bg = c.transition
+    runs, H = 20_000, 400
+    g = sample_gilbert_elliott(np.random.default_rng(11), runs, H, p_gb, p_bg)
+    assert g.shape == (runs, H) and g.dtype == bool
+    # stationary loss rate: one column per run -> i.i.d. Bernoulli(loss) samples (chain started stationary);
+    # 5 binomial standard errors
+    for col in (0, H - 1):
+        x = ~g[:, col]
+        se = math.sqrt(loss * (1 - loss) / runs)
+        assert abs(x.mean() - loss) < 5 * se
+    # burst length: the first burst starting at t ≥ 1 in each run is Geometric(p_bg) on {1, 2, ...}
+    # (strong Markov property); runs are independent -> sample mean within 5 s.e. of 1/p_bg,
+    # s.e. = sqrt(1 − p_bg)/p_bg/√n. Censoring at H: P(burst > 200) = (1 − p_bg)^200 < 1e-24 here.
+    lost = ~g
+    starts = lost[:, 1:] & ~lost[:, :-1]
+    has = starts[:, : H // 2].any(axis=1)
+    t0 = np.argmax(starts, axis=1) + 1
+    lengths = []
+    for r in np.flatnonzero(has):
+        seg = lost[r, t0[r]:]
+        lengths.append(np.argmin(seg) if not seg.all() else seg.size)
+    L = np.array(lengths, float)
+    se = math.sqrt(1 - p_bg) / p_bg / math.sqrt(L.size)
+    assert abs(L.mean() - burst) < 5 * se + 1e-12
+
+
+def test_arrivals_for_both_kinds_and_rejects_others():
+    rng = np.random.default_rng(0)
+    a = arrivals_for(BernoulliChannel(kind="bernoulli", arrival=0.5), rng, 3, 7)
+    b = arrivals_for(ge(loss_rate=0.5, mean_burst=2), rng, 3, 7)
+    assert a.shape == b.shape == (3, 7)
+    with pytest.raises(ValueError, match="loss channel"):
+        arrivals_for(object(), rng, 3, 7)
