@@ -167,12 +167,13 @@ def plot(tables, scenario):
         if col in t.columns:
             t = t[np.isclose(t[col].astype(float), float(want))] if isinstance(want, (int, float)) else t[t[col].astype(str) == str(want)]
     fixed = []
-    key_cols = [c for c in t.columns if c not in {"value", "stderr", "n", "series", x} and c != line and c not in axes]
-    for c in key_cols:
-        if t[c].nunique(dropna=False) > 1:
+    by = [x] + ([line] if line else [])
+    for c in [c for c in t.columns if c not in {"value", "stderr", "n", "series"} and c not in axes]:
+        # a column that still varies within one (x, line) point is an extra dimension: fix it
+        if len(t) and t.groupby(by, dropna=False)[c].nunique(dropna=False).max() > 1:
             first = t[c].iloc[0]
             t = t[t[c] == first] if pd.notna(first) else t[t[c].isna()]
-            fixed.append(f"{c} = {first}")
+            fixed.append(f"{c} = {first:g}" if isinstance(first, (int, float, np.number)) else f"{c} = {first}")
     fig, ax = new_figure()
     groups = t.groupby(line, sort=True) if line else [(None, t)]
     for val, g in groups:
@@ -185,8 +186,9 @@ def plot(tables, scenario):
     if spec.plot.logy:
         ax.set_yscale("log")
     ax.set_xlabel(x)
-    ax.set_ylabel(series)
-    ax.set_title(f"{scenario.name}: {series} over the sweep" + (f" ({', '.join(fixed)})" if fixed else ""), fontsize=10)
+    ax.set_ylabel(f"value (series {series})")
+    where = [f"{k} = {v}" for k, v in spec.plot.where.items()] + fixed
+    ax.set_title(f"{scenario.name}: {series}" + (f" ({', '.join(where)})" if where else ""), fontsize=10)
     if line:
         ax.legend(fontsize=7, ncol=2)
     footnote(fig, f"sweep ({spec.mode}) over {', '.join(axes)}; {len(spec.points())} points")

@@ -36,7 +36,6 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
-from fractions import Fraction
 
 import numpy as np
 import scipy.linalg
@@ -134,50 +133,20 @@ def future_information(s: LinearSystem, pattern) -> np.ndarray:
     y_{k+i} = C Aⁱ x_k + η_i, η_i = C Σ_{l<i} A^{i−1−l} w_{k+l} + v_{k+i} (correlated across i):
     J = Hᵀ Σ_η⁻¹ H with H = [C Aⁱ]_{i received}.
     """
-    f = [int(b) for b in pattern]
-    idx = [i for i, b in enumerate(f) if b]
-    n, m = s.n, s.m
-    if not idx:
-        return np.zeros((n, n))
-    A, C, Q, R = s.A, s.C, s.Q, s.R
-    Ap = [np.eye(n)]
-    for _ in range(max(idx) + 1):
-        Ap.append(A @ Ap[-1])
-    H = np.vstack([C @ Ap[i] for i in idx])
-    # Cov(η_i, η_j) = C [Σ_{l < min(i,j)} A^{i-1-l} Q A^{j-1-l}ᵀ] Cᵀ + δ_ij R
-    blocks = np.zeros((len(idx) * m, len(idx) * m))
-    for a, i in enumerate(idx):
-        for b, j in enumerate(idx):
-            acc = np.zeros((n, n))
-            for l in range(min(i, j)):
-                acc += Ap[i - 1 - l] @ Q @ Ap[j - 1 - l].T
-            blk = C @ acc @ C.T + (R if i == j else 0.0)
-            blocks[a * m:(a + 1) * m, b * m:(b + 1) * m] = blk
-    J = H.T @ np.linalg.solve(blocks, H)
-    return riccati.sym(J)
+    H, Sig = _future_model(s, pattern)
+    if H is None:
+        return np.zeros((s.n, s.n))
+    return riccati.sym(H.T @ np.linalg.solve(Sig, H))
 
 
 def smoothed_from_prior(P: np.ndarray, s: LinearSystem, pattern) -> np.ndarray:
-    """P_{k|k+N} from P_{k|k−1} = P and the future arrival pattern f (covariance form, P may be singular)."""
-    f = [int(b) for b in pattern]
-    idx = [i for i, b in enumerate(f) if b]
-    if not idx:
+    """P_{k|k+N} from P_{k|k−1} = P and the future arrival pattern f (covariance form, P may be singular):
+    P − P Hᵀ (H P Hᵀ + Σ_η)⁻¹ H P."""
+    H, Sig = _future_model(s, pattern)
+    if H is None:
         return P
-    n, m = s.n, s.m
-    Ap = [np.eye(n)]
-    for _ in range(max(idx) + 1):
-        Ap.append(s.A @ Ap[-1])
-    H = np.vstack([s.C @ Ap[i] for i in idx])
-    Sig = np.zeros((len(idx) * m, len(idx) * m))
-    for a, i in enumerate(idx):
-        for b, j in enumerate(idx):
-            acc = np.zeros((n, n))
-            for l in range(min(i, j)):
-                acc += Ap[i - 1 - l] @ s.Q @ Ap[j - 1 - l].T
-            Sig[a * m:(a + 1) * m, b * m:(b + 1) * m] = s.C @ acc @ s.C.T + (s.R if i == j else 0.0)
-    S = H @ P @ H.T + Sig
     PH = P @ H.T
-    return riccati.sym(P - PH @ np.linalg.solve(S, PH.T))
+    return riccati.sym(P - PH @ np.linalg.solve(H @ PH + Sig, PH.T))
 
 
 def batch_posterior_covariance(s: LinearSystem, gamma, k: int, upto: int, P0: np.ndarray) -> np.ndarray:
@@ -220,26 +189,6 @@ def _require_invertible_A(s: LinearSystem) -> np.ndarray:
     if np.linalg.matrix_rank(s.A) < s.n:
         raise ConfigError.at("system.A", "the exact enumeration bounds P_{k|k−1} from above in information form, which needs A invertible")
     return np.linalg.inv(s.A)
-
-
-def _cov_step(P: np.ndarray, s: LinearSystem, arrived: bool) -> np.ndarray:
-    return riccati.g(P, s) if arrived else riccati.h(P, s)
-
-
-def _info_step(Y: np.ndarray, s: LinearSystem, Ainv: np.ndarray, CRC: np.ndarray, arrived: bool) -> np.ndarray:
-    """Information-form prediction step: Y ← Z (I + Q Z)⁻¹, Z = A⁻ᵀ (Y + γ CᵀR⁻¹C) A⁻¹ (valid for singular Y)."""
-    if arrived:
-        Y = Y + CRC
-    Z = Ainv.T @ Y @ Ainv
-    out = np.linalg.solve((np.eye(s.n) + Z @ s.Q).T, Z.T).T  # Z (I + Q Z)⁻¹
-    return riccati.sym(out)
-
-
-def _psd_geq(X: np.ndarray, Y: np.ndarray, tol: float = PSD_TOL) -> bool:
-    """X ≥ Y in the PSD order (finite matrices)."""
-    D = riccati.sym(X - Y)
-    scale = max(1.0, float(np.abs(Y).max()))
-    return float(np.linalg.eigvalsh(D)[0]) >= -tol * scale
 
 
 class _Batch:
@@ -625,8 +574,3 @@ def simulate_retransmission(rng: np.random.Generator, runs: int, horizon: int, l
         pending = np.where(start, t, pending)
         retrying = new_retrying
     return out
-
-
-def g_identity_exact(n_max: int, N: int, p: Fraction) -> list[Fraction]:
-    """g(n) in exact rational arithmetic (eqs 10–11)."""
-    return retransmission_g(n_max, N, Fraction(p))

@@ -42,6 +42,7 @@ from netkf_cli.spec import EstimatorModel
 from netkf_cli.system import LinearSystem
 
 PacketKind = Literal["auto", "measurement", "pair"]
+BackendKind = Literal["numpy", "numba", "numba_philox", "auto"]
 
 
 class BufferedEstimator(EstimatorModel):
@@ -52,6 +53,13 @@ class BufferedEstimator(EstimatorModel):
         "auto",
         description="what a packet carries: measurement = y_k (Sec. 3), pair = (y_k, y_{k-1}) "
         "(Appendix B, for non-invertible C); auto picks measurement iff C is invertible",
+    )
+    backend: BackendKind = Field(
+        "numpy",
+        description="covariance Monte Carlo backend: numpy (reference); numba (optional extra netkf[fast]: "
+        "compiled, same random numbers, P_k bitwise equal to numpy); numba_philox (compiled with in-kernel "
+        "counter-based random numbers: fastest, statistically equivalent, not equal); auto = numba if "
+        "installed, else numpy",
     )
 
     def span(self, s: LinearSystem) -> int:
@@ -319,7 +327,8 @@ def leq_threshold(M: np.ndarray) -> np.ndarray:
     return M + PSD_TOL * np.maximum(1.0, np.abs(M))
 
 
-def buffered_mc_kernel(s: LinearSystem, channel, span: int, horizon: int, M_grid, P0: np.ndarray | None = None):
+def buffered_mc_kernel(s: LinearSystem, channel, span: int, horizon: int, M_grid, P0: np.ndarray | None = None,
+                       backend: str = "numpy", threads: int | None = None):
     """Monte Carlo kernel for ``montecarlo.run_chunked``: P_k at k = ``horizon``, one sample per run.
 
     Per run: draw u_s ~ U[0,1) for packets s = 1..k in time order (one (runs,) array per packet),
@@ -331,13 +340,25 @@ def buffered_mc_kernel(s: LinearSystem, channel, span: int, horizon: int, M_grid
     * ``sum_updates``, ``sumsq_updates`` — MKF runs at time k (Prop. 3.1: 1 + age of the oldest
       packet arriving exactly at k, or 1 if none), with arrivals d_s = k − s ⇔ F(k−s−1) ≤ u_s < F(k−s).
 
-    The kernel is a picklable object, so process/dask executors can ship it to workers.
+    The kernel is a picklable object, so process/dask executors can ship it to workers. ``backend``
+    (``numpy`` | ``numba`` | ``numba_philox`` | ``auto``) selects the implementation; the resolved
+    name is the kernel's ``backend`` attribute (record it in the artefact's meta). ``threads``
+    (numba backends only): compiled threads per chunk, ``None`` = all cores.
     """
+    if backend != "numpy":
+        from netkf_cli.estimators import buffered_numba as bn
+
+        backend = bn.resolve_backend(backend, s)
+        if backend in bn.NUMBA_BACKENDS:
+            return bn.NumbaMCKernel(s, channel, span, horizon, M_grid, P0,
+                                    rng_mode="numpy" if backend == "numba" else "philox", threads=threads)
     return BufferedMCKernel(s, channel, span, horizon, M_grid, P0)
 
 
 class BufferedMCKernel:
     """Picklable kernel ``(rng, runs) -> stats`` (see :func:`buffered_mc_kernel`)."""
+
+    backend = "numpy"
 
     def __init__(self, s: LinearSystem, channel, span: int, horizon: int, M_grid, P0=None):
         self.s, self.span, self.horizon = s, int(span), int(horizon)

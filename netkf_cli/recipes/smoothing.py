@@ -25,14 +25,14 @@ from scipy import stats
 
 from netkf_cli import riccati
 from netkf_cli.analysis import smoothing as sm
-from netkf_cli.channels.bernoulli import BernoulliChannel, sample_arrivals
-from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel, markov_chain_of, sample_gilbert_elliott
+from netkf_cli.channels.bernoulli import sample_arrivals
+from netkf_cli.channels.gilbert_elliott import sample_gilbert_elliott
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators.smoother import fixed_lag_smoother
 from netkf_cli.montecarlo import plan_chunks, proportion_stderr, run_chunked
 from netkf_cli.plotting import footnote, new_figure
 from netkf_cli.recipes.base import Artefact, RunContext
-from netkf_cli.spec import AnalysisModel, NonNegInt, PositiveFloat, PositiveInt, Probability, StrictModel
+from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt, Probability, StrictModel
 
 PAPER = "Leong, Dey & Evans 2008"
 
@@ -386,8 +386,8 @@ class CriticalRate(AnalysisModel):
         ax.plot([], [], "x", color="0.4", label="Monte Carlo mean, heavy-tailed (no finite s.e.)")
         ax.legend(fontsize=7, loc="lower left", ncol=2)
         n = t[t.series == "monte_carlo"].n
-        footnote(fig, f"{PAPER}, Lemma 1. Lines: exact stationary means. Dots: Monte Carlo at a finite k "
-                      f"({int(n.iloc[0]) if len(n) else 0} runs per λ). Shaded: E[P] = ∞.")
+        footnote(fig, f"{PAPER}, Lemma 1. Lines: exact stationary means; dots: Monte Carlo at finite k "
+                      f"({int(n.iloc[0]) if len(n) else 0} runs/λ); shaded: E[P] = ∞")
         return fig
 
 
@@ -615,7 +615,11 @@ class Burstiness(AnalysisModel):
         ax.set_xscale("log")
         ax.set_xlabel("mean loss-burst length L_B (steps, log scale)")
         ax.set_ylabel(r"$\mathbb{P}(P_{k|k+N} \leq M)$")
-        ax.set_title("Table I under Gilbert–Elliott loss, same stationary arrival rate", fontsize=10)
+        rates = t.arrival.unique()
+        if len(rates) == 1:
+            ax.set_title(f"Smoothing under Gilbert–Elliott loss, common stationary arrival rate λ = {rates[0]:g}", fontsize=10)
+        else:
+            ax.set_title("Table I under Gilbert–Elliott loss: each column at its eq. (8) stationary rate", fontsize=10)
         ax.legend(fontsize=7, loc="lower left")
         n = t[t.series == "monte_carlo"].n
         footnote(fig, f"Lines: exact (enumeration over the Markov arrival pattern); dots: Monte Carlo ±1 s.e. "

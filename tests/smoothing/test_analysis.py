@@ -61,7 +61,6 @@ def _brute_force_bracket(s, M, lag, T, pi, L):
     """Enumerate every pattern of L past + (lag+1) future arrivals with its Markov probability,
     propagating the smoother itself from P* and from a huge P0 at time k − L: lower/upper bounds."""
     F = 1 if lag is None else lag + 1  # for P_{k|k-1}, γ_k is summed out
-    lo = hi = 0.0
     pats = np.array(list(itertools.product((0, 1), repeat=L + F)), bool)
     w = pi[pats[:, 0].astype(int)].copy()
     for t in range(1, L + F):

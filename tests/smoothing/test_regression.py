@@ -27,6 +27,7 @@ SMALL = {
     "critical_rate": (1000, {"analysis": {"lambdas": [0.4, 0.45, 0.6, 0.8], "lags": [-1, 0, 2], "exact_tol": 1e-8}}),
     "retransmission": (2000, {"analysis": {"grid": 30, "g_n_max": 12}}),
     "burstiness": (1000, {"analysis": {"lags": [-1, 0, 2], "mean_bursts": [1.5, 3, 6]}}),
+    "burstiness_common": (1000, {"analysis": {"lags": [-1, 0, 2], "mean_bursts": [1.25, 3, 8]}}),
 }
 
 
@@ -98,10 +99,14 @@ def test_retransmission_claims(outputs):
     assert np.allclose(g.enum_sum.dropna(), 1, atol=1e-12)
 
 
-def test_burstiness_claims(outputs):
-    t = pd.read_csv(outputs["burstiness"] / "smoothing_burstiness.csv")
+@pytest.mark.parametrize("name", ["burstiness", "burstiness_common"])
+def test_burstiness_claims(outputs, name):
+    t = pd.read_csv(outputs[name] / f"smoothing_{name}.csv")
     assert (t[t.series == "z_mc_vs_exact"].value < 5).all()
     e = t[t.series == "exact"]
     for c, grp in e.groupby("column"):  # longer bursts at the same loss rate: lower probability
         v = grp.sort_values("mean_burst").value.to_numpy()
         assert (np.diff(v) < 1e-12).all(), c
+    if name == "burstiness_common":  # at one arrival rate, a longer lag never hurts, whatever the burstiness
+        piv = e.pivot_table(index="mean_burst", columns="lag", values="value")
+        assert (np.diff(piv.to_numpy(), axis=1) > -1e-12).all()
