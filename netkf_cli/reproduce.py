@@ -178,8 +178,6 @@ def discover(root: Path, topics: list[str]) -> tuple[list[Artefact], dict[str, P
                 problems.append(Problem(f"checks[{i}].artefact", f"no config of topic {t!r} is named {c.artefact!r}", str(f)))
     if problems:
         raise ConfigError(problems)
-    if topics:
-        arts = [a for a in arts if a.topic in topics]
     return arts, published
 
 
@@ -217,48 +215,75 @@ def evaluate(check: Check, folder: Path, quick: bool) -> CheckResult:
     return CheckResult(check, ours, se, tol, ok)
 
 
+DIAGNOSTIC_COLUMNS = STAT_COLUMNS | {
+    "ess_frac", "finite_variance", "overflowed", "statistic", "statistic_stderr", "printed",
+    "threshold_low", "threshold_high", "err",
+}
+
+
 def compare_golden(fresh: Path, golden: Path, name: str) -> list[str]:
-    """Fresh (quick) CSVs against committed full-size ones: Monte Carlo rows within 5 combined
-    standard errors, closed-form rows (no stderr) to 1e-6 relative. Returns the mismatches."""
-    out = []
-    for g in sorted(golden.glob("*.csv")):
-        f = fresh / g.name
-        if not f.exists():
-            out.append(f"{name}: {g.name} is committed but the fresh run did not write it")
-            continue
-        a, b = pd.read_csv(f), pd.read_csv(g)
-        if "value" not in b.columns:
-            continue
-        if list(a.columns) != list(b.columns):
-            out.append(f"{name}: {g.name} columns changed: {list(b.columns)} → {list(a.columns)}")
-            continue
-        keys = [c for c in b.columns if c not in STAT_COLUMNS]
-        try:
-            m = b.merge(a, on=keys, how="outer", suffixes=("_golden", "_fresh"), indicator=True)
-        except (ValueError, TypeError) as exc:
-            out.append(f"{name}: {g.name} cannot be matched row by row ({exc})")
-            continue
-        if (m["_merge"] != "both").any():
-            out.append(f"{name}: {g.name} rows differ ({int((m['_merge'] != 'both').sum())} unmatched on {keys})")
-            continue
-        vg, vf = m["value_golden"].to_numpy(float), m["value_fresh"].to_numpy(float)
-        if "stderr" in b.columns:
-            sg, sf = m["stderr_golden"].to_numpy(float), m["stderr_fresh"].to_numpy(float)
-        else:
-            sg = sf = np.full(len(m), np.nan)
-        mc = np.isfinite(sg) | np.isfinite(sf)
-        tol = np.where(mc, SIGMAS * np.sqrt(np.nan_to_num(sg) ** 2 + np.nan_to_num(sf) ** 2) + 1e-12,
-                       1e-6 * np.maximum(np.abs(vg), 1e-12))
-        same_nan = np.isnan(vg) & np.isnan(vf)
-        same_inf = np.isinf(vg) & (vg == vf)
-        bad = ~(same_nan | same_inf | (np.abs(vf - vg) <= tol))
-        for i in np.flatnonzero(bad)[:5]:
-            where = ", ".join(f"{k}={m[k].iloc[i]}" for k in keys if pd.notna(m[k].iloc[i]))
-            dev = abs(vf[i] - vg[i])
-            kind = f"{dev / (tol[i] / SIGMAS):.1f} σ" if mc[i] else f"rel {dev / max(abs(vg[i]), 1e-300):.2e}"
-            out.append(f"{name}: {g.name} [{where}] value {vf[i]:.6g} vs golden {vg[i]:.6g} ({kind})")
-        if bad.sum() > 5:
-            out.append(f"{name}: {g.name}: {int(bad.sum()) - 5} more rows differ")
+    """The fresh (quick) main table ``<name>.csv`` against the committed full-size one.
+
+    Rows are aligned by position (a table's layout depends on the scenario only) and must agree
+    on every descriptive column. Then, per row:
+
+    * Monte Carlo (finite ``stderr``): |Δ| ≤ 5·√(se_g² + se_q²), where the quick run's standard
+      error is at least the golden's scaled by √(n_golden / n_quick) (an empirical proportion of
+      0 or 1 in a small run reports se = 0);
+    * closed form (no ``stderr`` and no ``n``): |Δ| ≤ 1e-6 relative;
+    * run-dependent diagnostics (no ``stderr`` but a sample size ``n``; ``reliable = 0``; or a
+      grid that itself comes from the sample, e.g. an ECDF's x) are not compared.
+    Returns one line per mismatch naming the artefact, the row and the deviation.
+    """
+    out: list[str] = []
+    g, f = golden / f"{name}.csv", fresh / f"{name}.csv"
+    if not g.exists():
+        return out
+    if not f.exists():
+        return [f"{name}: {g.name} is committed but the fresh run did not write it"]
+    a, b = pd.read_csv(f), pd.read_csv(g)
+    if "value" not in b.columns:
+        return out
+    if list(a.columns) != list(b.columns):
+        return [f"{name}: {g.name} columns changed: {list(b.columns)} → {list(a.columns)}"]
+    if len(a) != len(b):
+        return [f"{name}: {g.name} has {len(a)} rows, the golden has {len(b)}"]
+    desc = [c for c in b.columns if c not in DIAGNOSTIC_COLUMNS]
+    text = [c for c in desc if not pd.api.types.is_numeric_dtype(b[c])]
+    num = [c for c in desc if c not in text]
+    for c in text:
+        bad = a[c].astype(str).to_numpy() != b[c].astype(str).to_numpy()
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            return [f"{name}: {g.name} row {i}: {c} is {a[c].iloc[i]!r}, golden {b[c].iloc[i]!r} (layout changed)"]
+    same_grid = np.ones(len(b), dtype=bool)
+    for c in num:
+        x, y = a[c].to_numpy(float), b[c].to_numpy(float)
+        same_grid &= np.isclose(x, y, rtol=1e-9, atol=1e-12, equal_nan=True)
+    vg, vf = b["value"].to_numpy(float), a["value"].to_numpy(float)
+    sg = b["stderr"].to_numpy(float) if "stderr" in b.columns else np.full(len(b), np.nan)
+    sf = a["stderr"].to_numpy(float) if "stderr" in a.columns else np.full(len(a), np.nan)
+    ng = b["n"].to_numpy(float) if "n" in b.columns else np.full(len(b), np.nan)
+    nf = a["n"].to_numpy(float) if "n" in a.columns else np.full(len(a), np.nan)
+    mc = np.isfinite(sg) | np.isfinite(sf)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scaled = np.where(np.isfinite(ng) & np.isfinite(nf) & (nf > 0), np.nan_to_num(sg) * np.sqrt(ng / nf), 0.0)
+    sf_eff = np.maximum(np.nan_to_num(sf), np.nan_to_num(scaled))
+    tol = np.where(mc, SIGMAS * np.sqrt(np.nan_to_num(sg) ** 2 + sf_eff**2) + 1e-12,
+                   1e-6 * np.maximum(np.abs(vg), 1e-12))
+    compare = same_grid & (mc | ~np.isfinite(ng))
+    if "reliable" in b.columns:
+        compare &= (b["reliable"].to_numpy(float) != 0) & (a["reliable"].to_numpy(float) != 0)
+    with np.errstate(invalid="ignore"):
+        agree = (np.isnan(vg) & np.isnan(vf)) | (np.isinf(vg) & (vg == vf)) | (np.abs(vf - vg) <= tol)
+    bad = compare & ~agree
+    for i in np.flatnonzero(bad)[:5]:
+        where = ", ".join(f"{k}={b[k].iloc[i]}" for k in desc if pd.notna(b[k].iloc[i]))
+        dev = abs(vf[i] - vg[i])
+        kind = f"{dev / (tol[i] / SIGMAS):.1f} σ" if mc[i] else f"rel {dev / max(abs(vg[i]), 1e-300):.2e}"
+        out.append(f"{name}: {g.name} [{where}] value {vf[i]:.6g} vs golden {vg[i]:.6g} ({kind})")
+    if bad.sum() > 5:
+        out.append(f"{name}: {g.name}: {int(bad.sum()) - 5} more rows differ")
     return out
 
 
@@ -306,7 +331,8 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
     out_root = Path(out_root)
     if quick and out_root.resolve() == golden_root.resolve():
         raise ConfigError.at("--out", "a --quick run must not overwrite the committed full-size results/; choose another --out")
-    arts, published = discover(root, topics)
+    all_arts, published = discover(root, topics)
+    arts = [a for a in all_arts if not topics or a.topic in topics]
     if not quiet:
         console.print(f"reproducing {len(arts)} artefacts ({'quick' if quick else 'full size'}) into {out_root}/ with {jobs} job(s)")
 
@@ -330,10 +356,27 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
                 o.golden_checked = True
         outcomes.append(o)
     summarize(outcomes, console, quick)
+    # the report covers every artefact: those not run now are read from their existing folders
+    ran = {o.artefact.name for o in outcomes}
+    report_outcomes = []
+    for a in all_arts:
+        if a.name in ran:
+            report_outcomes.append(next(o for o in outcomes if o.artefact.name == a.name))
+            continue
+        folder = out_root / a.name
+        if not (folder / "manifest.json").exists():
+            report_outcomes.append(ArtefactOutcome(a, None, 0.0, "not run yet: netkf reproduce " + a.topic))
+            continue
+        import json
+
+        wall = json.loads((folder / "manifest.json").read_text()).get("wall_time_s", 0.0)
+        o = ArtefactOutcome(a, folder, wall)
+        o.checks = [evaluate(c, folder, quick) for c in published[a.topic].checks if c.artefact == a.name]
+        report_outcomes.append(o)
     if write_report:
         from netkf_cli.report import write_report as _write
 
-        path = _write(outcomes, published, out_root / "REPORT.md", root=root, quick=quick)
+        path = _write(report_outcomes, published, out_root / "REPORT.md", root=root, quick=quick)
         if not quiet:
             console.print(f"report: {path}")
     failed = [o for o in outcomes if o.failed]
@@ -360,16 +403,19 @@ def summarize(outcomes: list[ArtefactOutcome], console, quick: bool) -> None:
     for o in outcomes:
         n_ok = sum(1 for c in o.checks if c.ok or c.check.expect == "differs")
         n_bad = sum(1 for c in o.checks if c.failed)
-        devs = []
+        worst = None  # the check closest to (or furthest past) its tolerance
         for c in o.checks:
             if c.ours is None or c.check.expect == "differs":
                 continue
-            if c.stderr:
-                devs.append((abs(c.diff) / c.stderr, "σ"))
-            elif c.check.printed != 0:
-                devs.append((abs(c.diff) / abs(c.check.printed), "rel"))
-        worst = max(devs, default=None)
-        wtxt = "—" if worst is None else (f"{worst[0]:.2f} σ" if worst[1] == "σ" else f"{100 * worst[0]:.2g} %")
+            ratio = abs(c.diff) / c.tol if c.tol > 0 else (0.0 if c.diff == 0 else math.inf)
+            if worst is None or ratio > worst[0]:
+                worst = (ratio, c)
+        if worst is None:
+            wtxt = "—"
+        else:
+            c = worst[1]
+            rel = abs(c.diff) / abs(c.check.printed) if c.check.printed else abs(c.diff)
+            wtxt = f"{100 * rel:.2g} % rel" + (f" ({abs(c.diff) / c.stderr:.1f} σ)" if c.stderr else "")
         gold = "run failed" if o.error else (f"{len(o.golden)} moved" if o.golden else ("ok" if o.golden_checked else "—"))
         t.add_row(f"{o.artefact.topic}/{o.artefact.name}", str(n_ok), str(n_bad), wtxt, gold, f"{o.wall_time:.1f} s")
     console.print(t)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import multiprocessing
 import os
 import sys
 import tempfile
@@ -46,7 +47,12 @@ from netkf_cli.errors import ConfigError
 from netkf_cli.system import LinearSystem
 
 NUMBA_BACKENDS = ("numba", "numba_philox")
-BLOCK = 256  # runs per block: state (≤ 16 rows × 256 × 8 B) stays in L1
+BLOCK = None  # runs per block; None = 256, or 128 when the block state has > 8 rows (keeps it in L1)
+
+
+def block_size(s: LinearSystem) -> int:
+    rows = s.n * (s.n + 1) // 2 + 6
+    return 256 if rows <= 8 else 128
 
 
 class NumbaUnavailable(ConfigError):
@@ -244,8 +250,9 @@ def philox4x32(c0, c1, c2, c3, k0, k1):
 '''
 
 
-def kernel_source(s: LinearSystem, span: int, block: int = BLOCK) -> str:
+def kernel_source(s: LinearSystem, span: int, block: int | None = BLOCK) -> str:
     """Python source of the compiled kernel for system ``s`` (coefficients as literals)."""
+    block = block_size(s) if block is None else int(block)
     n = s.n
     nu = n * (n + 1) // 2
     p = [f"p{k}" for k in range(nu)]
@@ -278,8 +285,9 @@ def kernel_source(s: LinearSystem, span: int, block: int = BLOCK) -> str:
 
     def time_loop(mode):
         ind = " " * 16
-        uexpr = "U[base + r]" if mode == "numpy" else f"st[{UR * B} + (t & 3) * {B} + r]"
+        uexpr = "ut[r]" if mode == "numpy" else f"st[{UR * B} + (t & 3) * {B} + r]"
         gen = ""
+        ut = "            ut = U[base:base + nb]  # row segment: index r >= 0, no wraparound select\n" if mode == "numpy" else ""
         if mode == "philox":
             gen = f"""            if (t & 3) == 0:
                 c0 = np.uint64(t >> 2)
@@ -290,13 +298,24 @@ def kernel_source(s: LinearSystem, span: int, block: int = BLOCK) -> str:
                     st[{(UR + 2) * B} + r] = np.float64(w2) * TWO_M32
                     st[{(UR + 3) * B} + r] = np.float64(w3) * TWO_M32
 """
-        loops = f"""        for t in range(H):
+        if span == 1:
+            head = """        for t in range(H):
             fk = Fk[t]
             fp = Fp[t]
             trk = track[t]
             ag = agef[t]
             base = t * R + r0
-{gen}"""
+"""
+        else:  # one extra pass t = H with no new packet (kept = False): the last step uses γ_k only
+            head = """        for t in range(H + 1):
+            tt = min(t, H - 1)
+            fk = Fk[tt] if t < H else -1.0
+            fp = Fp[tt]
+            trk = track[tt] and t < H
+            ag = agef[tt]
+            base = tt * R + r0
+"""
+        loops = f"""{head}{ut}{gen}"""
         if span == 1:
             loops += f"            for r in range(nb):\n{inner(ind, uexpr, False)}\n"
         else:
@@ -305,18 +324,16 @@ def kernel_source(s: LinearSystem, span: int, block: int = BLOCK) -> str:
         return loops
 
     final = ""
-    if span == 2:  # time k: only packet k can carry y_k
-        final = (f"        for r in range(nb):\n            av = st[{KP * B} + r] != 0.0\n{load(' ' * 12)}\n"
-                 f"{step(' ' * 12, 'av')}\n")
     psd = "\n    ".join(psd_code(n, p, "thr"))
     pargs = ", ".join(p)
+    fin = " and ".join(f"np.isfinite({x})" for x in p)
 
-    def kernel(name, mode):
+    def kernel(name, mode, parallel=True):
         sig = "U, H, R, Fk, Fp, track, agef, P0u, thrs, out_state, out_oldest, out_level"
         if mode == "philox":
             sig = "k0, k1, H, R, Fk, Fp, track, agef, P0u, thrs, out_state, out_oldest, out_level"
         return f'''
-@njit(parallel=True, cache=True, error_model="numpy", nogil=True, boundscheck=False)
+@njit(parallel={parallel}, cache=True, error_model="numpy", nogil=True, boundscheck=False)
 def {name}({sig}):
     K = thrs.shape[0]
     nblk = (R + {B} - 1) // {B}
@@ -334,6 +351,8 @@ def {name}({sig}):
             out_oldest[r0 + r] = st[{OLD * B} + r]
             lo = 0
             hi = K
+            if not ({fin}):
+                lo = K  # overflow: counted as P ≰ M (λ_max = ∞ in the numpy kernel)
             while lo < hi:
                 mid = (lo + hi) >> 1
                 if psd(thrs[mid], {pargs}):
@@ -359,20 +378,33 @@ def psd(thr, {pargs}):
 
 {kernel("run_numpy", "numpy")}
 {kernel("run_philox", "philox")}
+{kernel("run_numpy_serial", "numpy", False)}
+{kernel("run_philox_serial", "philox", False)}
 '''
 
 
 def _cache_dir() -> Path:
-    base = os.environ.get("NETKF_CACHE_DIR") or os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    d = Path(base) / ("" if os.environ.get("NETKF_CACHE_DIR") else "netkf") / "numba_kernels"
-    d.mkdir(parents=True, exist_ok=True)
-    return d
+    """``$NETKF_CACHE_DIR/numba_kernels``, else ``~/.cache/netkf/numba_kernels`` (or the temp folder)."""
+    if os.environ.get("NETKF_CACHE_DIR"):
+        cands = [Path(os.environ["NETKF_CACHE_DIR"])]
+    else:
+        cands = [Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "netkf",
+                 Path(tempfile.gettempdir()) / "netkf"]
+    for c in cands:
+        d = c / "numba_kernels"
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+            if os.access(d, os.W_OK):
+                return d
+        except OSError:
+            continue
+    raise OSError(f"no writable cache folder for compiled kernels among {[str(c) for c in cands]}")
 
 
 _MODULES: dict[str, object] = {}
 
 
-def compiled_module(s: LinearSystem, span: int, block: int = BLOCK):
+def compiled_module(s: LinearSystem, span: int, block: int | None = BLOCK):
     """The generated kernel module for (system, span), written once per content hash and imported."""
     numba = require_numba()
     src = kernel_source(s, span, block)
@@ -444,7 +476,7 @@ class NumbaMCKernel:
     """
 
     def __init__(self, s: LinearSystem, channel, span: int, horizon: int, M_grid, P0=None,
-                 rng_mode: str = "numpy", threads: int | None = None, block: int = BLOCK):
+                 rng_mode: str = "numpy", threads: int | None = None, block: int | None = BLOCK):
         from netkf_cli.estimators.buffered import BufferedMCKernel
 
         if rng_mode not in ("numpy", "philox"):
@@ -458,7 +490,8 @@ class NumbaMCKernel:
         self.F_keep, self.F_prev = ref.F_keep, ref.F_prev
         self.track = (ref.ages <= ref.Dmax)
         self.agef = ref.ages.astype(float)
-        self.rng_mode, self.threads, self.block = rng_mode, threads, int(block)
+        self.rng_mode, self.threads = rng_mode, threads
+        self.block = block_size(s) if block is None else int(block)
         self.backend = "numba" if rng_mode == "numpy" else "numba_philox"
         n = s.n
         idx = _unique_index(n)
@@ -471,26 +504,34 @@ class NumbaMCKernel:
     def __getstate__(self):
         return dict(self.__dict__)
 
-    def _fn(self):
+    def _fn(self, nt: int):
         mod = compiled_module(self.s, self.span, self.block)
-        return mod.run_numpy if self.rng_mode == "numpy" else mod.run_philox
+        name = "run_numpy" if self.rng_mode == "numpy" else "run_philox"
+        return getattr(mod, name if nt > 1 else name + "_serial")
 
     def _nthreads(self) -> int:
+        """Threads for this call: 1 inside an executor's worker process (``--jobs``/dask already use
+        every core, and numba's OpenMP layer must not run in a child forked from a parent that used
+        it), else ``threads`` or all of numba's threads."""
         numba = require_numba()
-        return numba.config.NUMBA_NUM_THREADS if self.threads is None else max(1, int(self.threads))
+        if multiprocessing.parent_process() is not None:
+            return 1
+        nt = numba.config.NUMBA_NUM_THREADS if self.threads is None else int(self.threads)
+        return max(1, min(nt, numba.config.NUMBA_NUM_THREADS))
 
     def raw(self, rng: np.random.Generator, runs: int):
         """Per-run results: ``state`` (n(n+1)/2, runs) entries P_ij (i ≤ j), ``oldest`` (runs,),
         ``level`` (runs,) = number of sorted thresholds below λ_max (K if P is non-finite)."""
         numba = require_numba()
-        fn = self._fn()
         nt = self._nthreads()
+        fn = self._fn(nt)
         nu = len(self._pairs)
         state = np.empty((nu, runs))
         oldest = np.empty(runs)
         level = np.empty(runs, dtype=np.int64)
-        prev = numba.get_num_threads()
-        numba.set_num_threads(min(nt, numba.config.NUMBA_NUM_THREADS))
+        prev = numba.get_num_threads() if nt > 1 else None
+        if nt > 1:
+            numba.set_num_threads(nt)
         try:
             args = (self.F_keep, self.F_prev, self.track, self.agef, self._P0u, self._thr_sorted,
                     state, oldest, level)
@@ -501,7 +542,8 @@ class NumbaMCKernel:
                 k0, k1 = (np.uint64(x) for x in rng.integers(0, 1 << 32, size=2, dtype=np.uint64))
                 fn(k0, k1, self.horizon, runs, *args)
         finally:
-            numba.set_num_threads(prev)
+            if prev is not None:
+                numba.set_num_threads(prev)
         return state, oldest, level
 
     def __call__(self, rng: np.random.Generator, runs: int):
