@@ -10,6 +10,7 @@ import functools
 import json
 import os
 import sys
+import warnings
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -67,12 +68,18 @@ def version_callback(value: bool):
         raise typer.Exit()
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """User-facing warnings (e.g. a scenario the paper's assumptions do not cover) as one line."""
+    err.print(f"[yellow]warning:[/] {message}", highlight=False)
+
+
 @app.callback()
 def main(
     version: Annotated[Optional[bool], typer.Option("--version", callback=version_callback, is_eager=True,
                                                     help="Print the version and exit.")] = None,
 ):
     """netkf — networked Kalman filtering: reproduce the papers, answer design questions."""
+    warnings.showwarning = _show_warning
 
 
 @app.command()

@@ -60,8 +60,12 @@ class NumbaUnavailable(ConfigError):
 
 
 def numba_available() -> bool:
-    """True iff ``import numba`` works (checked without importing it)."""
-    return importlib.util.find_spec("numba") is not None
+    """True iff ``import numba`` works."""
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def require_numba():

@@ -160,7 +160,9 @@ class ProbVsM(AnalysisModel):
         if "buffered" in sensors:
             lo = np.array([1 - db.theta(k, D, ch.cdf, conv) for k in kk1])
             up = np.array([1 - db.theta(k, D, ch.cdf, conv) for k in kk2])
-            kernel = buffered_mc_kernel(s, ch, span, mc.horizon, M, P0=s.P0)
+            est = scenario.estimator
+            backend = est.backend if (est is not None and est.kind == "buffered") else "numpy"
+            kernel = buffered_mc_kernel(s, ch, span, mc.horizon, M, P0=s.P0, backend=backend)
             st = run_chunked(kernel, runs, mc.chunk, mc.seed, progress=ctx.progress, label="buffered")
             n = int(st["n"])
             p = st["count_leq"] / n
@@ -174,7 +176,7 @@ class ProbVsM(AnalysisModel):
             meanP, seP = mean_and_stderr(st["sum_P"], st["sumsq_P"], n)
             mtr, setr = mean_and_stderr(st["sum_trace"], st["sumsq_trace"], n)
             mu, muse = mean_and_stderr(st["sum_updates"], st["sumsq_updates"], n)
-            meta["buffered"] = {"runs": n, "overflow_runs": int(st["overflow"]), "packet_span": span,
+            meta["buffered"] = {"runs": n, "backend": kernel.backend, "overflow_runs": int(st["overflow"]), "packet_span": span,
                                 "packet": "y_k" if span == 1 else "(y_k, y_{k-1}) (Appendix B)",
                                 "mbar": Mbar, "pbar": Pbar, "mean_P": meanP, "mean_P_stderr": seP}
             # 5σ with σ the larger of the sample s.e. and the binomial s.e. at the bound itself, plus a
