@@ -108,10 +108,11 @@ def run(
     mode = "dask" if executor == "dask" else ("process" if n_jobs > 1 else "serial")
     scenario = load_scenario(config)
     with make_progress(quiet or as_json) as prog:
-        task = prog.add_task(scenario.name, total=None)
+        task = prog.add_task(f"{scenario.name} (Monte Carlo runs)", total=None)
         folder = run_scenario(
             scenario, source=config, out_dir=out_dir, runs=runs, force=force,
             progress=lambda n: prog.advance(task, n), set_total=lambda n: prog.update(task, total=n),
+            add_total=lambda n: prog.update(task, total=(prog.tasks[0].total or 0) + n),
             executor=mode, jobs=n_jobs, scheduler=scheduler or ("local" if executor == "dask" else None),
             resume=resume,
         )

@@ -85,6 +85,8 @@ class Execution:
     cache_dir: Path | None = None  # resume store for this run (None: no caching)
     retries: int = 1
     calls: int = 0  # run_chunked calls so far in this run (part of the cache key)
+    progress: Callable[[int], None] | None = None  # runs finished (when a recipe passes none)
+    add_total: Callable[[int], None] | None = None  # runs planned: lets a progress bar show an ETA
     _pool: Executor | None = field(default=None, repr=False)
     _client: object | None = field(default=None, repr=False)
     _cluster: object | None = field(default=None, repr=False)
@@ -124,14 +126,15 @@ _EXEC: contextvars.ContextVar[Execution] = contextvars.ContextVar("netkf_executi
 
 
 @contextmanager
-def execution(executor: str = "serial", jobs: int = 1, scheduler: str | None = None, cache_dir: Path | None = None):
+def execution(executor: str = "serial", jobs: int = 1, scheduler: str | None = None, cache_dir: Path | None = None,
+              progress: Callable[[int], None] | None = None, add_total: Callable[[int], None] | None = None):
     """Run every :func:`run_chunked` inside this block on the given executor (and cache)."""
     if executor not in ("serial", "process", "dask"):
         raise ValueError(f"unknown executor {executor!r}")
     if executor == "process" and jobs <= 1:
         executor = "serial"
     ex = Execution(executor=executor, jobs=max(1, jobs), scheduler=scheduler,
-                   cache_dir=Path(cache_dir) if cache_dir else None)
+                   cache_dir=Path(cache_dir) if cache_dir else None, progress=progress, add_total=add_total)
     token = _EXEC.set(ex)
     try:
         yield ex
@@ -196,7 +199,10 @@ def run_chunked(
     ex = _EXEC.get()
     call = ex.calls
     ex.calls += 1
+    progress = progress or ex.progress
     chunks = plan_chunks(runs, chunk, seed)
+    if ex.add_total is not None:
+        ex.add_total(runs)
     results: dict[int, dict] = {}
     paths = {c.index: _cache_path(ex, call, label, c) for c in chunks}
     todo = []

@@ -106,6 +106,7 @@ def run_scenario(scenario, *, source: str | Path | None = None, out_dir: str | P
                  runs: int | None = None, quick: bool = False, force: bool = False,
                  progress: Callable[[int], None] | None = None,
                  set_total: Callable[[int], None] | None = None,
+                 add_total: Callable[[int], None] | None = None,
                  executor: str = "serial", jobs: int = 1, scheduler: str | None = None,
                  resume: bool = False) -> Path:
     """Compute and write one scenario. Finished Monte Carlo chunks are kept in
@@ -119,7 +120,7 @@ def run_scenario(scenario, *, source: str | Path | None = None, out_dir: str | P
     if cache.exists() and not resume:
         shutil.rmtree(cache, ignore_errors=True)
     t0 = time.perf_counter()
-    with montecarlo.execution(executor, jobs, scheduler, cache_dir=cache):
+    with montecarlo.execution(executor, jobs, scheduler, cache_dir=cache, progress=progress, add_total=add_total):
         art = compute(scenario, ctx, source)
     folder = write_result(scenario, art, out, force=force, ctx=ctx, source=source,
                           wall_time=time.perf_counter() - t0,
