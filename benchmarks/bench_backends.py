@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_delay_mc import filterpy_mkf, loop_mkf  # noqa: E402
+from benchmarks.bench_delay_mc import filterpy_mkf, loop_mkf  # noqa: E402
 
 from netkf_cli.channels.bernoulli import BernoulliChannel  # noqa: E402
 from netkf_cli.channels.delay import DelayChannel  # noqa: E402

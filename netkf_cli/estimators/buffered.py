@@ -402,20 +402,30 @@ class BufferedMCKernel:
         finite = np.isfinite(lam)
         count = np.count_nonzero(lam[:, None] <= self.thr[None, :], axis=0)
         Pm = mkf.matrices()
-        Pm[~finite] = 0.0
-        updates = 1.0 + oldest
-        tr = np.trace(Pm, axis1=1, axis2=2)
-        return {
-            "sum_trace": float(tr.sum()),
-            "sumsq_trace": float((tr**2).sum()),
-            "count_leq": count.astype(np.int64),
-            "n": np.int64(runs),
-            "overflow": np.int64(runs - np.count_nonzero(finite)),
-            "sum_P": Pm.sum(axis=0).reshape(n, n),
-            "sumsq_P": (Pm**2).sum(axis=0).reshape(n, n),
-            "sum_updates": float(updates.sum()),
-            "sumsq_updates": float((updates**2).sum()),
-        }
+        return chunk_statistics(Pm, finite, count, oldest, runs, n)
+
+
+def chunk_statistics(Pm: np.ndarray, finite: np.ndarray, count: np.ndarray, oldest: np.ndarray,
+                     runs: int, n: int) -> dict:
+    """Additive statistics of one chunk (shared by the numpy and the compiled backends).
+
+    ``Pm`` (runs, n, n) final covariances (overflowed runs are zeroed here and counted in
+    ``overflow``), ``count`` runs with P_k ≤ M per M, ``oldest`` MKF re-runs minus one per run.
+    """
+    Pm[~finite] = 0.0
+    updates = 1.0 + oldest
+    tr = np.trace(Pm, axis1=1, axis2=2)
+    return {
+        "sum_trace": float(tr.sum()),
+        "sumsq_trace": float((tr**2).sum()),
+        "count_leq": np.asarray(count).astype(np.int64),
+        "n": np.int64(runs),
+        "overflow": np.int64(runs - np.count_nonzero(finite)),
+        "sum_P": Pm.sum(axis=0).reshape(n, n),
+        "sumsq_P": (Pm**2).sum(axis=0).reshape(n, n),
+        "sum_updates": float(updates.sum()),
+        "sumsq_updates": float((updates**2).sum()),
+    }
 
 
 # ---------------------------------------------------------------------------------------------

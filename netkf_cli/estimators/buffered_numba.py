@@ -560,17 +560,6 @@ class NumbaMCKernel:
         cnt_sorted = np.cumsum(np.bincount(level, minlength=K + 1)[:K])
         count = np.empty(K, dtype=np.int64)
         count[self._order] = cnt_sorted
-        Pm[~finite] = 0.0
-        updates = 1.0 + oldest
-        tr = np.trace(Pm, axis1=1, axis2=2)
-        return {
-            "sum_trace": float(tr.sum()),
-            "sumsq_trace": float((tr**2).sum()),
-            "count_leq": count,
-            "n": np.int64(runs),
-            "overflow": np.int64(runs - np.count_nonzero(finite)),
-            "sum_P": Pm.sum(axis=0).reshape(n, n),
-            "sumsq_P": (Pm**2).sum(axis=0).reshape(n, n),
-            "sum_updates": float(updates.sum()),
-            "sumsq_updates": float((updates**2).sum()),
-        }
+        from netkf_cli.estimators.buffered import chunk_statistics
+
+        return chunk_statistics(Pm, finite, count, oldest, runs, n)
