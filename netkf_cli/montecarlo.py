@@ -1,7 +1,9 @@
 """Chunked, reproducible, resumable Monte Carlo.
 
-Runs are split into chunks of ``chunk`` runs; chunk ``i`` draws from
-``SeedSequence(seed, spawn_key=(i,))`` only. A kernel returns *additive* statistics
+Runs are split into chunks of ``chunk`` runs; chunk ``i`` of stream ``s`` draws from
+``SeedSequence(seed, spawn_key=(s, i))`` only (``stream`` names an independent Monte Carlo
+computation inside one artefact — a grid point, a channel variant — never seed arithmetic;
+the same stream gives common random numbers). A kernel returns *additive* statistics
 (counts, sums, sums of squares) which are summed in chunk order, so the result is
 bitwise identical whatever executor (serial, local processes, Dask), job count or
 completion order computed the chunks, and memory is bounded by the chunk size.
@@ -20,8 +22,9 @@ import contextvars
 import math
 import os
 import pickle
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,36 +41,68 @@ class ChunkFailed(NetkfError):
     """A chunk failed twice (first failure retried once)."""
 
 
+class KernelNotShippable(NetkfError):
+    """A Monte Carlo kernel cannot be pickled, so it cannot run on worker processes (a bug)."""
+
+
 @dataclass(frozen=True)
 class Chunk:
-    """One unit of Monte Carlo work: its index, its run count and its seed."""
+    """One unit of Monte Carlo work: its index, its run count, its seed and its stream."""
 
     index: int
     runs: int
     seed: int
     first_run: int = 0
+    stream: int = 0
 
     def rng(self) -> np.random.Generator:
-        return np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(self.index,)))
+        return np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(self.stream, self.index)))
 
 
-def plan_chunks(runs: int, chunk: int, seed: int) -> list[Chunk]:
-    """Split ``runs`` into chunks of ``chunk`` runs (the last one smaller)."""
-    if runs < 1:
-        raise ValueError(f"runs must be ≥ 1, got {runs}")
-    chunk = max(1, min(chunk, runs))
-    count = math.ceil(runs / chunk)
-    return [Chunk(i, min(chunk, runs - i * chunk), seed, i * chunk) for i in range(count)]
+class ChunkPlan(Sequence):
+    """The chunks of one Monte Carlo computation, made on demand (memory independent of ``runs``)."""
+
+    def __init__(self, runs: int, chunk: int, seed: int, stream: int = 0):
+        if runs < 1:
+            raise ValueError(f"runs must be ≥ 1, got {runs}")
+        self.runs, self.chunk, self.seed, self.stream = runs, max(1, min(chunk, runs)), seed, stream
+        self.count = math.ceil(runs / self.chunk)
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(self.count))]
+        if i < 0:
+            i += self.count
+        if not 0 <= i < self.count:
+            raise IndexError(i)
+        return Chunk(i, min(self.chunk, self.runs - i * self.chunk), self.seed, i * self.chunk, self.stream)
+
+
+def plan_chunks(runs: int, chunk: int, seed: int, stream: int = 0) -> ChunkPlan:
+    """Split ``runs`` into chunks of ``chunk`` runs (the last one smaller), lazily."""
+    return ChunkPlan(runs, chunk, seed, stream)
 
 
 def add_stats(total: dict | None, part: Stats) -> dict:
-    """Add one chunk's statistics into the running total (creates it on first use)."""
+    """Add one chunk's statistics into the running total (creates it on first use).
+
+    Keys are summed, except ``max_*`` (element-wise maximum) and ``min_*`` (minimum): all three
+    are associative, so the chunk-order total is the same for every executor.
+    """
     if total is None:
         return {k: np.array(v, copy=True) for k, v in part.items()}
     if set(total) != set(part):
         raise ValueError(f"kernel returned different keys across chunks: {sorted(total)} vs {sorted(part)}")
     for k, v in part.items():
-        total[k] = total[k] + np.asarray(v)
+        if k.startswith("max_"):
+            total[k] = np.maximum(total[k], np.asarray(v))
+        elif k.startswith("min_"):
+            total[k] = np.minimum(total[k], np.asarray(v))
+        else:
+            total[k] = total[k] + np.asarray(v)
     return total
 
 
@@ -93,7 +128,7 @@ class Execution:
 
     def pool(self) -> Executor:
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=self.jobs)
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, initializer=_worker_init)
         return self._pool
 
     def client(self):
@@ -143,19 +178,31 @@ def execution(executor: str = "serial", jobs: int = 1, scheduler: str | None = N
         ex.close()
 
 
-def _picklable(obj) -> bool:
+def _worker_init() -> None:
+    """Pool-worker initializer: die with the parent (netkf_cli.workers, when available)."""
     try:
-        pickle.dumps(obj)
-        return True
-    except Exception:
-        return False
+        from netkf_cli.workers import die_with_parent
+    except ImportError:  # pragma: no cover
+        return
+    die_with_parent()
+
+
+def _require_picklable(kernel, label: str) -> None:
+    """A kernel must travel to worker processes; a closure is a bug, never a silent serial run."""
+    try:
+        pickle.dumps(kernel)
+    except Exception as exc:
+        raise KernelNotShippable(
+            f"Monte Carlo kernel {type(kernel).__name__}{' (' + label + ')' if label else ''} cannot be pickled, "
+            f"so it cannot run on worker processes: {type(exc).__name__}: {exc}. Kernels must be module-level "
+            f"classes (netkf_cli/estimators/); this is a bug in netkf, please report it") from None
 
 
 def _cache_path(ex: Execution, call: int, label: str, c: Chunk) -> Path | None:
     if ex.cache_dir is None:
         return None
     safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in label)[:60]
-    return ex.cache_dir / f"call{call:04d}-{safe}" / f"chunk{c.index:06d}-runs{c.runs}-seed{c.seed}.npz"
+    return ex.cache_dir / f"call{call:04d}-{safe}" / f"s{c.stream}-chunk{c.index:06d}-runs{c.runs}-seed{c.seed}.npz"
 
 
 def _load(path: Path | None) -> dict | None:
@@ -179,7 +226,8 @@ def _store(path: Path | None, stats: dict) -> None:
 
 
 def _describe(label: str, c: Chunk) -> str:
-    return f"chunk {c.index} (runs {c.first_run}–{c.first_run + c.runs - 1}, seed {c.seed}{', ' + label if label else ''})"
+    return (f"chunk {c.index} of stream {c.stream} (runs {c.first_run}–{c.first_run + c.runs - 1}, seed {c.seed}"
+            f"{', ' + label if label else ''})")
 
 
 def run_chunked(
@@ -188,85 +236,105 @@ def run_chunked(
     chunk: int,
     seed: int,
     *,
+    stream: int = 0,
     progress: Callable[[int], None] | None = None,
     label: str = "",
 ) -> dict[str, np.ndarray]:
-    """Run ``kernel(rng, n)`` over all chunks and return the statistics summed in chunk order.
+    """Run ``kernel(rng, n)`` over all chunks of ``stream`` and return the statistics summed in chunk order.
 
-    ``progress(n_runs)`` is called as chunks finish. A failing chunk is retried once, then
-    reported with its coordinates (:class:`ChunkFailed`).
+    Chunks are planned lazily and summed as they complete in order (at most a window of
+    ``2 × jobs`` chunks is held), so memory does not grow with ``runs``. ``progress(n_runs)`` is
+    called as chunks finish. A chunk is retried only when its worker process was lost; an
+    exception raised by a kernel is a bug and propagates with the chunk's coordinates.
     """
     ex = _EXEC.get()
     call = ex.calls
     ex.calls += 1
     progress = progress or ex.progress
-    chunks = plan_chunks(runs, chunk, seed)
+    chunks = plan_chunks(runs, chunk, seed, stream)
     if ex.add_total is not None:
         ex.add_total(runs)
-    results: dict[int, dict] = {}
-    paths = {c.index: _cache_path(ex, call, label, c) for c in chunks}
-    todo = []
-    for c in chunks:
-        cached = _load(paths[c.index])
-        if cached is not None:
-            results[c.index] = cached
-            if progress:
-                progress(c.runs)
-        else:
-            todo.append(c)
+    mode = ex.executor
+    if mode != "serial":
+        _require_picklable(kernel, label)
+        if len(chunks) <= 1:
+            mode = "serial"  # nothing to parallelize
+    total: dict | None = None
 
-    def finish(c: Chunk, stats: dict) -> None:
-        results[c.index] = stats
-        _store(paths[c.index], stats)
+    def finish(c: Chunk, stats: dict, path: Path | None, cached: bool) -> None:
+        nonlocal total
+        if not cached:
+            _store(path, stats)
+        total = add_stats(total, stats)
         if progress:
             progress(c.runs)
 
-    mode = ex.executor
-    if mode != "serial" and (len(todo) <= 1 or not _picklable(kernel)):
-        mode = "serial"  # nothing to parallelize, or a closure that cannot travel to workers
-    if mode == "serial":
-        for c in todo:
-            finish(c, _retrying(lambda c=c: run_chunk(kernel, c), label, c, ex.retries))
-    elif mode == "process":
-        pool = ex.pool()
-        futures = {c.index: pool.submit(run_chunk, kernel, c) for c in todo}
-        for c in todo:
-            try:
-                stats = futures[c.index].result()
-            except (KeyboardInterrupt, SystemExit):
-                raise
-            except Exception:
-                stats = _retrying(lambda c=c: pool.submit(run_chunk, kernel, c).result(), label, c, ex.retries - 1)
-            finish(c, stats)
-    else:  # dask
-        from dask.distributed import as_completed
-
-        client = ex.client()
-        futs = {client.submit(run_chunk, kernel, c, pure=False): c for c in todo}
-        for fut in as_completed(list(futs)):
-            c = futs[fut]
-            try:
-                stats = fut.result()
-            except Exception:
-                stats = _retrying(lambda c=c: client.submit(run_chunk, kernel, c, pure=False).result(), label, c,
-                                  ex.retries - 1)
-            finish(c, stats)
-    total = None
-    for c in chunks:  # fixed order: bitwise identical sums
-        total = add_stats(total, results[c.index])
-    return total  # type: ignore[return-value]
-
-
-def _retrying(fn, label: str, c: Chunk, retries: int):
-    last = None
-    for _ in range(max(0, retries) + 1):
+    def attempt(fn, c: Chunk):
         try:
             return fn()
         except (KeyboardInterrupt, SystemExit):
             raise
-        except Exception as exc:  # noqa: BLE001 - reported with coordinates below
-            last = exc
-    raise ChunkFailed(f"Monte Carlo {_describe(label, c)} failed twice: {type(last).__name__}: {last}") from last
+        except Exception as exc:
+            exc.add_note(f"netkf: raised by Monte Carlo {_describe(label, c)}")
+            raise
+
+    if mode == "serial":
+        for c in chunks:
+            path = _cache_path(ex, call, label, c)
+            cached = _load(path)
+            stats = cached if cached is not None else attempt(lambda c=c: run_chunk(kernel, c), c)
+            finish(c, stats, path, cached is not None)
+        return total  # type: ignore[return-value]
+
+    window = max(2, 2 * ex.jobs)
+    pending: dict[int, object] = {}
+    nxt = 0  # next chunk index to submit
+
+    def submit(c: Chunk):
+        if mode == "process":
+            return ex.pool().submit(run_chunk, kernel, c)
+        return ex.client().submit(run_chunk, kernel, c, pure=False)
+
+    for c in chunks:  # consume in order; keep the window full
+        while nxt < len(chunks) and len(pending) < window:
+            cn = chunks[nxt]
+            if _load(_cache_path(ex, call, label, cn)) is None:
+                pending[cn.index] = submit(cn)
+            nxt += 1
+        path = _cache_path(ex, call, label, c)
+        cached = _load(path) if c.index not in pending else None
+        if cached is not None:
+            finish(c, cached, path, True)
+            continue
+        fut = pending.pop(c.index)
+        stats = None
+        for lost in range(ex.retries + 1):
+            try:
+                stats = attempt(fut.result, c)
+                break
+            except Exception as exc:
+                if not _worker_lost(exc) or lost == ex.retries:
+                    if _worker_lost(exc):
+                        raise ChunkFailed(f"Monte Carlo {_describe(label, c)}: its worker process was lost "
+                                          f"{lost + 1} times ({type(exc).__name__})") from exc
+                    raise
+                if mode == "process":  # a dead worker breaks the whole pool: rebuild and resubmit
+                    if ex._pool is not None:
+                        ex._pool.shutdown(wait=False, cancel_futures=True)
+                    ex._pool = None
+                    for k in list(pending):
+                        pending[k] = submit(chunks[k])
+                fut = submit(c)
+        finish(c, stats, path, False)
+    return total  # type: ignore[return-value]
+
+
+def _worker_lost(exc: BaseException) -> bool:
+    """True when a chunk failed because its worker died (not because our code raised)."""
+    if isinstance(exc, BrokenProcessPool):
+        return True
+    name = type(exc).__name__
+    return name in ("KilledWorker", "CommClosedError", "FutureCancelledError")
 
 
 def mean_and_stderr(total: np.ndarray, total_sq: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -280,3 +348,18 @@ def proportion_stderr(p: np.ndarray | float, n: int) -> np.ndarray:
     """Standard error √(p(1−p)/n) of an empirical proportion over n independent samples."""
     p = np.asarray(p, dtype=float)
     return np.sqrt(np.clip(p * (1 - p), 0, None) / n)
+
+
+def wilson_interval(successes, n, z: float = 1.96) -> tuple[np.ndarray, np.ndarray]:
+    """Wilson score interval for a binomial proportion (never of zero width, also at p̂ ∈ {0, 1}).
+
+    p̃ = (p̂ + z²/2n) / (1 + z²/n),  half-width = z/(1 + z²/n) · √(p̂(1−p̂)/n + z²/4n²).
+    """
+    k = np.asarray(successes, dtype=float)
+    n = np.asarray(n, dtype=float)
+    p = k / n
+    z2 = z * z
+    denom = 1.0 + z2 / n
+    centre = (p + z2 / (2 * n)) / denom
+    half = z / denom * np.sqrt(np.clip(p * (1 - p), 0, None) / n + z2 / (4 * n * n))
+    return np.clip(centre - half, 0.0, 1.0), np.clip(centre + half, 0.0, 1.0)

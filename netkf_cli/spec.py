@@ -8,7 +8,7 @@ found under ``netkf_cli/channels``, ``netkf_cli/estimators`` and ``netkf_cli/rec
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any
+from typing import Annotated, Any, ClassVar
 
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field
 
@@ -20,11 +20,41 @@ class StrictModel(BaseModel):
 
 
 class ChannelModel(StrictModel):
-    """Base of every channel kind (``kind: delay | bernoulli | fading | ...``)."""
+    """Base of every channel kind (``kind: delay | bernoulli | fading | ...``).
+
+    Contract (issue 12): ``sample_trace(rng, runs, horizon) -> Trace`` samples a batch of runs
+    into the one trace type of :mod:`netkf_cli.trace` (run axis innermost); ``trace_kinds`` names
+    the trace fields it fills. What closed forms can use is exposed as methods where it exists:
+    ``loss_rate()`` (stationary probability that a packet is not usable), ``delay_pmf(n)``,
+    ``snr_law()``.
+    """
+
+    trace_kinds: ClassVar[frozenset[str]] = frozenset()
+
+    def sample_trace(self, rng: Any, runs: int, horizon: int) -> Any:  # pragma: no cover - interface
+        raise NotImplementedError(f"channel kind {getattr(self, 'kind', '?')} has no sample_trace")
 
 
 class EstimatorModel(StrictModel):
-    """Base of every estimator kind (``kind: buffered | smart_sensor | ...``)."""
+    """Base of every estimator kind (``kind: buffered | smart_sensor | ...``).
+
+    Contract (issue 12): ``accepts`` names the trace fields it can work from (at least one
+    must be in the channel's ``trace_kinds``; ``netkf validate`` refuses other pairs);
+    ``check(system, channel)`` raises a ConfigError for a pair that cannot work (dimensions,
+    invertibility …); ``covariances(system, trace, steps)`` yields ``(k, P_k)`` for each k in
+    ``steps`` (ascending, 1 ≤ k ≤ horizon), ``P_k`` shaped ``(n, n, runs)``, the error
+    covariance this estimator reports (``quantity``, e.g. ``"P_{k|k}"``). Per-run overflow is
+    ``inf`` in P, never an exception.
+    """
+
+    accepts: ClassVar[frozenset[str]] = frozenset()
+    quantity: ClassVar[str] = "P_{k|k}"
+
+    def check(self, system: Any, channel: Any) -> None:
+        """Raise ConfigError if this estimator cannot run on ``system`` with ``channel``."""
+
+    def covariances(self, system: Any, trace: Any, steps: Any) -> Any:  # pragma: no cover - interface
+        raise NotImplementedError(f"estimator kind {getattr(self, 'kind', '?')} has no covariances()")
 
 
 class AnalysisModel(StrictModel):
@@ -82,9 +112,21 @@ def _finite(v: float) -> float:
     return v
 
 
+def _integer_input(v: Any) -> Any:
+    """Integers only from numbers: ``runs: yes``/``true``/``"5"`` are refused; ``5.0`` or ``1e6``
+    (an integral float) is accepted as exactly that integer, ``2.5`` is refused by pydantic."""
+    if isinstance(v, bool):
+        raise ValueError("expected an integer, got a boolean")
+    if isinstance(v, str):
+        raise ValueError(f"expected an integer, got the text {v!r}")
+    if isinstance(v, float) and not math.isfinite(v):
+        raise ValueError("must be a finite number")
+    return v
+
+
 Probability = Annotated[float, Field(ge=0.0, le=1.0)]
-PositiveInt = Annotated[int, Field(gt=0)]
-NonNegInt = Annotated[int, Field(ge=0)]
+PositiveInt = Annotated[int, BeforeValidator(_integer_input), Field(gt=0)]
+NonNegInt = Annotated[int, BeforeValidator(_integer_input), Field(ge=0)]
 PositiveFloat = Annotated[float, Field(gt=0.0), AfterValidator(_finite)]
 NonNegFloat = Annotated[float, Field(ge=0.0), AfterValidator(_finite)]
 FiniteFloat = Annotated[float, AfterValidator(_finite)]

@@ -1,0 +1,152 @@
+"""``kind: trace`` — replay a recorded arrival (or delay) sequence from a CSV file.
+
+The file has one column per sensor (a header row naming them is allowed) and one row per
+time step: ``0``/``1`` arrivals (``values: arrival``) or integer delays in steps with an
+empty cell, ``-1`` or ``lost`` for a packet that never arrived (``values: delay``). A run of
+``horizon`` steps starting at row ``offset`` takes rows ``offset … offset+horizon−1``:
+
+* ``mode: once`` — every run replays the same recording (the recording must be at least
+  ``offset + horizon`` rows long); Monte Carlo then only averages the estimator's own
+  randomness (none for covariance-only metrics, so ``runs: 1`` is enough);
+* ``mode: cycle`` — the recording is repeated end to end as needed, and run ``r`` starts at
+  row ``offset + r·stride`` (``stride`` default 0: all runs identical), so a long recording
+  can be cut into many runs.
+
+A relative ``file`` is resolved against the scenario file's folder. From Python,
+``TraceChannel.from_array(gamma)`` replays a numpy array without a file.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import ClassVar, Literal
+
+import numpy as np
+from pydantic import Field, PrivateAttr, ValidationInfo, field_validator
+
+from netkf_cli.errors import ConfigError
+from netkf_cli.spec import ChannelModel, NonNegInt
+from netkf_cli.trace import LOST, Trace
+
+MAX_ROWS = 10_000_000
+
+
+def read_recording(path: Path, values: str) -> np.ndarray:
+    """The recording as (sensors, rows): bool arrivals or int32 delays (LOST for a lost packet)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError.at("channel.file", f"file not found: {path}") from None
+    except UnicodeDecodeError:
+        raise ConfigError.at("channel.file", f"{path} is not a UTF-8 text CSV file") from None
+    rows = [r for r in csv.reader(text.splitlines()) if r and any(c.strip() for c in r)]
+    if rows and not all(_is_value(c) for c in rows[0]):
+        rows = rows[1:]  # header
+    if not rows:
+        raise ConfigError.at("channel.file", f"{path} has no data rows")
+    if len(rows) > MAX_ROWS:
+        raise ConfigError.at("channel.file", f"{path} has {len(rows)} rows; at most {MAX_ROWS} are supported")
+    width = {len(r) for r in rows}
+    if len(width) != 1:
+        raise ConfigError.at("channel.file", f"{path}: rows have different numbers of columns {sorted(width)}")
+    out = np.empty((width.pop(), len(rows)), dtype=np.int64)
+    for t, r in enumerate(rows):
+        for s, c in enumerate(r):
+            c = c.strip().lower()
+            if values == "arrival":
+                if c not in ("0", "1", "0.0", "1.0", "true", "false"):
+                    raise ConfigError.at("channel.file", f"{path} row {t + 1} column {s + 1}: expected 0 or 1, got {c!r}")
+                out[s, t] = 1 if c in ("1", "1.0", "true") else 0
+            else:
+                if c in ("", "-1", "lost", "nan", "inf"):
+                    out[s, t] = LOST
+                else:
+                    try:
+                        v = int(float(c))
+                    except ValueError:
+                        raise ConfigError.at("channel.file", f"{path} row {t + 1} column {s + 1}: expected a delay "
+                                                             f"(integer ≥ 0, or empty/-1/lost), got {c!r}") from None
+                    if v < 0:
+                        raise ConfigError.at("channel.file", f"{path} row {t + 1}: delay must be ≥ 0, got {v}")
+                    out[s, t] = v
+    return out.astype(bool) if values == "arrival" else out.astype(np.int32)
+
+
+def _is_value(c: str) -> bool:
+    c = c.strip().lower()
+    if c in ("", "lost", "true", "false", "nan", "inf"):
+        return True
+    try:
+        float(c)
+        return True
+    except ValueError:
+        return False
+
+
+class TraceChannel(ChannelModel):
+    """``kind: trace`` — replay a recorded arrival/delay sequence (CSV, one column per sensor)."""
+
+    kind: Literal["trace"]
+    file: str = Field(description="CSV file: one column per sensor, one row per step (relative to the scenario file)")
+    values: Literal["arrival", "delay"] = Field("arrival", description="cells are 0/1 arrivals or delays in steps")
+    mode: Literal["once", "cycle"] = Field("once", description="once: every run replays rows offset…offset+horizon−1; "
+                                                               "cycle: the recording repeats and run r starts at offset + r·stride")
+    offset: NonNegInt = Field(0, description="first row used (0-based)")
+    stride: NonNegInt = Field(0, description="cycle mode: rows between the starts of consecutive runs")
+    buffer: int = Field(1, ge=1, description="delay traces: receive buffer length D")
+    convention: Literal["delay_le_D", "delay_lt_D"] = Field("delay_le_D", description="delay traces: which delays the buffer keeps")
+
+    trace_kinds: ClassVar[frozenset[str]] = frozenset({"arrival", "delay"})
+    _data: np.ndarray | None = PrivateAttr(None)
+
+    @field_validator("file")
+    @classmethod
+    def _resolve(cls, v: str, info: ValidationInfo) -> str:
+        base = (info.context or {}).get("base_dir") if info.context else None
+        p = Path(v)
+        if not p.is_absolute() and base:
+            p = Path(base) / p
+        return str(p)
+
+    @classmethod
+    def from_array(cls, data, values: str = "arrival", **kw) -> "TraceChannel":
+        """A trace channel replaying ``data`` (shape (rows,) or (sensors, rows)) instead of a file."""
+        arr = np.asarray(data)
+        arr = arr[None] if arr.ndim == 1 else arr
+        ch = cls(kind="trace", file="<array>", values=values, **kw)
+        ch._data = arr.astype(bool) if values == "arrival" else np.where(arr < 0, LOST, arr).astype(np.int32)
+        return ch
+
+    def recording(self) -> np.ndarray:
+        if self._data is None:
+            self._data = read_recording(Path(self.file), self.values)
+        return self._data
+
+    def sensors_count(self) -> int:
+        return int(self.recording().shape[0])
+
+    def rows(self, runs: int, horizon: int) -> np.ndarray:
+        """Row index of every (step, run): (horizon, runs)."""
+        L = self.recording().shape[1]
+        start = self.offset + self.stride * np.arange(runs)
+        idx = start[None, :] + np.arange(horizon)[:, None]
+        if self.mode == "once":
+            if self.offset + horizon + self.stride * (runs - 1) > L:
+                raise ConfigError.at("channel.file", f"mode once needs {self.offset + horizon} rows "
+                                     f"(offset + horizon), the recording has {L}; use mode: cycle or a shorter horizon")
+            return idx
+        return idx % L
+
+    def loss_rate(self) -> float:
+        rec = self.recording()
+        return float(1 - rec.mean()) if self.values == "arrival" else float((rec == LOST).mean())
+
+    def sample_trace(self, rng, runs: int, horizon: int) -> Trace:
+        rec = self.recording()
+        idx = self.rows(runs, horizon)
+        data = np.ascontiguousarray(rec[:, idx])  # (S, horizon, runs)
+        if self.values == "arrival":
+            return Trace(runs, horizon, arrival=data, meta={"source": self.file})
+        return Trace(runs, horizon, delay=data, arrival=data == 0,
+                     meta={"source": self.file, "buffer": self.buffer, "convention": self.convention})

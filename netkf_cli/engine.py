@@ -1,0 +1,227 @@
+"""The generic Monte Carlo engine: channel → trace → estimator(s) → reduced statistics.
+
+One kernel serves every (channel, estimator, metric) combination:
+
+    trace = channel.sample_trace(rng, runs, horizon)            # one batch, run axis innermost
+    for each estimator j:                                        # the SAME trace: common random numbers
+        for k, P in estimator.covariances(system, trace, steps):
+            reducer.update(stats, j, k, P)                       # additive statistics only
+
+:class:`PairKernel` and the reducers are module-level classes, so a kernel pickles and runs on
+the process pool and on Dask exactly as in the parent, and chunk statistics add up in chunk
+order to the same bits for any executor (:mod:`netkf_cli.montecarlo`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from netkf_cli import batched
+from netkf_cli.compat import check_pair
+from netkf_cli.montecarlo import run_chunked
+
+HEAVY_TAIL_RSE = 0.25
+"""A mean is flagged heavy-tailed when the relative standard error of its sample variance,
+√((m₄ − s⁴)/n)/s², exceeds this (its own standard error is then not trustworthy), or when any
+run is non-finite."""
+
+
+class DistributionReducer:
+    """Counts of P_k ≤ M (PSD order; scalar M means M·Iₙ) per estimator, step and M."""
+
+    def __init__(self, M: np.ndarray, steps: list[int]):
+        self.M = np.asarray(M, dtype=float)
+        self.steps = list(steps)
+
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray) -> None:
+        i = self.steps.index(k)
+        cnt = stats.setdefault(f"count_{j}", np.zeros((len(self.steps), len(self.M))))
+        bad = stats.setdefault(f"nonfinite_{j}", np.zeros(len(self.steps)))
+        lmax = batched.lambda_max(P)  # P ≤ M·I ⇔ λ_max(P) ≤ M (inf for non-finite runs)
+        finite = np.isfinite(lmax)
+        tol = batched.PSD_TOL * np.maximum(1.0, self.M)
+        cnt[i] += (lmax[None, :] <= (self.M + tol)[:, None]).sum(axis=1)
+        bad[i] += (~finite).sum()
+        stats["n"] = P.shape[-1]
+
+
+class MomentReducer:
+    """Sums of tr P, λ_max(P), P entries (and squares, 4th powers of tr P) per estimator and step."""
+
+    def __init__(self, steps: list[int]):
+        self.steps = list(steps)
+
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray) -> None:
+        i, K, n = self.steps.index(k), len(self.steps), P.shape[0]
+        tr = batched.trace(P)
+        finite = np.isfinite(P).all(axis=(0, 1))
+        lm = batched.lambda_max(P)
+        trf, lmf, Pf = np.where(finite, tr, 0.0), np.where(finite, lm, 0.0), np.where(finite, P, 0.0)
+
+        def acc(key, shape, value):
+            stats.setdefault(f"{key}_{j}", np.zeros(shape))[i] += value
+
+        with np.errstate(over="ignore", invalid="ignore"):
+            acc("sum_tr", K, trf.sum())
+            acc("sumsq_tr", K, (trf * trf).sum())
+            acc("sum3_tr", K, (trf**3).sum())
+            acc("sum4_tr", K, (trf**4).sum())
+            acc("sum_lmax", K, lmf.sum())
+            acc("sumsq_lmax", K, (lmf * lmf).sum())
+            acc("sum_P", (K, n, n), Pf.sum(axis=-1))
+            acc("sumsq_P", (K, n, n), (Pf * Pf).sum(axis=-1))
+            acc("nonfinite", K, (~finite).sum())
+            m = stats.setdefault(f"max_tr_{j}", np.zeros(K))
+            m[i] = max(m[i], float(trf.max()) if trf.size else 0.0)
+        stats["n"] = P.shape[-1]
+
+
+class PairedReducer:
+    """Differences tr P_j − tr P_0 on the same traces (common random numbers), and both moments."""
+
+    def __init__(self, steps: list[int]):
+        self.steps = list(steps)
+        self.inner = MomentReducer(steps)
+
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray) -> None:
+        self.inner.update(stats, j, k, P)
+        i = self.steps.index(k)
+        tr = batched.trace(P)
+        if j == 0:
+            stats.setdefault("_ref", {})[k] = tr
+            return
+        ref = stats["_ref"][k]
+        with np.errstate(invalid="ignore", over="ignore"):
+            d = tr - ref
+        ok = np.isfinite(d)
+        d = np.where(ok, d, 0.0)
+        K = len(self.steps)
+        stats.setdefault(f"sum_diff_{j}", np.zeros(K))[i] += d.sum()
+        stats.setdefault(f"sumsq_diff_{j}", np.zeros(K))[i] += (d * d).sum()
+        stats.setdefault(f"n_diff_{j}", np.zeros(K))[i] += ok.sum()
+        mx = stats.setdefault(f"max_absdiff_{j}", np.zeros(K))
+        mx[i] = max(mx[i], float(np.abs(d).max()))
+
+
+class PairKernel:
+    """Sample one trace batch and run every estimator on it; reduce with ``reducer`` (picklable)."""
+
+    def __init__(self, system, channel, estimators, horizon: int, steps, reducer):
+        self.system, self.channel, self.estimators = system, channel, list(estimators)
+        self.horizon, self.steps, self.reducer = int(horizon), sorted(int(k) for k in steps), reducer
+
+    def __call__(self, rng: np.random.Generator, runs: int) -> dict:
+        trace = self.channel.sample_trace(rng, runs, self.horizon)
+        stats: dict = {}
+        for j, est in enumerate(self.estimators):
+            for k, P in est.covariances(self.system, trace, self.steps):
+                self.reducer.update(stats, j, k, P)
+        stats.pop("_ref", None)
+        stats["n"] = np.asarray(runs)
+        return stats
+
+
+def simulate(system, channel, estimators, reducer, *, steps, runs: int, horizon: int, seed: int, chunk: int,
+             stream: int = 0, progress=None, label: str = "") -> dict:
+    """Run the generic kernel over all chunks (on the current executor) and return summed statistics."""
+    for es in estimators:
+        check_pair(channel, es)
+        es.check(system, channel)
+    kernel = PairKernel(system, channel, estimators, horizon, steps, reducer)
+    return run_chunked(kernel, runs, chunk, seed, stream=stream, progress=progress, label=label)
+
+
+@dataclass
+class MeanSummary:
+    """E[·] over runs with its standard error and reliability diagnostics."""
+
+    mean: np.ndarray
+    stderr: np.ndarray
+    n: int
+    nonfinite: np.ndarray
+    heavy_tail: np.ndarray
+
+
+def central4(s1, s2, s3, s4, n):
+    """Fourth central moment from raw sums Σx, Σx², Σx³, Σx⁴ over n samples."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        mu = s1 / n
+        return s4 / n - 4 * mu * s3 / n + 6 * mu**2 * s2 / n - 3 * mu**4
+
+
+def heavy_tail_flag(s1, s2, s3, s4, n, nonfinite):
+    """(variance, relative s.e. of the variance, heavy?) — see :data:`HEAVY_TAIL_RSE`."""
+    n = np.maximum(n, 1)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        mu = s1 / n
+        var = np.maximum(s2 / n - mu**2, 0.0)
+        rse = np.sqrt(np.maximum(central4(s1, s2, s3, s4, n) - var**2, 0.0) / n) / np.where(var > 0, var, np.nan)
+        rse = np.where(var > 0, rse, 0.0)
+        heavy = (np.asarray(nonfinite) > 0) | ~np.isfinite(rse) | (rse > HEAVY_TAIL_RSE)
+    return var, rse, heavy
+
+
+def mean_summary(stats: dict, j: int, key: str = "tr") -> MeanSummary:
+    """Mean of tr P (``key='tr'``) or λ_max (``'lmax'``) per step over the finite runs, with flags."""
+    n = int(stats["n"])
+    bad = stats[f"nonfinite_{j}"]
+    m_ok = np.maximum(n - bad, 1)
+    s1, s2 = stats[f"sum_{key}_{j}"], stats[f"sumsq_{key}_{j}"]
+    mean = s1 / m_ok
+    var = np.maximum(s2 / m_ok - mean**2, 0.0) * m_ok / np.maximum(m_ok - 1, 1)
+    se = np.sqrt(var / m_ok)
+    if key == "tr":
+        _, _, heavy = heavy_tail_flag(s1, s2, stats[f"sum3_tr_{j}"], stats[f"sum4_tr_{j}"], m_ok, bad)
+    else:
+        heavy = bad > 0
+    return MeanSummary(np.where(bad > 0, np.inf, mean), se, n, bad, np.asarray(heavy, dtype=bool))
+
+
+def mean_covariance(system, channel, estimator, *, runs: int, horizon: int, burn_in: int = 0, seed: int = 0,
+                    chunk: int = 20_000, stream: int = 0, progress=None) -> dict:
+    """Time-averaged E[tr P_k] over k in (burn_in, horizon] with its standard error and flags.
+
+    The per-run time average is one sample per run (runs are independent), so the standard
+    error is exact for the time-averaged quantity. Keys: ``mean_trace``, ``stderr``, ``n``,
+    ``heavy_tail``, ``nonfinite``, and ``per_step`` (k, mean, stderr, heavy_tail arrays).
+    """
+    steps = list(range(burn_in + 1, horizon + 1))
+    st = simulate(system, channel, [estimator], TimeAverageReducer(steps), steps=steps, runs=runs,
+                  horizon=horizon, seed=seed, chunk=chunk, stream=stream, progress=progress,
+                  label="mean_covariance")
+    n = int(st["n"])
+    bad = int(st["nonfinite_avg"])
+    m_ok = max(n - bad, 1)
+    mean = st["sum_avg"] / m_ok
+    var = max(st["sumsq_avg"] / m_ok - mean**2, 0.0) * m_ok / max(m_ok - 1, 1)
+    se = float(np.sqrt(var / m_ok))
+    _, rse, heavy = heavy_tail_flag(st["sum_avg"], st["sumsq_avg"], st["sum3_avg"], st["sum4_avg"], m_ok, bad)
+    rse, heavy = float(rse), bool(heavy)
+    return {"mean_trace": float(mean) if bad == 0 else float("inf"), "stderr": se, "n": n,
+            "heavy_tail": bool(heavy), "nonfinite": bad, "rse_variance": rse}
+
+
+class TimeAverageReducer:
+    """Per run, the average of tr P_k over ``steps``; sums of it, its square and 4th power."""
+
+    def __init__(self, steps: list[int]):
+        self.steps = list(steps)
+
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray) -> None:
+        acc = stats.get("_acc")
+        if acc is None or k == self.steps[0]:
+            acc = stats["_acc"] = np.zeros(P.shape[-1])
+        with np.errstate(over="ignore", invalid="ignore"):
+            acc += batched.trace(P) / len(self.steps)
+        if k == self.steps[-1]:
+            ok = np.isfinite(acc)
+            a = np.where(ok, acc, 0.0)
+            with np.errstate(over="ignore"):
+                stats["sum_avg"] = stats.get("sum_avg", 0.0) + a.sum()
+                stats["sumsq_avg"] = stats.get("sumsq_avg", 0.0) + (a * a).sum()
+                stats["sum3_avg"] = stats.get("sum3_avg", 0.0) + (a**3).sum()
+                stats["sum4_avg"] = stats.get("sum4_avg", 0.0) + (a**4).sum()
+            stats["nonfinite_avg"] = stats.get("nonfinite_avg", 0) + int((~ok).sum())
+            del stats["_acc"]

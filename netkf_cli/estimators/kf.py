@@ -1,0 +1,75 @@
+"""Kalman filter with intermittent observations (Sinopoli et al. 2004, eqs. 8–9), batched over runs.
+
+    P_{k|k−1} = A P_{k−1} Aᵀ + Q,
+    P_k       = P_{k|k−1} − γ_k P_{k|k−1} Cᵀ (C P_{k|k−1} Cᵀ + R)⁻¹ C P_{k|k−1},
+
+with γ_k ∈ {0, 1} the arrival of y_k. With one arrival stream (S = 1) the whole y_k is lost or
+received; with S = m streams (one per output, e.g. a ``multi`` channel) row i of C is updated
+with its own γ (sequential processing, exact for diagonal R). ``P0`` is the error covariance
+of x̂_0 at k = 0 (``system.P0``; unspecified or ``steady`` = P̄, the steady-state filtered
+covariance with every packet received). ``quantity: filtered`` reports P_k = P_{k|k},
+``predicted`` reports P_{k+1|k}.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar, Literal
+
+import numpy as np
+from pydantic import Field
+
+from netkf_cli import batched, riccati
+from netkf_cli.errors import ConfigError
+from netkf_cli.spec import EstimatorModel
+
+
+def initial_covariance(system) -> np.ndarray:
+    """P0 of the system, or P̄ when it is unspecified/steady (the one meaning of P0 in netkf)."""
+    return riccati.pbar(system) if system.P0 is None else np.asarray(system.P0, dtype=float)
+
+
+class KalmanFilterEstimator(EstimatorModel):
+    """``kind: kf`` — the Kalman filter with intermittent observations (Sinopoli et al. 2004)."""
+
+    kind: Literal["kf"]
+    report: Literal["filtered", "predicted"] = Field(
+        "filtered", description="which covariance is reported: filtered P_{k|k} or predicted P_{k+1|k}")
+
+    accepts: ClassVar[frozenset[str]] = frozenset({"arrival"})
+    quantity: ClassVar[str] = "P_{k|k}"
+
+    def check(self, system, channel) -> None:
+        S = getattr(channel, "sensors_count", None)
+        S = S() if callable(S) else S
+        if S not in (None, 1, system.m):
+            raise ConfigError.at("estimator.kind", f"kf needs one arrival stream or one per output (m = {system.m}); "
+                                 f"the channel has {S} streams")
+
+    def covariances(self, system, trace, steps):
+        """Yield (k, P) for k in ``steps`` (1 ≤ k ≤ horizon); P shaped (n, n, runs)."""
+        steps = sorted(int(k) for k in steps)
+        gam = trace.arrival
+        S = gam.shape[0]
+        if S not in (1, system.m):
+            raise ConfigError.at("estimator.kind", f"kf: the trace has {S} arrival streams, expected 1 or m = {system.m}")
+        A, C, Q, R = system.A, system.C, system.Q, system.R
+        P = np.repeat(initial_covariance(system)[:, :, None], trace.runs, axis=2)
+        want = iter(steps)
+        nxt = next(want, None)
+        with np.errstate(over="ignore", invalid="ignore"):
+            for t in range(trace.horizon):
+                if nxt is None:
+                    return
+                P = batched.riccati_h(P, A, Q)
+                k = t + 1
+                if self.report == "predicted" and k == nxt:
+                    yield k, P
+                    nxt = next(want, None)
+                if S == 1:
+                    P = batched.kf_update(P, C, R, gam[0, t])
+                else:
+                    for i in range(S):
+                        P = batched.kf_update(P, C[i:i + 1], R[i:i + 1, i:i + 1], gam[i, t])
+                if self.report == "filtered" and k == nxt:
+                    yield k, P
+                    nxt = next(want, None)

@@ -1,0 +1,67 @@
+"""What ``netkf list`` shows: every kind with its fields (name, type, default, meaning) and what composes."""
+
+from __future__ import annotations
+
+from types import UnionType
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
+
+from pydantic_core import PydanticUndefined
+
+GENERIC_METRICS = ("distribution", "mean_vs_time", "compare")
+
+
+def _type_name(ann: Any) -> str:
+    """A short readable type: ``list[float] | MGrid``, ``'log' | 'linear'``, ``int``."""
+    origin, args = get_origin(ann), get_args(ann)
+    if origin is Annotated:
+        return _type_name(args[0])
+    if origin is Literal:
+        return " | ".join(repr(a) for a in args)
+    if origin in (Union, UnionType):
+        return " | ".join(_type_name(a) for a in args)
+    if origin in (list, tuple, dict):
+        return f"{origin.__name__}[{', '.join(_type_name(a) for a in args)}]"
+    if ann is type(None):
+        return "None"
+    return getattr(ann, "__name__", str(ann))
+
+
+def fields_of(cls) -> list[dict]:
+    """Name, type, default and description of every field except ``kind``."""
+    out = []
+    for name, f in cls.model_fields.items():
+        if name == "kind":
+            continue
+        default = "required" if f.default is PydanticUndefined and f.default_factory is None else (
+            repr(f.default) if f.default_factory is None else repr(f.default_factory()))
+        out.append({"name": name, "type": _type_name(f.annotation) + ("" if not f.metadata else ""), "default": default,
+                    "description": f.description or ""})
+    return out
+
+
+def describe() -> dict[str, dict[str, dict]]:
+    """{family: {kind: {doc, fields, …compatibility}}} for channel, estimator and analysis."""
+    from netkf_cli.compat import compatible_channels, compatible_estimators
+    from netkf_cli.scenario import kinds
+    from netkf_cli.spec import AnalysisModel, ChannelModel, EstimatorModel
+
+    out: dict[str, dict[str, dict]] = {}
+    for family, base in (("channel", ChannelModel), ("estimator", EstimatorModel), ("analysis", AnalysisModel)):
+        fam = {}
+        for k, cls in sorted(kinds(base).items()):
+            doc = (cls.__doc__ or "").strip().splitlines()[0].replace("``", "") if cls.__doc__ else ""
+            entry: dict[str, Any] = {"doc": doc, "fields": fields_of(cls)}
+            if family == "channel":
+                entry["trace"] = sorted(getattr(cls, "trace_kinds", ()))
+                entry["estimators"] = compatible_estimators(cls)
+            elif family == "estimator":
+                entry["accepts"] = sorted(getattr(cls, "accepts", ()))
+                entry["channels"] = compatible_channels(cls)
+                entry["quantity"] = getattr(cls, "quantity", "")
+            else:
+                entry["generic"] = k in GENERIC_METRICS
+                if k in GENERIC_METRICS:
+                    entry["works_with"] = "any channel with any estimator it is compatible with (see the estimators)"
+            fam[k] = entry
+        out[family] = fam
+    return out

@@ -1,0 +1,255 @@
+"""``kind: distribution`` — Pr[P_k ≤ M] against M for any channel and estimator(s).
+
+Monte Carlo from the generic engine (:mod:`netkf_cli.engine`): every listed estimator runs
+on the same sampled traces, P_k is taken at step ``at`` (``stationary``: k = horizon, after
+the burn-in from P0) and compared with M·Iₙ in the PSD order (a diverged or overflowed run is
+never ≤ M). Proportions carry a Wilson interval (``ci_low``, ``ci_high``).
+
+Closed forms are attached only where their assumptions hold:
+
+* ``buffered`` estimator on a ``delay``/``bernoulli`` channel (Shi, Xie & Murray 2009):
+  lower/upper bounds 1 − θ(k₁, D), 1 − θ(k₂, D) (Thm 3.8; needs M ≥ M̄) and the certified
+  exact stationary probability (needs A invertible);
+* ``smart_sensor`` on the same channels: 1 − θ(k₂, D) (Thm 4.1, eq. 11; needs M ≥ P̄).
+
+Step functions are evaluated on a drawing grid that contains the M grid, a 4× denser grid and
+every jump point λ_max(hᵗ(M̄)), λ_max(hᵗ(P̄)) in range (table ``curves``), and drawn as
+right-continuous steps — so the figure shows exactly what the numbers say.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+from pydantic import Field, model_validator
+
+from netkf_cli import engine, riccati
+from netkf_cli.errors import ConfigError
+from netkf_cli.metrics.common import MGrid, PaperRef, labels, m_values, needs, step_of
+from netkf_cli.montecarlo import proportion_stderr, wilson_interval
+from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title
+from netkf_cli.recipes.base import Artefact, RunContext
+from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt
+
+COLUMNS = ["M", "estimator", "series", "value", "stderr", "ci_low", "ci_high", "n", "err", "k"]
+K_JUMPS = 2000
+
+
+def _jump_points(X0: np.ndarray, s, lo: float, hi: float) -> list[float]:
+    """λ_max(hᵗ(X0)), t = 0, 1, …, inside [lo, hi]: where k(M) = min{t : hᵗ(X0) ≰ M·I} changes."""
+    out, X = [], np.array(X0, dtype=float)
+    for _ in range(K_JUMPS):
+        lam = float(np.linalg.eigvalsh(X)[-1])
+        if not math.isfinite(lam) or lam > hi:
+            break
+        if lam >= lo:
+            out.append(lam)
+        Xn = riccati.h(X, s)
+        if np.allclose(Xn, X, rtol=1e-13, atol=0):
+            break
+        X = Xn
+    return out
+
+
+def _dense(M: np.ndarray, scale: str, factor: int = 4) -> np.ndarray:
+    lo, hi, num = float(M.min()), float(M.max()), factor * len(M)
+    if hi <= lo:
+        return M
+    return np.geomspace(lo, hi, num) if scale == "log" and lo > 0 else np.linspace(lo, hi, num)
+
+
+def _delay_pair(channel, est) -> bool:
+    return channel.kind in ("delay", "bernoulli") and hasattr(channel, "cdf") and est.kind in ("buffered", "smart_sensor")
+
+
+class ClosedForms:
+    """Shi 2009 closed forms for one (channel, estimator) pair, or none (``available`` False + why)."""
+
+    def __init__(self, s, channel, est, at_stationary: bool, exact: bool, exact_tol: float):
+        self.s, self.ch, self.est, self.exact, self.tol = s, channel, est, exact, exact_tol
+        self.available, self.why, self.jumps = False, "", []
+        if not _delay_pair(channel, est):
+            self.why = f"no closed form for {est.kind} on a {channel.kind} channel"
+            return
+        if not at_stationary:
+            self.why = "the closed forms are stationary (analysis.at: stationary)"
+            return
+        from netkf_cli.analysis import delay_bounds as db
+
+        self.db = db
+        self.pbar = riccati.pbar(s)
+        try:
+            if est.kind == "buffered":
+                from netkf_cli.estimators.buffered import packet_span
+
+                self.span = packet_span(s, est.packet)
+                if self.span == 1 and (s.m != s.n or np.linalg.matrix_rank(s.C) < s.n):
+                    self.why = "Thm 3.8 needs C invertible for measurement packets (or packet: pair, Appendix B)"
+                    return
+                self.mbar = riccati.mbar(s)
+            self.available = True
+        except ConfigError as exc:
+            self.why = f"Thm 3.8 needs M̄: {exc.problems[0].message}"
+
+    def floor(self) -> float:
+        """Smallest M (as M·I) where the closed forms hold: λ_max(M̄) (Thm 3.8) or λ_max(P̄) (Thm 4.1)."""
+        X = self.mbar if self.est.kind == "buffered" else self.pbar
+        return float(np.linalg.eigvalsh(X)[-1])
+
+    def series(self, M: np.ndarray) -> dict[str, np.ndarray]:
+        """Bound / exact series at every M (NaN where M is below the floor)."""
+        db, ch, D, conv = self.db, self.ch, self.ch.D, self.ch.convention
+        ok = M >= self.floor() * (1 - 1e-12)
+        out: dict[str, np.ndarray] = {}
+
+        def th(k):
+            return 1 - db.theta(k, D, ch.cdf, conv)
+
+        if self.est.kind == "buffered":
+            out["lower_bound"] = np.array([th(db.k1(m, self.s)) if o else np.nan for m, o in zip(M, ok)])
+        out["upper_bound" if self.est.kind == "buffered" else "thm41"] = np.array(
+            [th(db.k2(m, self.s)) if (o or self.est.kind == "buffered") and m >= self._pbar_max() else np.nan
+             for m, o in zip(M, ok)])
+        if self.est.kind == "buffered" and self.exact and ok.any():
+            from netkf_cli.analysis import delay_exact as dx
+
+            try:
+                ex = dx.exact_probability(self.s, ch, self.span, M[ok], tol=self.tol)
+                v, e = np.full(len(M), np.nan), np.full(len(M), np.nan)
+                v[ok], e[ok] = ex.value, ex.err
+                out["exact"], out["exact_err"] = v, e
+            except ConfigError as exc:
+                self.why = f"exact probability unavailable: {exc.problems[0].message}"
+        return out
+
+    def _pbar_max(self) -> float:
+        return float(np.linalg.eigvalsh(self.pbar)[-1]) * (1 - 1e-12)
+
+    def jump_points(self, lo: float, hi: float) -> list[float]:
+        pts = _jump_points(self.pbar, self.s, lo, hi)
+        if self.est.kind == "buffered":
+            pts += _jump_points(self.mbar, self.s, lo, hi)
+        return pts
+
+
+class Distribution(AnalysisModel):
+    """``kind: distribution`` — Pr[P_k ≤ M] against M (Monte Carlo + closed forms where they hold)."""
+
+    kind: Literal["distribution"]
+    M: list[PositiveFloat] | MGrid = Field(description="M grid (scalar M means M·Iₙ): a list or {start, stop, num, spacing}")
+    at: Literal["stationary"] | PositiveInt = Field(
+        "stationary", description="step k at which P_k is taken; stationary = k = montecarlo.horizon after the burn-in from P0")
+    bounds: bool = Field(True, description="overlay closed forms where their assumptions hold (Shi 2009 Thm 3.8/4.1)")
+    exact: bool = Field(True, description="compute the certified exact probability where available (buffered sensor)")
+    exact_tol: PositiveFloat = Field(1e-8, description="certified error bound of the exact value")
+    x_scale: Literal["log", "linear"] = Field("log", description="M axis scale")
+    paper: PaperRef | None = Field(None, description="the paper figure this reproduces (title only)")
+    title: str = Field("", description="what the figure shows (default: Pr[P_k ≤ M] with the channel)")
+
+    @model_validator(mode="after")
+    def _grid_nonempty(self):
+        if isinstance(self.M, list) and not self.M:
+            raise ValueError("M must list at least one value")
+        return self
+
+    def check(self, scenario) -> None:
+        needs(scenario, "channel"), needs(scenario, "estimators")
+        step_of(self.at, scenario.montecarlo.horizon)
+
+    def compute(self, scenario, ctx: RunContext) -> Artefact:
+        s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")
+        mc = scenario.montecarlo
+        k = step_of(self.at, mc.horizon)
+        M = m_values(self.M)
+        runs = ctx.mc_runs(scenario)
+        ctx.total(runs)
+        st = engine.simulate(s, ch, ests, engine.DistributionReducer(M, [k]), steps=[k], runs=runs, horizon=k,
+                             seed=mc.seed, chunk=mc.chunk, stream=0, progress=ctx.progress, label="distribution")
+        n = int(st["n"])
+        labs = labels(ests)
+        rows, curves, meta = [], [], {"at": k, "runs": n, "estimators": labs, "closed_forms": {},
+                                      "M_means": "M·I_n (PSD order)", "warnings": []}
+        for j, (est, lab) in enumerate(zip(ests, labs)):
+            cnt = st[f"count_{j}"][0]
+            p = cnt / n
+            lo, hi = wilson_interval(cnt, n)
+            bad = int(st[f"nonfinite_{j}"][0])
+            if bad:
+                meta["warnings"].append(f"{lab}: {bad} of {n} runs overflowed (counted as P_k > M)")
+            for i, m in enumerate(M):
+                rows.append(dict(M=m, estimator=lab, series="monte_carlo", value=p[i], stderr=proportion_stderr(p[i], n),
+                                 ci_low=lo[i], ci_high=hi[i], n=n, err=np.nan, k=k))
+            if not self.bounds:
+                continue
+            cf = ClosedForms(s, ch, est, self.at == "stationary", self.exact, self.exact_tol)
+            meta["closed_forms"][lab] = "attached" if cf.available else cf.why
+            if not cf.available:
+                continue
+            ser = cf.series(M)
+            for name, v in ser.items():
+                if name == "exact_err":
+                    continue
+                err = ser["exact_err"] if name == "exact" else np.zeros(len(M))
+                for i, m in enumerate(M):
+                    if np.isfinite(v[i]):
+                        rows.append(dict(M=m, estimator=lab, series=name, value=v[i], stderr=np.nan, ci_low=np.nan,
+                                         ci_high=np.nan, n=np.nan, err=err[i], k=k))
+            grid = np.unique(np.concatenate([M, _dense(M, self.x_scale), cf.jump_points(M.min(), M.max())]))
+            for name, v in cf.series(grid).items():
+                if name == "exact_err":
+                    continue
+                curves += [dict(M=g, estimator=lab, series=name, value=x) for g, x in zip(grid, v) if np.isfinite(x)]
+            meta["closed_forms"][lab] = {"attached": True, "floor_M": cf.floor(), "note": cf.why or None}
+        table = pd.DataFrame(rows, columns=COLUMNS)
+        extra = {"curves": pd.DataFrame(curves, columns=["M", "estimator", "series", "value"])} if curves else {}
+        return Artefact(table, meta=meta, extra_tables=extra)
+
+    def plot(self, tables, scenario):
+        t = tables["main"]
+        cur = tables.get("curves")
+        fig, ax = new_figure(width=7.4, height=4.8)
+        styles = {"lower_bound": dict(ls="--", lw=1.3, lab="lower bound 1 − θ(k₁, D) (Thm 3.8)"),
+                  "upper_bound": dict(ls="-.", lw=1.3, lab="upper bound 1 − θ(k₂, D) (Thm 3.8)"),
+                  "exact": dict(ls="-", lw=1.0, lab="exact (certified)"),
+                  "thm41": dict(ls="-", lw=1.6, lab="1 − θ(k₂, D) (Thm 4.1)")}
+        ests = list(dict.fromkeys(t.estimator))
+        for j, lab in enumerate(ests):
+            colour = PALETTE[j % len(PALETTE)]
+            if cur is not None and len(cur):
+                for name, sty in styles.items():
+                    g = cur[(cur.estimator == lab) & (cur.series == name)].sort_values("M")
+                    if len(g):
+                        ax.plot(g.M, g.value, drawstyle="steps-post", ls=sty["ls"], lw=sty["lw"],
+                                color="black" if name == "exact" else colour, label=f"{lab}: {sty['lab']}")
+            g = t[(t.estimator == lab) & (t.series == "monte_carlo")].sort_values("M")
+            if len(g):
+                yerr = np.vstack([g.value - g.ci_low, g.ci_high - g.value])
+                ax.errorbar(g.M, g.value, yerr=yerr, fmt="o", ms=3.5, mfc="none", color=colour, elinewidth=0.8,
+                            capsize=1.5, label=f"{lab}: Monte Carlo, 95 % Wilson interval (n = {int(g.n.max()):,})")
+        if self.x_scale == "log":
+            ax.set_xscale("log")
+        ax.set_xlabel(r"$M$ (the bound is $M\,I_n$)")
+        ax.set_ylabel(r"$\Pr[P_k \leq M]$")
+        ax.set_ylim(-0.02, 1.02)
+        what = self.title or rf"$\Pr[P_k \leq M]$, {_channel_text(scenario.channel)}"
+        ax.set_title(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
+        legend_outside(ax, loc="below", ncol=1)
+        k = int(t.k.iloc[0])
+        footnote(fig, f"P_k at k = {k}" + (" (stationary: after the burn-in from P0)" if self.at == "stationary" else ""))
+        return fig
+
+
+def _channel_text(ch) -> str:
+    if ch is None:
+        return ""
+    if ch.kind == "delay":
+        d = ch.delay
+        desc = {"poisson": lambda: f"Poisson delay, mean {d.mean:g}", "geometric": lambda: f"geometric delay, p = {d.p:g}",
+                "pmf": lambda: "delay pmf"}[d.kind]()
+        return f"$D$ = {ch.buffer}, {desc}"
+    if ch.kind == "bernoulli":
+        return rf"i.i.d. arrivals, $\gamma$ = {ch.arrival:g}"
+    return f"{ch.kind} channel"

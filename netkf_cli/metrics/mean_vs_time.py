@@ -1,0 +1,110 @@
+"""``kind: mean_vs_time`` — E[P_k] against k (trace, λ_max or entries) for any channel and estimator(s).
+
+Each step's mean is over independent runs, with its standard error; a step whose sample is
+heavy-tailed (relative s.e. of the sample variance above ``engine.HEAVY_TAIL_RSE``, or any run
+non-finite) is flagged in the CSV (``heavy_tail``) and NOT drawn as a result: the figure says
+how many were left out. Estimators in a list share the sampled traces.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+from pydantic import Field
+
+from netkf_cli import engine
+from netkf_cli.metrics.common import PaperRef, labels, needs
+from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
+from netkf_cli.recipes.base import Artefact, RunContext
+from netkf_cli.spec import AnalysisModel, PositiveInt
+
+COLUMNS = ["k", "estimator", "series", "value", "stderr", "n", "nonfinite", "heavy_tail"]
+WHAT = {"trace": r"$\mathrm{E}[\mathrm{tr}\,P_k]$", "lambda_max": r"$\mathrm{E}[\lambda_{\max}(P_k)]$",
+        "entries": r"$\mathrm{E}[P_k]$ entries"}
+
+
+class MeanVsTime(AnalysisModel):
+    """``kind: mean_vs_time`` — E[P_k] against k with standard errors and heavy-tail flags."""
+
+    kind: Literal["mean_vs_time"]
+    of: Literal["trace", "lambda_max", "entries"] = Field("trace", description="tr P_k, λ_max(P_k), or every entry P_k[i, j]")
+    every: PositiveInt | None = Field(None, description="report every this many steps (default: at most 200 points)")
+    log_y: bool = Field(True, description="logarithmic y axis")
+    paper: PaperRef | None = Field(None, description="the paper figure this reproduces (title only)")
+    title: str = Field("", description="what the figure shows")
+
+    def check(self, scenario) -> None:
+        needs(scenario, "channel"), needs(scenario, "estimators")
+
+    def steps(self, horizon: int) -> list[int]:
+        every = self.every or max(1, -(-horizon // 200))
+        ks = list(range(every, horizon + 1, every))
+        return ks if ks and ks[-1] == horizon else ks + [horizon]
+
+    def compute(self, scenario, ctx: RunContext) -> Artefact:
+        s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")
+        mc = scenario.montecarlo
+        ks = self.steps(mc.horizon)
+        runs = ctx.mc_runs(scenario)
+        ctx.total(runs)
+        st = engine.simulate(s, ch, ests, engine.MomentReducer(ks), steps=ks, runs=runs, horizon=mc.horizon,
+                             seed=mc.seed, chunk=mc.chunk, stream=0, progress=ctx.progress, label="mean_vs_time")
+        labs = labels(ests)
+        rows, warnings = [], []
+        for j, lab in enumerate(labs):
+            n = int(st["n"])
+            bad = st[f"nonfinite_{j}"]
+            if bad.any():
+                warnings.append(f"{lab}: {int(bad.max())} of {n} runs non-finite at some step (excluded, step flagged)")
+            if self.of in ("trace", "lambda_max"):
+                ms = engine.mean_summary(st, j, "tr" if self.of == "trace" else "lmax")
+                heavy = ms.heavy_tail if self.of == "trace" else engine.mean_summary(st, j, "tr").heavy_tail
+                for i, k in enumerate(ks):
+                    rows.append(dict(k=k, estimator=lab, series=self.of, value=ms.mean[i], stderr=ms.stderr[i], n=n,
+                                     nonfinite=int(bad[i]), heavy_tail=bool(heavy[i])))
+            else:
+                heavy = engine.mean_summary(st, j, "tr").heavy_tail
+                m_ok = np.maximum(n - bad, 1)[:, None, None]
+                mean = st[f"sum_P_{j}"] / m_ok
+                var = np.maximum(st[f"sumsq_P_{j}"] / m_ok - mean**2, 0) * m_ok / np.maximum(m_ok - 1, 1)
+                se = np.sqrt(var / m_ok)
+                nn = mean.shape[1]
+                for i, k in enumerate(ks):
+                    for a in range(nn):
+                        for b in range(a, nn):
+                            rows.append(dict(k=k, estimator=lab, series=f"P[{a + 1},{b + 1}]", value=mean[i, a, b],
+                                             stderr=se[i, a, b], n=n, nonfinite=int(bad[i]), heavy_tail=bool(heavy[i])))
+        table = pd.DataFrame(rows, columns=COLUMNS)
+        return Artefact(table, meta={"runs": int(st["n"]), "estimators": labs, "steps": f"{ks[0]}…{ks[-1]}",
+                                     "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE} "
+                                                        f"or any non-finite run", "warnings": warnings})
+
+    def plot(self, tables, scenario):
+        t = tables["main"]
+        fig, ax = new_figure(width=7.4, height=4.6)
+        left_out = 0
+        for i, ((lab, ser), g) in enumerate(t.groupby(["estimator", "series"], sort=False)):
+            g = g.sort_values("k")
+            heavy = g.heavy_tail.astype(str).str.lower().isin(["true", "1"])
+            left_out += int(heavy.sum())
+            ok = g[~heavy & np.isfinite(g.value)]
+            sty = series_style(i)
+            name = lab if self.of != "entries" else f"{lab}: {ser}"
+            if len(ok):
+                ax.plot(ok.k, ok.value, color=sty["color"], ls=sty["linestyle"], lw=1.3,
+                        label=f"{name} (band: ±1.96 s.e.)")
+                ax.fill_between(ok.k, ok.value - 1.96 * ok.stderr, ok.value + 1.96 * ok.stderr, color=sty["color"],
+                                alpha=0.2, lw=0)
+        if self.log_y:
+            ax.set_yscale("log")
+        ax.set_xlabel(r"time step $k$")
+        ax.set_ylabel(WHAT[self.of])
+        what = self.title or f"{WHAT[self.of]} against $k$"
+        ax.set_title(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
+        legend_outside(ax, loc="below", ncol=1)
+        n = int(t.n.max()) if len(t) else 0
+        footnote(fig, f"n = {n:,} runs per step" + (f"; {left_out} heavy-tailed step means not drawn (see CSV column "
+                                                      f"heavy_tail)" if left_out else ""))
+        return fig
