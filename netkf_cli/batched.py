@@ -21,17 +21,58 @@ def sym(P: np.ndarray) -> np.ndarray:
 
 
 def left(A: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """A P for a constant matrix A (p×n) and P (n, k, runs)."""
-    return np.einsum("ij,jkr->ikr", A, P, optimize=True)
+    """A P for a constant matrix A (p×n) and P (n, k, runs).
+
+    Row by row with the run axis innermost, skipping zero coefficients (A is often sparse:
+    a constant-velocity model, C = [I 0]); thin BLAS GEMMs are slower than this at n ≤ 8.
+    """
+    p, n = A.shape
+    if n > 8:
+        k, r = P.shape[1:]
+        return (A @ np.ascontiguousarray(P).reshape(n, k * r)).reshape(p, k, r)
+    out = np.empty((p,) + P.shape[1:], dtype=np.result_type(A, P))
+    with np.errstate(over="ignore", invalid="ignore"):
+        for i in range(p):
+            nz = [(j, A[i, j]) for j in range(n) if A[i, j] != 0.0]
+            if not nz:
+                out[i] = 0.0
+                continue
+            j0, a0 = nz[0]
+            if a0 == 1.0:
+                out[i] = P[j0]
+            else:
+                np.multiply(P[j0], a0, out=out[i])
+            for j, a in nz[1:]:
+                if a == 1.0:
+                    out[i] += P[j]
+                else:
+                    out[i] += a * P[j]
+    return out
 
 
 def right(P: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """P B for P (k, n, runs) and a constant matrix B (n×p)."""
-    return np.einsum("ijr,jk->ikr", P, B, optimize=True)
+    """P B for P (k, n, runs) and a constant matrix B (n×p): (Bᵀ Pᵀ)ᵀ, one GEMM."""
+    return left(B.T, P.swapaxes(0, 1)).swapaxes(0, 1)
 
 
 def matmul(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Per-run product X_r Y_r for X (a, b, runs), Y (b, c, runs)."""
+    """Per-run product X_r Y_r for X (a, b, runs), Y (b, c, runs).
+
+    Small inner dimensions (the usual case) are summed entry by entry with the run axis
+    innermost — no per-run Python loop and no batched-GEMM transposes.
+    """
+    a, b, r = X.shape
+    c = Y.shape[1]
+    if b <= 4:
+        out = np.empty((a, c, r), dtype=np.result_type(X, Y))
+        with np.errstate(over="ignore", invalid="ignore"):
+            for i in range(a):
+                for k in range(c):
+                    acc = X[i, 0] * Y[0, k]
+                    for j in range(1, b):
+                        acc += X[i, j] * Y[j, k]
+                    out[i, k] = acc
+        return out
     return np.einsum("ijr,jkr->ikr", X, Y, optimize=True)
 
 

@@ -31,10 +31,21 @@ def compatible_estimators(channel_cls) -> list[str]:
     return sorted(k for k, c in kinds(EstimatorModel).items() if getattr(c, "accepts", frozenset()) & tk)
 
 
-def check_pair(channel, estimator, path: str = "estimator.kind") -> None:
-    """Refuse an estimator that cannot read this channel's traces (both must declare their kinds)."""
+def check_pair(channel, estimator, path: str = "estimator.kind", strict: bool = True) -> None:
+    """Refuse an estimator that cannot read this channel's traces.
+
+    ``strict`` (the generic metrics and the engine): both must declare what they produce and
+    read. Paper recipes that drive their own kernels pass ``strict=False``: only a declared
+    mismatch is refused there.
+    """
     acc = getattr(estimator, "accepts", frozenset())
     tk = getattr(channel, "trace_kinds", frozenset())
+    if strict and not tk:
+        raise ConfigError.at(path.replace("estimator", "channel", 1) if path.startswith("estimator") else "channel.kind",
+                             f"channel {channel.kind!r} does not sample traces for the generic metrics")
+    if strict and not acc:
+        raise ConfigError.at(path, f"estimator {estimator.kind!r} reports no per-run error covariance, so the generic "
+                                   f"metrics cannot use it (only its paper analysis)")
     if acc and tk and not (acc & tk):
         raise ConfigError.at(
             path,
@@ -56,8 +67,10 @@ def check_scenario(scenario) -> None:
     mc = scenario.montecarlo
     if mc.burn_in >= mc.horizon:
         problems.append(Problem("montecarlo.burn_in", f"must be < horizon = {mc.horizon}, got {mc.burn_in}"))
-    ch, ests = scenario.channel, scenario.estimators()
-    many = isinstance(scenario.estimator, list)
+    ch, ests = scenario.channel, scenario.estimator_list()
+    many = bool(scenario.estimators)
+    if many and scenario.estimator is not None:
+        problems.append(Problem("estimators", "give either `estimator:` (one) or `estimators:` (a list), not both"))
     system = None
     if scenario.system is not None:
         try:
@@ -67,9 +80,9 @@ def check_scenario(scenario) -> None:
     for i, es in enumerate(ests):
         if ch is None:
             break
-        path = f"estimator[{i}]" if many else "estimator"
+        path = f"estimators[{i}]" if many else "estimator"
         before = len(problems)
-        collect(check_pair, ch, es, f"{path}.kind")
+        collect(check_pair, ch, es, f"{path}.kind", _generic(scenario.analysis))
         if len(problems) == before and system is not None:
             try:
                 es.check(system, ch)
@@ -81,3 +94,9 @@ def check_scenario(scenario) -> None:
         collect(check, scenario)
     if problems:
         raise ConfigError(problems)
+
+
+def _generic(analysis) -> bool:
+    from netkf_cli.kinds import GENERIC_METRICS
+
+    return getattr(analysis, "kind", None) in GENERIC_METRICS

@@ -106,8 +106,14 @@ def add_stats(total: dict | None, part: Stats) -> dict:
     return total
 
 
+PID_KEY = "__pid__"
+
+
 def run_chunk(kernel: Kernel, c: Chunk) -> dict:
-    return {k: np.asarray(v) for k, v in kernel(c.rng(), c.runs).items()}
+    """Run one chunk; the statistics carry the pid of the process that computed them."""
+    stats = {k: np.asarray(v) for k, v in kernel(c.rng(), c.runs).items()}
+    stats[PID_KEY] = np.asarray(os.getpid())
+    return stats
 
 
 @dataclass
@@ -120,6 +126,8 @@ class Execution:
     cache_dir: Path | None = None  # resume store for this run (None: no caching)
     retries: int = 1
     calls: int = 0  # run_chunked calls so far in this run (part of the cache key)
+    chunk_pids: dict = field(default_factory=dict)  # pid → number of chunks it computed (the manifest reports it)
+    chunks_cached: int = 0  # chunks taken from the resume cache
     progress: Callable[[int], None] | None = None  # runs finished (when a recipe passes none)
     add_total: Callable[[int], None] | None = None  # runs planned: lets a progress bar show an ETA
     _pool: Executor | None = field(default=None, repr=False)
@@ -144,6 +152,15 @@ class Execution:
             else:
                 self._client = Client(self.scheduler)
         return self._client
+
+    def report(self) -> dict:
+        """Where the chunks really ran: counts per process, and how many ran in this (the parent) process."""
+        parent = os.getpid()
+        out = {"chunks": sum(self.chunk_pids.values()), "processes": len(self.chunk_pids),
+               "chunks_in_parent": self.chunk_pids.get(parent, 0)}
+        if self.chunks_cached:
+            out["chunks_from_resume_cache"] = self.chunks_cached
+        return out
 
     def close(self) -> None:
         if self._pool is not None:
@@ -263,6 +280,11 @@ def run_chunked(
 
     def finish(c: Chunk, stats: dict, path: Path | None, cached: bool) -> None:
         nonlocal total
+        pid = stats.pop(PID_KEY, None)
+        if cached:
+            ex.chunks_cached += 1
+        elif pid is not None:
+            ex.chunk_pids[int(pid)] = ex.chunk_pids.get(int(pid), 0) + 1
         if not cached:
             _store(path, stats)
         total = add_stats(total, stats)

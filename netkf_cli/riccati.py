@@ -11,6 +11,8 @@ Linear systems are solved with ``solve``, never ``inv``; results are symmetrized
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import scipy.linalg
 
@@ -41,11 +43,24 @@ def g(X: np.ndarray, s: LinearSystem) -> np.ndarray:
     return h(gtilde(X, s), s)
 
 
+_PSTAR: "weakref.WeakKeyDictionary[LinearSystem, np.ndarray]" = weakref.WeakKeyDictionary()
+
+
 def pstar(s: LinearSystem) -> np.ndarray:
     """P*, the unique PSD solution of g(X) = X (steady-state prediction covariance, Sec. 3.1).
 
-    Solved with ``scipy.linalg.solve_discrete_are`` on the dual (filtering) problem.
+    Solved with ``scipy.linalg.solve_discrete_are`` on the dual (filtering) problem; memoized
+    per (frozen) system, since the bounds ask for it at every grid point.
     """
+    cached = _PSTAR.get(s)
+    if cached is not None:
+        return cached.copy()
+    P = _pstar(s)
+    _PSTAR[s] = P
+    return P.copy()
+
+
+def _pstar(s: LinearSystem) -> np.ndarray:
     try:
         P = scipy.linalg.solve_discrete_are(s.A.T, s.C.T, s.Q, s.R)
     except (np.linalg.LinAlgError, ValueError) as exc:

@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal, Union
 
 from pydantic import Field, create_model
 
-from netkf_cli import channels, estimators, recipes
+from netkf_cli import channels, estimators, metrics, recipes
 from netkf_cli.spec import (
     AnalysisModel,
     ChannelModel,
@@ -29,7 +29,7 @@ from netkf_cli.spec import (
 from netkf_cli.sweep import SweepSpec
 from netkf_cli.system import LinearSystem
 
-_PACKAGES = (channels, estimators, recipes)
+_PACKAGES = (channels, estimators, recipes, metrics)
 
 
 def _import_all() -> None:
@@ -78,11 +78,13 @@ def kinds(base: type) -> dict[str, type]:
 class SystemSpec(StrictModel):
     """``system:`` x_{k+1} = A x_k + w_k, y_k = C x_k + v_k; w ~ N(0, Q), v ~ N(0, R), x_0 ~ N(0, P0)."""
 
-    A: Matrix
-    C: Matrix
-    Q: Matrix
-    R: Matrix
-    P0: Matrix | Literal["steady"] | None = Field(None, description="initial covariance, or 'steady' for P̄")
+    A: Matrix = Field(description="state matrix A (n×n): x_{k+1} = A x_k + w_k")
+    C: Matrix = Field(description="output matrix C (m×n): y_k = C x_k + v_k")
+    Q: Matrix = Field(description="process-noise covariance Q (n×n, symmetric PSD)")
+    R: Matrix = Field(description="measurement-noise covariance R (m×m, symmetric PD)")
+    P0: Matrix | Literal["steady"] | None = Field(
+        None, description="error covariance of the estimate at k = 0, P_{0|0} (n×n PSD); unset or 'steady' = P̄, "
+        "the steady-state filtered covariance with every packet received")
 
     def build(self) -> LinearSystem:
         return LinearSystem.from_spec(self)
@@ -93,7 +95,7 @@ class MonteCarloSpec(StrictModel):
 
     runs: PositiveInt = Field(100_000, description="independent runs (samples)")
     horizon: PositiveInt = Field(200, description="time steps per run")
-    burn_in: NonNegInt = Field(100, description="steps discarded before statistics are taken")
+    burn_in: NonNegInt = Field(0, description="steps discarded before time-averaged statistics are taken (must be < horizon)")
     seed: NonNegInt = Field(0, description="root seed")
     chunk: PositiveInt = Field(20_000, description="runs per chunk (memory bound; part of the random stream layout)")
     quick_runs: PositiveInt | None = Field(None, description="Monte Carlo size under `netkf reproduce --quick` (default: min(runs, 2000))")
@@ -106,7 +108,10 @@ class OutputSpec(StrictModel):
     """``output:`` where and how results are written."""
 
     dir: str = Field("results", description="parent folder of the result folder <dir>/<name>/")
-    dpi: PositiveInt = 150
+    dpi: PositiveInt = Field(150, description="resolution of the PNG figure (dots per inch)")
+    formats: list[Literal["png", "pdf", "svg"]] = Field(
+        default_factory=lambda: ["png"], min_length=1,
+        description="figure formats written as <name>.<format>, the same figure in each (png, pdf, svg)")
 
 
 @lru_cache(maxsize=1)
@@ -119,7 +124,11 @@ def scenario_model() -> type[StrictModel]:
         "description": (str, ""),
         "system": (SystemSpec | None, None),
         "channel": ((ch | None) if ch is not None else None, None),
-        "estimator": ((es | None) if es is not None else None, None),
+        "estimator": ((es | None) if es is not None else None,
+                      Field(None, description="the estimator, chosen by kind (netkf list)")),
+        "estimators": ((list[es] | None) if es is not None else None,
+                       Field(None, description="several estimators instead of one: the generic metrics run them "
+                                               "on the same sampled traces (common random numbers)")),
         "analysis": (an, ...),
         "montecarlo": (MonteCarloSpec, MonteCarloSpec()),
         "output": (OutputSpec, OutputSpec()),
@@ -147,10 +156,19 @@ class ScenarioBase(StrictModel):
             raise ConfigError.at("channel.kind", f"this analysis needs a channel of kind {' or '.join(allowed)}, got {got}")
         return ch
 
+    def estimator_list(self) -> list:
+        """The scenario's estimators as a list (``estimator:`` one, or ``estimators:`` several)."""
+        if self.estimators:  # type: ignore[attr-defined]
+            return list(self.estimators)  # type: ignore[attr-defined]
+        return [] if self.estimator is None else [self.estimator]  # type: ignore[attr-defined]
+
     def require_estimator(self, *allowed: str):
         from netkf_cli.errors import ConfigError
 
         es = self.estimator  # type: ignore[attr-defined]
+        if es is None and self.estimators:  # type: ignore[attr-defined]
+            raise ConfigError.at("estimators", "this analysis takes one `estimator:`; `estimators:` (a list) is for "
+                                 "the generic metrics (distribution, mean_vs_time, compare)")
         if es is None or (allowed and es.kind not in allowed):
             got = "none" if es is None else es.kind
             raise ConfigError.at("estimator.kind", f"this analysis needs an estimator of kind {' or '.join(allowed)}, got {got}")

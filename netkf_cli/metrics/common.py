@@ -67,9 +67,9 @@ def needs(scenario, what: str):
             raise ConfigError.at("channel", "this metric needs a `channel:` block (netkf list shows the kinds)")
         return scenario.channel
     if what == "estimators":
-        ests = scenario.estimators()
+        ests = scenario.estimator_list()
         if not ests:
-            raise ConfigError.at("estimator", "this metric needs an `estimator:` (or a list of them)")
+            raise ConfigError.at("estimator", "this metric needs an `estimator:` (or `estimators:`, a list)")
         return ests
     return scenario.linear_system()
 

@@ -30,7 +30,7 @@ from netkf_cli import engine, riccati
 from netkf_cli.errors import ConfigError
 from netkf_cli.metrics.common import MGrid, PaperRef, labels, m_values, needs, step_of
 from netkf_cli.montecarlo import proportion_stderr, wilson_interval
-from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title
+from netkf_cli.plotting import MARKERS, PALETTE, footnote, new_figure, paper_title
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt
 
@@ -138,7 +138,7 @@ class ClosedForms:
 class Distribution(AnalysisModel):
     """``kind: distribution`` — Pr[P_k ≤ M] against M (Monte Carlo + closed forms where they hold)."""
 
-    kind: Literal["distribution"]
+    kind: Literal["distribution", "prob_vs_M"]  # prob_vs_M: the name before the generic engine (same analysis)
     M: list[PositiveFloat] | MGrid = Field(description="M grid (scalar M means M·Iₙ): a list or {start, stop, num, spacing}")
     at: Literal["stationary"] | PositiveInt = Field(
         "stationary", description="step k at which P_k is taken; stationary = k = montecarlo.horizon after the burn-in from P0")
@@ -205,16 +205,19 @@ class Distribution(AnalysisModel):
             meta["closed_forms"][lab] = {"attached": True, "floor_M": cf.floor(), "note": cf.why or None}
         table = pd.DataFrame(rows, columns=COLUMNS)
         extra = {"curves": pd.DataFrame(curves, columns=["M", "estimator", "series", "value"])} if curves else {}
+        summary = claims_summary(table, self.exact_tol)
+        if len(summary):
+            extra["summary"] = summary
         return Artefact(table, meta=meta, extra_tables=extra)
 
     def plot(self, tables, scenario):
         t = tables["main"]
         cur = tables.get("curves")
         fig, ax = new_figure(width=7.4, height=4.8)
-        styles = {"lower_bound": dict(ls="--", lw=1.3, lab="lower bound 1 − θ(k₁, D) (Thm 3.8)"),
-                  "upper_bound": dict(ls="-.", lw=1.3, lab="upper bound 1 − θ(k₂, D) (Thm 3.8)"),
+        styles = {"lower_bound": dict(ls="--", lw=1.3, lab=r"lower bound $1-\theta(k_1, D)$ (Thm 3.8)"),
+                  "upper_bound": dict(ls="-.", lw=1.3, lab=r"upper bound $1-\theta(k_2, D)$ (Thm 3.8)"),
                   "exact": dict(ls="-", lw=1.0, lab="exact (certified)"),
-                  "thm41": dict(ls="-", lw=1.6, lab="1 − θ(k₂, D) (Thm 4.1)")}
+                  "thm41": dict(ls="-", lw=1.6, lab=r"$1-\theta(k_2, D)$ (Thm 4.1, exact)")}
         ests = list(dict.fromkeys(t.estimator))
         for j, lab in enumerate(ests):
             colour = PALETTE[j % len(PALETTE)]
@@ -222,13 +225,16 @@ class Distribution(AnalysisModel):
                 for name, sty in styles.items():
                     g = cur[(cur.estimator == lab) & (cur.series == name)].sort_values("M")
                     if len(g):
+                        # bounds on top (the upper bound of Thm 3.8 coincides with Thm 4.1's exact value)
                         ax.plot(g.M, g.value, drawstyle="steps-post", ls=sty["ls"], lw=sty["lw"],
-                                color="black" if name == "exact" else colour, label=f"{lab}: {sty['lab']}")
+                                color="black" if name == "exact" else colour, label=f"{lab}: {sty['lab']}",
+                                zorder=4 if name.endswith("bound") else 3)
             g = t[(t.estimator == lab) & (t.series == "monte_carlo")].sort_values("M")
             if len(g):
                 yerr = np.vstack([g.value - g.ci_low, g.ci_high - g.value])
-                ax.errorbar(g.M, g.value, yerr=yerr, fmt="o", ms=3.5, mfc="none", color=colour, elinewidth=0.8,
-                            capsize=1.5, label=f"{lab}: Monte Carlo, 95 % Wilson interval (n = {int(g.n.max()):,})")
+                ax.errorbar(g.M, g.value, yerr=yerr, fmt=MARKERS[j % len(MARKERS)], ms=4.0 + 2.0 * j, mfc="none",
+                            color=colour, elinewidth=0.8, capsize=1.5, zorder=5,
+                            label=f"{lab}: Monte Carlo, 95 % Wilson interval (n = {int(g.n.max()):,})")
         if self.x_scale == "log":
             ax.set_xscale("log")
         ax.set_xlabel(r"$M$ (the bound is $M\,I_n$)")
@@ -236,7 +242,7 @@ class Distribution(AnalysisModel):
         ax.set_ylim(-0.02, 1.02)
         what = self.title or rf"$\Pr[P_k \leq M]$, {_channel_text(scenario.channel)}"
         ax.set_title(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
-        legend_outside(ax, loc="below", ncol=1)
+        ax.legend(loc="lower right", fontsize=9, framealpha=0.9)  # a CDF leaves the lower right empty
         k = int(t.k.iloc[0])
         footnote(fig, f"P_k at k = {k}" + (" (stationary: after the burn-in from P0)" if self.at == "stationary" else ""))
         return fig
@@ -253,3 +259,55 @@ def _channel_text(ch) -> str:
     if ch.kind == "bernoulli":
         return rf"i.i.d. arrivals, $\gamma$ = {ch.arrival:g}"
     return f"{ch.kind} channel"
+
+
+Z_CLAIM = 5.0
+"""Claims compare Monte Carlo with closed forms through a Wilson interval at z = 5 (≈ 5σ)."""
+
+
+def claims_summary(t: pd.DataFrame, exact_tol: float) -> pd.DataFrame:
+    """Per estimator: does the Monte Carlo agree with the closed forms? (fractions of the M grid, 1 = everywhere)."""
+    rows = []
+    for lab, g in t.groupby("estimator", sort=False):
+        mc = g[g.series == "monte_carlo"].set_index("M")
+        if not len(mc):
+            continue
+        n = int(mc.n.iloc[0])
+        lo5, hi5 = wilson_interval(np.rint(mc.value * n), n, z=Z_CLAIM)
+        lo5, hi5 = pd.Series(lo5, index=mc.index), pd.Series(hi5, index=mc.index)
+
+        def ser(name):
+            return g[g.series == name].set_index("M").value
+
+        lb, ub, ex, th = ser("lower_bound"), ser("upper_bound"), ser("exact"), ser("thm41")
+        if len(ub):
+            M = ub.index
+            lower = lb.reindex(M) if len(lb) else pd.Series(0.0, index=M)
+            ok = (hi5[M] >= lower - 1e-12) & (lo5[M] <= ub + 1e-12)
+            rows += [dict(quantity="mc_within_bounds_5se_fraction", estimator=lab, value=float(ok.mean())),
+                     dict(quantity="max_upper_minus_lower", estimator=lab, value=float((ub - lower).max()))]
+        if len(ex):
+            M = ex.index
+            rows += [dict(quantity="mc_equals_exact_5se_fraction", estimator=lab,
+                          value=float(((lo5[M] <= ex + exact_tol) & (hi5[M] >= ex - exact_tol)).mean())),
+                     dict(quantity="max_exact_err", estimator=lab, value=float(g[g.series == "exact"].err.max()))]
+            if len(ub):
+                lower = lb.reindex(M) if len(lb) else 0.0
+                rows.append(dict(quantity="exact_within_bounds_fraction", estimator=lab,
+                                 value=float(((ex >= lower - exact_tol) & (ex <= ub.reindex(M) + exact_tol)).mean())))
+        if len(th):
+            M = th.index
+            rows.append(dict(quantity="mc_equals_thm41_5se_fraction", estimator=lab,
+                             value=float(((lo5[M] <= th + 1e-12) & (hi5[M] >= th - 1e-12)).mean())))
+    ths = t[t.series == "thm41"]
+    exs = t[t.series == "exact"]
+    if len(ths) and len(exs):  # Sec. 5.2: the smart sensor does better (pathwise h^N(P̄) ≤ P_k of the raw sensor)
+        a = ths.set_index("M").value
+        b = exs.set_index("M").value
+        M = a.index.intersection(b.index)
+        d = a[M] - b[M]
+        rows += [dict(quantity="min_thm41_minus_exact", estimator="both", value=float(d.min())),
+                 dict(quantity="max_thm41_minus_exact", estimator="both", value=float(d.max())),
+                 dict(quantity="claim_smart_at_least_raw_everywhere", estimator="both",
+                      value=float((d >= -exact_tol).all()))]
+    return pd.DataFrame(rows, columns=["quantity", "estimator", "value"])

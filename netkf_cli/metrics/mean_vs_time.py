@@ -103,7 +103,11 @@ class MeanVsTime(AnalysisModel):
         ax.set_ylabel(WHAT[self.of])
         what = self.title or f"{WHAT[self.of]} against $k$"
         ax.set_title(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
-        legend_outside(ax, loc="below", ncol=1)
+        if ax.get_legend_handles_labels()[0]:
+            legend_outside(ax, loc="below", ncol=1)
+        else:
+            ax.text(0.5, 0.5, "no reliable mean to draw:\nevery step is heavy-tailed at this sample size (see the CSV)",
+                    transform=ax.transAxes, ha="center", va="center", fontsize=10)
         n = int(t.n.max()) if len(t) else 0
         footnote(fig, f"n = {n:,} runs per step" + (f"; {left_out} heavy-tailed step means not drawn (see CSV column "
                                                       f"heavy_tail)" if left_out else ""))

@@ -75,15 +75,59 @@ class Flaky:
     def __call__(self, rng, n):
         if self.fails > 0:
             self.fails -= 1
-            raise RuntimeError("worker died")
+            raise RuntimeError("a bug in a kernel")
         return {"s": rng.random(n).sum(), "n": n}
 
 
-def test_failing_chunk_is_retried_once_then_reported_with_coordinates():
-    ref = montecarlo.run_chunked(Flaky(0), 10, 4, seed=3)
-    assert montecarlo.run_chunked(Flaky(1), 10, 4, seed=3)["s"] == ref["s"]
-    with pytest.raises(NetkfError, match=r"chunk 0 \(runs 0–3, seed 3, demo\) failed twice"):
-        montecarlo.run_chunked(Flaky(2), 10, 4, seed=3, label="demo")
+class DiesOnce:
+    """Kills its worker process the first time it runs (a lost worker, not a bug)."""
+
+    def __init__(self, flag):
+        self.flag = str(flag)
+
+    def __call__(self, rng, n):
+        import os
+
+        if not os.path.exists(self.flag):
+            open(self.flag, "w").close()
+            os._exit(1)
+        return {"s": rng.random(n).sum(), "n": n}
+
+
+def test_exception_in_a_kernel_is_a_bug_not_retried_and_names_the_chunk():
+    with pytest.raises(RuntimeError, match="a bug in a kernel") as info:
+        montecarlo.run_chunked(Flaky(1), 10, 4, seed=3, label="demo")
+    assert any("chunk 0 of stream 0 (runs 0–3, seed 3, demo)" in n for n in info.value.__notes__)
+
+
+def test_lost_worker_is_retried_with_identical_numbers(tmp_path):
+    ref = montecarlo.run_chunked(Flaky(0), 4000, 1000, seed=3)
+    with montecarlo.execution("process", jobs=2):
+        got = montecarlo.run_chunked(DiesOnce(tmp_path / "died"), 4000, 1000, seed=3)
+    assert (tmp_path / "died").exists()
+    assert got["s"] == ref["s"] and got["n"] == 4000
+
+
+def test_a_closure_kernel_is_refused_on_worker_processes():
+    def closure(rng, n):
+        return {"n": n}
+
+    with montecarlo.execution("process", jobs=2):
+        with pytest.raises(montecarlo.KernelNotShippable, match="cannot be pickled"):
+            montecarlo.run_chunked(closure, 100, 10, seed=0)
+
+
+def test_streams_are_spawn_keys_not_seed_arithmetic():
+    k = Flaky(0)
+    a = montecarlo.run_chunked(k, 100, 100, seed=5, stream=1)
+    b = montecarlo.run_chunked(k, 100, 100, seed=6, stream=0)
+    ref = np.random.default_rng(np.random.SeedSequence(5, spawn_key=(1, 0))).random(100).sum()
+    assert a["s"] == ref and a["s"] != b["s"]
+
+
+def test_chunk_plan_is_lazy():
+    plan = montecarlo.plan_chunks(10**12, 20_000, 0)
+    assert len(plan) == 50_000_000 and plan[-1].runs == 20_000 and plan[3].first_run == 60_000
 
 
 def test_chunk_streams_depend_on_seed_and_index_only():

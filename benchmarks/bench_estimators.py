@@ -1,0 +1,171 @@
+"""Every estimator's Monte Carlo side by side (issue 15): run-steps/s, ratios, targets, scaling.
+
+    python benchmarks/bench_estimators.py            # all cases
+    python benchmarks/bench_estimators.py --quick    # fewer repetitions
+    python benchmarks/bench_estimators.py --only fading smoothing
+
+Cases come from ``benchmarks/estimators/<topic>.py`` (each exposes ``CASES``: dicts with
+``estimator``, ``system``, ``backend``, ``threads``, ``make() -> (kernel, runs, horizon)``).
+For every case: the first call (compile time for numba, reported separately), then the best
+of ``repeat`` calls on one core, and on two cores (two chunks on the process pool). Baselines on
+the same systems: the per-run numpy loop and FilterPy (``pip install -e '.[bench]'``), one run
+at a time (``shi2009.per_run_loop`` / ``filterpy_loop``). Targets (this 2-core machine): numpy
+≥ 2e7 and compiled ≥ 1e8 run-steps/s for n ≤ 4; a case that misses says so.
+Writes ``benchmarks/scaling.png``: time against runs × horizon and peak memory against runs
+for one numpy case per topic (memory must stay flat: chunked).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import pkgutil
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from netkf_cli import montecarlo  # noqa: E402
+
+TARGET = {"numpy": 2e7, "compiled": 1e8}
+
+
+def load_cases(only: list[str] | None) -> list[tuple[str, dict]]:
+    import benchmarks.estimators as pkg
+
+    out = []
+    for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda i: i.name):
+        if only and info.name not in only:
+            continue
+        mod = importlib.import_module(f"benchmarks.estimators.{info.name}")
+        out += [(info.name, c) for c in getattr(mod, "CASES", [])]
+    return out
+
+
+def timed(fn, repeat: int) -> float:
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def one_core(kernel, runs: int, repeat: int) -> float:
+    rng = np.random.default_rng(0)
+    return timed(lambda: kernel(rng, runs), repeat)
+
+
+def two_cores(kernel, runs: int, repeat: int) -> float:
+    with montecarlo.execution("process", jobs=2) as ex:
+        montecarlo.run_chunked(kernel, 2 * runs, runs, seed=1)  # warm the pool (and per-worker compile)
+        return timed(lambda: montecarlo.run_chunked(kernel, 2 * runs, runs, seed=1), repeat) / 2
+
+
+def baselines(system: str, runs: int = 200, horizon: int = 100) -> dict[str, float]:
+    from benchmarks.estimators import shi2009
+
+    out = {}
+    t = timed(lambda: shi2009.per_run_loop(system, runs, horizon), 1)
+    out["per-run numpy loop"] = runs * horizon / t
+    try:
+        t = timed(lambda: shi2009.filterpy_loop(system, runs, horizon), 1)
+        out["FilterPy"] = runs * horizon / t
+    except ImportError:
+        pass
+    return out
+
+
+def scaling(cases, path: Path) -> None:
+    """Time vs run-steps and peak traced memory vs runs, one numpy case per topic."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    seen, picks = set(), []
+    for topic, c in cases:
+        if topic not in seen and c["backend"] == "numpy":
+            seen.add(topic)
+            picks.append((topic, c))
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for topic, c in picks:
+        kernel, runs, horizon = c["make"]()
+        chunk = max(1, runs // 4)
+        xs, ts, mem = [], [], []
+        for mult in (1, 2, 4, 8):
+            n = chunk * mult
+            tracemalloc.start()
+            t0 = time.perf_counter()
+            montecarlo.run_chunked(kernel, n, chunk, seed=0)
+            ts.append(time.perf_counter() - t0)
+            mem.append(tracemalloc.get_traced_memory()[1] / 2**20)
+            tracemalloc.stop()
+            xs.append(n * horizon)
+        label = f"{topic}: {c['estimator']} ({c['system']})"
+        a1.loglog(xs, ts, "o-", label=label)
+        a2.semilogx([x / horizon for x in xs], mem, "o-", label=label)
+    a1.set_xlabel("run-steps (runs × horizon)")
+    a1.set_ylabel("wall time [s]")
+    a1.set_title("time grows linearly with the work")
+    a2.set_xlabel("runs (chunk fixed)")
+    a2.set_ylabel("peak traced memory [MiB]")
+    a2.set_title("memory is flat in the number of runs")
+    a2.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"wrote {path}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--only", nargs="*")
+    ap.add_argument("--no-scaling", action="store_true")
+    args = ap.parse_args()
+    repeat = 1 if args.quick else 3
+    cases = load_cases(args.only)
+    load = os.getloadavg()[0]
+    print(f"{len(cases)} cases; load average {load:.2f} on {os.cpu_count()} cores"
+          + (" — the machine is busy, numbers are low" if load > 0.5 else ""))
+    base_cache: dict[str, dict] = {}
+    hdr = f"{'topic':10s} {'estimator':22s} {'system':8s} {'backend':13s} {'first':>7s} {'1 core':>10s} {'2 cores':>10s} {'×FilterPy':>9s}  target"
+    print(hdr)
+    print("-" * len(hdr))
+    for topic, c in cases:
+        t0 = time.perf_counter()
+        kernel, runs, horizon = c["make"]()
+        rng = np.random.default_rng(0)
+        kernel(rng, min(runs, 1000))  # first call: compile / load cache
+        first = time.perf_counter() - t0
+        r1 = runs * horizon / one_core(kernel, runs, repeat)
+        try:
+            r2 = runs * horizon / two_cores(kernel, runs, repeat)
+        except Exception as exc:  # noqa: BLE001 - a benchmark reports, it does not stop
+            r2 = float("nan")
+            print(f"   (2 cores failed: {exc})")
+        if c["system"] not in base_cache:
+            try:
+                base_cache[c["system"]] = baselines(c["system"])
+            except Exception:  # noqa: BLE001
+                base_cache[c["system"]] = {}
+        fp = base_cache[c["system"]].get("FilterPy")
+        kind = "numpy" if c["backend"] == "numpy" else "compiled"
+        best = max(r1, r2 if np.isfinite(r2) else 0)
+        ok = "ok" if best >= TARGET[kind] else f"MISSED ({TARGET[kind]:.0e}: {c.get('bound', 'see case notes')})"
+        print(f"{topic:10s} {c['estimator']:22s} {c['system']:8s} {c['backend']:13s} {first:6.2f}s {r1:10.3e} {r2:10.3e} "
+              f"{(best / fp if fp else float('nan')):9.0f}  {ok}")
+    for name, b in base_cache.items():
+        print("baseline", name, ", ".join(f"{k}: {v:.3e}" for k, v in b.items()))
+    if not args.no_scaling:
+        scaling(cases, ROOT / "benchmarks" / "scaling.png")
+
+
+if __name__ == "__main__":
+    main()
