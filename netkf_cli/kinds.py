@@ -34,7 +34,7 @@ def fields_of(cls) -> list[dict]:
             continue
         default = "required" if f.default is PydanticUndefined and f.default_factory is None else (
             repr(f.default) if f.default_factory is None else repr(f.default_factory()))
-        out.append({"name": name, "type": _type_name(f.annotation) + ("" if not f.metadata else ""), "default": default,
+        out.append({"name": f.alias or name, "type": _type_name(f.annotation), "default": default,
                     "description": f.description or ""})
     return out
 

@@ -121,17 +121,18 @@ def scenario_model() -> type[StrictModel]:
     ch, es, an = _union(ChannelModel), _union(EstimatorModel), _union(AnalysisModel)
     fields: dict[str, Any] = {
         "name": (Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]+$", description="artefact name (result folder)")], ...),
-        "description": (str, ""),
-        "system": (SystemSpec | None, None),
-        "channel": ((ch | None) if ch is not None else None, None),
+        "description": (str, Field("", description="free text, copied into the manifest")),
+        "system": (SystemSpec | None, Field(None, description="the plant x_{k+1} = A x_k + w_k, y_k = C x_k + v_k")),
+        "channel": ((ch | None) if ch is not None else None,
+                    Field(None, description="the network between sensor and estimator, chosen by kind (netkf list)")),
         "estimator": ((es | None) if es is not None else None,
                       Field(None, description="the estimator, chosen by kind (netkf list)")),
         "estimators": ((list[es] | None) if es is not None else None,
                        Field(None, description="several estimators instead of one: the generic metrics run them "
                                                "on the same sampled traces (common random numbers)")),
-        "analysis": (an, ...),
-        "montecarlo": (MonteCarloSpec, MonteCarloSpec()),
-        "output": (OutputSpec, OutputSpec()),
+        "analysis": (an, Field(description="what to compute: a generic metric or a paper artefact, chosen by kind")),
+        "montecarlo": (MonteCarloSpec, Field(MonteCarloSpec(), description="Monte Carlo size, horizon and seeding")),
+        "output": (OutputSpec, Field(OutputSpec(), description="where and in which formats results are written")),
         "sweep": (SweepSpec | None, Field(None, description="optional parameter sweep over dotted field paths")),
     }
     return create_model("Scenario", __base__=ScenarioBase, **fields)

@@ -40,15 +40,17 @@ class SweepPlot(StrictModel):
     x: str | None = Field(None, description="swept field on the x-axis (default: the first)")
     series: str | None = Field(None, description="which `series` of the table to draw (default: the first)")
     where: dict[str, Any] = Field(default_factory=dict, description="column == value filters (e.g. {M: 50})")
-    logy: bool = False
+    logy: bool = Field(False, description="logarithmic y axis")
 
 
 class SweepSpec(StrictModel):
     """``sweep:`` dotted field paths → values; ``mode: product | zip``; optional ``plot``."""
 
-    mode: Literal["product", "zip"] = "product"
-    plot: SweepPlot = Field(default_factory=SweepPlot)
-    axes: dict[str, list[Any]] = Field(default_factory=dict)
+    mode: Literal["product", "zip"] = Field("product", description="product: every combination of the axes; zip: "
+                                                                   "the i-th values together (equal lengths)")
+    plot: SweepPlot = Field(default_factory=SweepPlot, description="what the sweep figure draws")
+    axes: dict[str, list[Any]] = Field(default_factory=dict, description="dotted field path → values (filled from "
+                                                                          "the sweep block's other keys)")
 
     @model_validator(mode="before")
     @classmethod

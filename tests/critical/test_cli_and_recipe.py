@@ -1,0 +1,120 @@
+"""`netkf critical` (text, --json, bad input) and the `kind: critical` artefact (small Monte Carlo)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from netkf_cli.cli import app
+from netkf_cli.loader import load_scenario
+from netkf_cli.recipes.base import RunContext
+
+runner = CliRunner()
+
+
+def test_default_system_is_example_310_and_exact(root):
+    res = runner.invoke(app, ["critical", "--json"])
+    assert res.exit_code == 0, res.output
+    js = json.loads(res.stdout)
+    assert js["proven"] is True and js["condition"] == "scalar"
+    assert js["lambda_c"] == pytest.approx(1 - 1 / 1.4**2)
+    assert js["lambda_max"]["lower"] <= js["lambda_c"] <= js["lambda_max"]["upper"] + 1e-12
+
+
+def test_fig9_vehicle_answers_with_both_bounds_and_the_envelope(root, monkeypatch):
+    monkeypatch.chdir(root)
+    res = runner.invoke(app, ["critical", "--config", "configs/fig9.yaml", "--json"])
+    assert res.exit_code == 0, res.output
+    js = json.loads(res.stdout)
+    assert js["n"] == 4 and js["lambda_min"] == 0.0
+    assert 0.0 < js["lambda_max"]["upper"] < 0.01  # strictly above λ_min = λ_c = 0
+    assert js["lambda_c"] == 0.0 and js["condition"] == "marginal"
+    ch = js["channel"]
+    assert ch["kind"] == "delay" and ch["D_max"] == 5 and ch["bounded"] is True
+    env = ch["envelope"]
+    assert 0 < env["trace_S_bar"] < env["trace_V_bar"] < np.inf
+    text = runner.invoke(app, ["critical", "--config", "configs/fig9.yaml"]).stdout
+    assert "λ_max" in text and "tr S̄" in text and "tr V̄" in text and "exactly" in text
+
+
+def test_interval_only_is_said_so(root, monkeypatch):
+    monkeypatch.chdir(root)
+    res = runner.invoke(app, ["critical", "--config", "configs/critical/two_unstable.yaml", "--arrival", "0.42", "--json"])
+    assert res.exit_code == 0, res.output
+    js = json.loads(res.stdout)
+    assert js["proven"] is False and js["lambda_c"] is None
+    assert js["interval"][0] == pytest.approx(0.36) and js["interval"][1] > 0.47
+    assert js["channel"]["bounded"] is None and "not decided" in js["channel"]["verdict"]
+    assert js["channel"]["envelope"]["trace_V_bar"] is None  # λ = 0.42 < λ_max: V̄ does not exist
+
+
+@pytest.mark.parametrize("args, code, needle", [
+    (["critical", "--arrival", "1.5"], 2, "--arrival"),
+    (["critical", "--config", "does/not/exist.yaml"], 1, "exist"),
+])
+def test_bad_input(args, code, needle):
+    res = runner.invoke(app, args)
+    assert res.exit_code == code
+    assert needle in (res.stdout + res.stderr)
+    assert "Traceback" not in (res.stdout + res.stderr)
+
+
+def test_config_without_system_is_a_config_error(tmp_path):
+    cfg = tmp_path / "nosys.yaml"
+    cfg.write_text("name: nosys\nanalysis: {kind: critical}\n")
+    res = runner.invoke(app, ["critical", "--config", str(cfg)])
+    assert res.exit_code == 1
+    assert "system" in (res.stdout + res.stderr)
+
+
+def test_recipe_small_run_claims_hold(root):
+    sc = load_scenario(root / "configs/critical/scalar_a125.yaml")
+    art = sc.analysis.compute(sc, RunContext(runs=1000))
+    t, claims, rates = art.table, art.extra_tables["claims"], art.extra_tables["rates"]
+    assert set(t.series) == {"S_bar", "V_bar", "monte_carlo"}
+    assert (claims.value == 1.0).all(), claims.to_string()
+    r = dict(zip(rates.quantity, rates.value))
+    assert r["lambda_c"] == pytest.approx(0.36) and r["proven"] == 1.0
+    # S̄ ≤ V̄ on the whole grid (both exist above λ_max ≈ λ_c here)
+    S = t[t.series == "S_bar"].set_index("lam").value
+    V = t[t.series == "V_bar"].set_index("lam").value
+    assert (S <= V + 1e-12).all()
+    ge = art.extra_tables["ge"]
+    assert np.allclose(ge.q_exact, 0.36) and (ge.q_sufficient >= 0.36 - 1e-9).all()
+    fig = sc.analysis.plot({"main": t, "rates": rates, "ge": ge}, sc)
+    from netkf_cli import plotting
+
+    plotting._layout(fig)
+    assert plotting.lint(fig) == []
+
+
+def test_monte_carlo_between_bounds_vehicle(root):
+    """Monte Carlo means (generic engine) lie between S̄ and V̄ where they are reliable (5 s.e.)."""
+    sc = load_scenario(root / "configs/critical/vehicle.yaml")
+    an = sc.analysis.model_copy(update={"lambdas": [0.3, 0.6, 0.9], "failure_rates": [0.5]})
+    art = an.compute(sc, RunContext(runs=1000))
+    t = art.table
+    mc = t[(t.series == "monte_carlo") & (t.reliable > 0)]
+    assert len(mc) >= 2
+    for _, r in mc.iterrows():
+        S = t[(t.lam == r.lam) & (t.series == "S_bar")].value.iloc[0]
+        V = t[(t.lam == r.lam) & (t.series == "V_bar")].value.iloc[0]
+        assert S - 5 * r.stderr <= r.value <= V + 5 * r.stderr
+
+
+def test_gilbert_elliott_verdict_next_to_bernoulli_at_the_same_loss(tmp_path):
+    """a = 2: bursts of mean length 2 (q = 0.5 < 0.75) diverge although i.i.d. loss at the same
+    average rate (arrival 0.5/0.6 = 0.833 > 0.75) would be stable: what burstiness costs."""
+    cfg = tmp_path / "ge.yaml"
+    cfg.write_text("name: ge\nsystem: {A: 2, C: 1, Q: 1, R: 1}\n"
+                   "channel: {kind: gilbert_elliott, p_gb: 0.1, p_bg: 0.5}\nanalysis: {kind: critical}\n")
+    js = json.loads(runner.invoke(app, ["critical", "--config", str(cfg), "--json"]).stdout)
+    ch = js["channel"]
+    assert ch["kind"] == "gilbert_elliott" and ch["bounded"] is False and ch["bernoulli_bounded"] is True
+    assert ch["q_necessary"] == pytest.approx(0.75)
+    cfg.write_text(cfg.read_text().replace("p_bg: 0.5", "p_bg: 0.8"))
+    js = json.loads(runner.invoke(app, ["critical", "--config", str(cfg), "--json"]).stdout)
+    assert js["channel"]["bounded"] is True
