@@ -23,6 +23,37 @@ from netkf_cli.errors import ConfigError
 from netkf_cli.spec import EstimatorModel
 
 
+RATIO = 1e8
+"""A run whose predicted covariance exceeds RATIO·‖(CᵀR⁻¹C)⁻¹‖ is updated in information form: the
+standard form P − P Cᵀ S⁻¹ C P cancels every digit when ‖P‖/‖R‖ ≳ 1/ε (e.g. A = 1e6)."""
+
+
+def _information_update(Pm: np.ndarray, info: np.ndarray) -> np.ndarray:
+    """P⁺ = (P⁻⁻¹ + CᵀR⁻¹C)⁻¹ per run (Sinopoli 2004, eq. 9 in information form); P⁻ = ∞ ⇒ P⁻⁻¹ = 0."""
+    X = np.moveaxis(Pm, -1, 0)
+    finite = np.isfinite(X).all(axis=(1, 2))
+    Y = np.zeros_like(X)
+    if finite.any():
+        Y[finite] = np.linalg.inv(X[finite])
+    out = np.linalg.inv(Y + info[None])
+    return np.moveaxis(0.5 * (out + out.transpose(0, 2, 1)), 0, -1)
+
+
+def _guard(P, Pm, huge, arrived, info, full_rank: bool) -> np.ndarray:
+    """Runs flagged ``huge`` before the update: the exact information-form update on arrival (C of
+    full column rank), ``inf`` when non-finite otherwise — a diverged run is counted as such,
+    never a silent NaN or a cancellation-made small number."""
+    P = P.copy()
+    idx = np.flatnonzero(huge)
+    arr = arrived[idx]
+    if full_rank and arr.any():
+        P[:, :, idx[arr]] = _information_update(Pm[:, :, arr], info)
+    rest = idx[~arr] if full_rank else idx
+    bad = rest[~np.isfinite(P[:, :, rest]).all(axis=(0, 1))]
+    P[:, :, bad] = np.inf
+    return P
+
+
 def initial_covariance(system) -> np.ndarray:
     """P0 of the system, or P̄ when it is unspecified/steady (the one meaning of P0 in netkf)."""
     return riccati.pbar(system) if system.P0 is None else np.asarray(system.P0, dtype=float)
@@ -54,6 +85,9 @@ class KalmanFilterEstimator(EstimatorModel):
             raise ConfigError.at("estimator.kind", f"kf: the trace has {S} arrival streams, expected 1 or m = {system.m}")
         A, C, Q, R = system.A, system.C, system.Q, system.R
         P = np.repeat(initial_covariance(system)[:, :, None], trace.runs, axis=2)
+        info = C.T @ np.linalg.solve(R, C)  # CᵀR⁻¹C: the information of one measurement
+        P_one = np.linalg.inv(info) if np.linalg.matrix_rank(info) == system.n else None
+        limit = RATIO * (np.trace(P_one) if P_one is not None else np.trace(R) * 1e8)
         want = iter(steps)
         nxt = next(want, None)
         with np.errstate(over="ignore", invalid="ignore"):
@@ -65,11 +99,15 @@ class KalmanFilterEstimator(EstimatorModel):
                 if self.report == "predicted" and k == nxt:
                     yield k, P
                     nxt = next(want, None)
+                huge = ~(batched.trace(P) <= limit)  # nearly overflowed, or inf/nan
+                Pm = P[:, :, huge] if huge.any() else None
                 if S == 1:
                     P = batched.kf_update(P, C, R, gam[0, t])
                 else:
                     for i in range(S):
                         P = batched.kf_update(P, C[i:i + 1], R[i:i + 1, i:i + 1], gam[i, t])
+                if Pm is not None:
+                    P = _guard(P, Pm, huge, gam[:, t].all(axis=0), info, P_one is not None)
                 if self.report == "filtered" and k == nxt:
                     yield k, P
                     nxt = next(want, None)

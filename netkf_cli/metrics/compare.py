@@ -109,7 +109,7 @@ class Compare(AnalysisModel):
             ax2 = axes[1]
             for i, (lab, g) in enumerate(t[t.quantity == "prob_leq_M"].groupby("estimator", sort=False)):
                 sty = series_style(i)
-                yerr = np.vstack([g.value - g.ci_low, g.ci_high - g.value])
+                yerr = np.clip(np.vstack([g.value - g.ci_low, g.ci_high - g.value]), 0, None)
                 ax2.errorbar(g.M, g.value, yerr=yerr, fmt=sty["marker"], ls=sty["linestyle"], color=sty["color"],
                              capsize=2, label=lab)
             ax2.set_xscale("log")

@@ -231,7 +231,7 @@ class Distribution(AnalysisModel):
                                 zorder=4 if name.endswith("bound") else 3)
             g = t[(t.estimator == lab) & (t.series == "monte_carlo")].sort_values("M")
             if len(g):
-                yerr = np.vstack([g.value - g.ci_low, g.ci_high - g.value])
+                yerr = np.clip(np.vstack([g.value - g.ci_low, g.ci_high - g.value]), 0, None)
                 ax.errorbar(g.M, g.value, yerr=yerr, fmt=MARKERS[j % len(MARKERS)], ms=4.0 + 2.0 * j, mfc="none",
                             color=colour, elinewidth=0.8, capsize=1.5, zorder=5,
                             label=f"{lab}: Monte Carlo, 95 % Wilson interval (n = {int(g.n.max()):,})")
