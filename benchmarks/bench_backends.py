@@ -119,7 +119,7 @@ def main(argv=None):
             b = run_chunked(kern[("numba", 2)], 3 * CHUNK, CHUNK, 4)
             same = all(np.array_equal(a[x], b[x]) for x in a)
         # the obvious loops on chunk 0's first loop_runs arrivals
-        u = np.random.default_rng(np.random.SeedSequence(0, spawn_key=(0,))).random((H, loop_runs))
+        u = np.random.default_rng(np.random.SeedSequence(0, spawn_key=(0, 0))).random((H, loop_runs))
         avail = availability(u < ref.F_keep[:, None], span)
         t = time.perf_counter()
         P_loop = loop_mkf(s, ref.P0, avail)
@@ -161,7 +161,7 @@ def bounds(s, ch, span, M, kern, runs):
     R = CHUNK
     U = np.random.default_rng(0).random((H, R)).reshape(-1)
     nu = len(k._pairs)
-    out = (np.empty((nu, R)), np.empty(R), np.empty(R, dtype=np.int64))
+    out = (np.empty((nu, R)), np.empty(R), np.empty(R, dtype=np.int64), np.zeros(R))  # state, oldest, level, flag
     args = (k.F_keep, k.F_prev, k.track, k.agef, k._P0u, k._thr_sorted, *out)
     rng = np.random.default_rng(1)
     rng_rate = {th: best_of(lambda th=th: bn.chunk_uniforms(rng, H, R, th), R) for th in (1, 2)}

@@ -56,7 +56,7 @@ def workloads():
 
 def kept_flags(ch, horizon, runs, seed):
     """The kernel's kept indicators γ_s^{(k)} for the first ``runs`` runs of chunk 0 (same uniforms)."""
-    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,)))
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0, 0)))
     from netkf_cli.channels.delay import kept_thresholds
 
     thr = kept_thresholds(ch, horizon)

@@ -231,15 +231,19 @@ def brute_force_probability(s: LinearSystem, channel, span: int, M_grid, horizon
 
 
 def expected_updates(channel, D: int | None = None) -> float:
-    """E[number of MKF runs at time k] for buffer length D (module docstring), k > D_max."""
+    """E[number of MKF runs at time k] for buffer length D, k > D_max (module docstring):
+
+        E[R_k] = 1 + Σ_{j=1}^{D_max} (1 − ∏_{i=j}^{D_max} (1 − f(i)))
+
+    (Prop. 3.1 of Shi, Xie & Murray 2009 with the delay pmf f of eq. 3). The suffix products come
+    from one reversed cumulative product: O(D) time and memory (D = 10⁶ takes milliseconds).
+    """
     D = channel.D if D is None else D
     Dmax = max_kept_delay(D, channel.convention)
     if Dmax < 1:
         return 1.0
     i = np.arange(0, Dmax + 1)
-    F = np.asarray(channel.cdf(i), dtype=float)
+    F = np.asarray(channel.cdf(i), dtype=float).reshape(Dmax + 1)
     f = np.diff(np.concatenate([[0.0], F]))  # f(0..Dmax)
-    total = 1.0
-    for jj in range(1, Dmax + 1):
-        total += 1.0 - float(np.prod(1.0 - f[jj:]))
-    return total
+    suffix = np.cumprod((1.0 - f[1:])[::-1])[::-1]  # suffix[j − 1] = ∏_{i=j}^{Dmax} (1 − f(i))
+    return float(1.0 + math.fsum(1.0 - suffix))

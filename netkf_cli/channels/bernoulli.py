@@ -7,12 +7,13 @@ closed forms treat it as one.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
 
 from netkf_cli.spec import ChannelModel, PositiveInt, Probability
+from netkf_cli.trace import Trace
 
 
 def sample_arrivals(rng: np.random.Generator, runs: int, horizon: int, arrival: float) -> np.ndarray:
@@ -21,12 +22,37 @@ def sample_arrivals(rng: np.random.Generator, runs: int, horizon: int, arrival: 
 
 
 class BernoulliChannel(ChannelModel):
-    """``kind: bernoulli`` — every packet arrives independently with probability ``arrival``."""
+    """``kind: bernoulli`` — every packet arrives independently with probability ``arrival``.
 
-    kind: Literal["bernoulli"]
+    Trace (:meth:`sample_trace`): ``arrival`` γ_t, shape (1, horizon, runs), from
+    ``rng.random((horizon, runs)) < γ`` — one uniform per packet, time-major, the same uniforms
+    the delay-buffer Monte Carlo kernel draws (f(0) = γ, f(∞) = 1 − γ).
+    """
+
+    trace_kinds: ClassVar[frozenset[str]] = frozenset({"arrival"})
+
+    kind: Literal["bernoulli"] = Field(description="i.i.d. packet loss: each packet arrives with probability γ")
     arrival: Probability = Field(description="arrival probability γ (1 − loss rate)")
     buffer: PositiveInt = Field(1, description="buffer length D (irrelevant for pure loss)")
-    convention: Literal["delay_le_D", "delay_lt_D"] = "delay_le_D"
+    convention: Literal["delay_le_D", "delay_lt_D"] = Field(
+        "delay_le_D", description="buffer convention (irrelevant for pure loss: f(i) = 0 for i ≥ 1)")
+
+    def loss_rate(self) -> float:
+        """Stationary loss probability 1 − γ."""
+        return float(1.0 - self.arrival)
+
+    def delay_pmf(self, n: int) -> np.ndarray:
+        """f(0) = γ, f(i) = 0 for 1 ≤ i < n (the rest, 1 − γ, is loss)."""
+        out = np.zeros(int(n))
+        if n > 0:
+            out[0] = self.arrival
+        return out
+
+    def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
+        """``Trace.arrival`` (1, horizon, runs) i.i.d. Bernoulli(γ) (see the class docstring)."""
+        arr = rng.random((horizon, runs)) < self.arrival
+        return Trace(runs=runs, horizon=horizon, arrival=arr[None],
+                     meta={"channel": "bernoulli", "arrival": float(self.arrival)})
 
     def cdf(self, i):
         i = np.asarray(i)

@@ -29,7 +29,7 @@ covariance is inverted in closed form, and a missing packet multiplies the gain 
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -48,23 +48,57 @@ BackendKind = Literal["numpy", "numba", "numba_philox", "auto"]
 class BufferedEstimator(EstimatorModel):
     """``kind: buffered`` — raw measurements, optimal re-run of the MKF over the buffer (Prop. 3.1)."""
 
-    kind: Literal["buffered"]
+    accepts: ClassVar[frozenset[str]] = frozenset({"delay", "arrival"})
+    quantity: ClassVar[str] = "P_{k|k}"
+
+    kind: Literal["buffered"] = Field(description="raw measurements, MKF re-run over the receive buffer (Shi 2009, Prop. 3.1)")
     packet: PacketKind = Field(
         "auto",
-        description="what a packet carries: measurement = y_k (Sec. 3), pair = (y_k, y_{k-1}) "
-        "(Appendix B, for non-invertible C); auto picks measurement iff C is invertible",
+        description="what a packet carries: measurement = y_k (Sec. 3, any C), pair = (y_k, y_{k-1}) "
+        "(Appendix B); auto = pair iff C is not invertible but [C; CA] is, else measurement",
     )
     backend: BackendKind = Field(
-        "numpy",
-        description="covariance Monte Carlo backend: numpy (reference); numba (optional extra netkf[fast]: "
-        "compiled, same random numbers, P_k bitwise equal to numpy); numba_philox (compiled with in-kernel "
-        "counter-based random numbers: fastest, statistically equivalent, not equal); auto = numba if "
-        "installed, else numpy",
+        "auto",
+        description="covariance Monte Carlo backend: auto (default) = numba when importable (m ≤ 2), else numpy; "
+        "numpy (the reference); numba (compiled, same random numbers, P_k bitwise equal to numpy); "
+        "numba_philox (compiled, in-kernel counter-based random numbers: fastest, statistically equal)",
     )
 
     def span(self, s: LinearSystem) -> int:
         """Number of consecutive measurements a packet carries (1 or 2)."""
         return packet_span(s, self.packet)
+
+    def resolved_backend(self, system: LinearSystem) -> str:
+        """The backend that actually runs (``auto`` → ``numba`` or ``numpy``): record it in the meta."""
+        if self.backend == "numpy":
+            return "numpy"
+        from netkf_cli.estimators import buffered_numba as bn
+
+        return bn.resolve_backend(self.backend, system)
+
+    def check(self, system: LinearSystem, channel) -> None:
+        """Simulation needs nothing beyond a valid system: any C works with measurement packets
+        (M̄ and the Thm 3.8 bounds are the metric's business). Refuses an unusable ``backend`` and a
+        multi-sensor channel."""
+        single_link(channel, "buffered")
+        packet_span(system, self.packet)
+        if self.backend != "numpy":
+            from netkf_cli.estimators import buffered_numba as bn
+
+            bn.resolve_backend(self.backend, system)
+
+    def covariances(self, system: LinearSystem, trace, steps):
+        """Yield (k, P_k) with P_k shaped (n, n, runs): the MKF over the time-k view (Prop. 3.1).
+
+        The trace's ``delay`` (or, for a pure-loss trace, ``arrival`` as delay 0 / lost) and
+        ``meta['buffer']``/``meta['convention']`` (no buffer in meta: every delay is kept) give
+        γ_s^{(k)} = [d_s ≤ min(k − s, D_max)] (eq. 4). Packets older than the oldest packet still in
+        flight at k (in any run) have their final status, so one MKF pass over the final pattern
+        carries the common prefix and each requested k re-runs only the steps from that packet on,
+        from a copy (the re-run of Prop. 3.1) — at most D_max + span steps. P0 is the system's
+        (``steady`` = P̄). Overflow: ∞ entries (never an exception).
+        """
+        yield from buffered_covariances(system, trace, steps, packet_span(system, self.packet), backend=self.backend)
 
 
 def _c_invertible(s: LinearSystem) -> bool:
@@ -81,15 +115,9 @@ def packet_span(s: LinearSystem, packet: PacketKind = "auto", path: str = "estim
         return 1
     if packet == "pair":
         return 2
-    if _c_invertible(s):
-        return 1
-    if _pair_invertible(s):
+    if not _c_invertible(s) and _pair_invertible(s):
         return 2
-    raise ConfigError.at(
-        path,
-        f"auto needs C invertible or, per Appendix B, [C; CA] square and invertible; got C of shape "
-        f"{s.m}×{s.n}: choose packet: measurement explicitly (then M̄ and the bounds are unavailable)",
-    )
+    return 1  # C invertible, or neither: measurement packets simulate for any C (M̄ then does not exist)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -130,8 +158,22 @@ class MKFBatch:
 
     ``step(avail)`` applies P ← (I − γ K C)(A P Aᵀ + Q) with K = P⁻Cᵀ(CP⁻Cᵀ + R)⁻¹, γ = ``avail``
     (bool per run). Scalar systems use the information form P = 1/(1/P⁻ + γ c²/r), which maps an
-    overflowed P⁻ = ∞ to the exact r/c² instead of NaN. For n > 1 a non-finite P (overflow of an
-    unstable run) stays non-finite and is reported as λ_max = ∞ (counted as P ≰ M).
+    overflowed P⁻ = ∞ to the exact r/c² instead of NaN.
+
+    Overflow-safe for n > 1 (issue 14.4). The covariance form loses all precision once P⁻ ≫ R
+    (P⁻ − P⁻Cᵀ S⁻¹ C P⁻ cancels numbers of size P⁻) and then overflows to ∞ − ∞ = NaN, which used to
+    poison a run for good — a run that had diverged and then received packets was counted as
+    P ≰ M forever (Pr 0.0005 instead of 0.05 for A = diag(1e6, 0.5)). So a run
+    whose diagonal exceeds :func:`overflow_limit` (checked every :func:`check_every` steps, so that
+    P⁻ ≤ ~1e8·scale at every covariance-form update) moves to the *information form* Y = P⁻¹, exact
+    for any size of P:
+
+        prediction  Y⁻ = Z − Z L (I + Lᵀ Z L)⁻¹ Lᵀ Z,   Z = A⁻ᵀ Y A⁻¹,  Q = L Lᵀ   (= (A Y⁻¹ Aᵀ + Q)⁻¹)
+        update      Y  = Y⁻ + γ Cᵀ R⁻¹ C                                       (= g̃ in information form)
+
+    (Y → 0 in a diverging direction instead of P → ∞), and returns to the covariance form once
+    λ_max(P) ≤ limit·1e-4. ``rescued`` counts runs that used it. Needs A invertible; for singular A
+    the covariance form is kept and a non-finite P is reported as λ_max = ∞ (P ≰ M) and counted.
     """
 
     def __init__(self, s: LinearSystem, runs: int):
@@ -165,8 +207,29 @@ class MKFBatch:
         self._g = np.empty(R)
         self._tmp = np.empty(R)
         self._tmp2 = np.empty(R)
+        # overflow rescue (information form), see the class docstring
+        self.limit = overflow_limit(s)
+        self.every = check_every(s)
+        self._steps = 0
+        self._diag = [idx for (i, j), idx in self._idx.items() if i == j]
+        self._info = _InfoForm.create(s)
+        self._irun = np.empty(0, dtype=np.intp)  # runs currently in information form
+        self._Y = np.empty((n, n, 0))
+        self.rescued = np.zeros(R, dtype=bool)
 
     # -- state -------------------------------------------------------------------------------
+    def clone(self) -> "MKFBatch":
+        """An independent copy (state and rescue bookkeeping; scratch buffers fresh)."""
+        c = MKFBatch(self.s, self.runs)
+        if self.scalar:
+            np.copyto(c.P, self.P)
+            return c
+        np.copyto(c._buf[0], self._buf[self._cur])
+        c._cur = 0
+        c._irun, c._Y, c.rescued = self._irun.copy(), self._Y.copy(), self.rescued.copy()
+        c._steps = self._steps  # same check schedule as one uninterrupted pass
+        return c
+
     def set(self, P0: np.ndarray) -> None:
         P0 = np.asarray(P0, dtype=float).reshape(self.n, self.n)
         if self.scalar:
@@ -176,6 +239,12 @@ class MKFBatch:
         for (i, j), k in self._idx.items():
             if i <= j:
                 buf[k].fill(P0[i, j])
+        self._irun = np.empty(0, dtype=np.intp)
+        self._Y = np.empty((self.n, self.n, 0))
+        self.rescued[:] = False
+        self._steps = 0
+        if not np.all(np.isfinite(P0)) or np.abs(np.diag(P0)).max(initial=0.0) > self.limit:
+            self._check()
 
     def entry(self, i: int, j: int) -> np.ndarray:
         if self.scalar:
@@ -188,6 +257,8 @@ class MKFBatch:
         for i in range(self.n):
             for j in range(self.n):
                 out[:, i, j] = self.entry(i, j)
+        if not self.scalar and len(self._irun):
+            out[self._irun] = np.moveaxis(self._info.covariance(self._Y), -1, 0)
         return out
 
     def lam_max(self) -> np.ndarray:
@@ -199,6 +270,8 @@ class MKFBatch:
         Pm[~finite] = 0.0
         lam = np.linalg.eigvalsh(Pm)[:, -1]
         lam[~finite] = np.inf
+        if len(self._irun):  # λ_max(P) = 1/λ_min(Y), ∞ for a singular Y (exact, no inverse needed)
+            lam[self._irun] = self._info.lam_max(self._Y)
         return lam
 
     # -- one MKF step ------------------------------------------------------------------------
@@ -206,12 +279,53 @@ class MKFBatch:
         """P_t = (I − γ_t K_t C)(A P_{t−1} Aᵀ + Q) for every run (MKF, Sec. 3.1)."""
         if self.scalar:
             P, t = self.P, self._tmp
-            np.multiply(P, self.a2, out=P)
-            np.add(P, self.q, out=P)  # P⁻ = a²P + q  (h)
-            np.reciprocal(P, out=t)
-            np.add(t, self.beta, out=t, where=avail)  # information update where γ = 1  (g̃)
-            np.reciprocal(t, out=P)
+            with np.errstate(over="ignore", divide="ignore"):
+                np.multiply(P, self.a2, out=P)
+                np.add(P, self.q, out=P)  # P⁻ = a²P + q  (h)
+                np.reciprocal(P, out=t)
+                np.add(t, self.beta, out=t, where=avail)  # information update where γ = 1  (g̃)
+                np.reciprocal(t, out=P)
             return
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            self._cov_step(avail)
+        if len(self._irun):
+            self._Y = self._info.step(self._Y, np.asarray(avail, dtype=bool)[self._irun])
+            new = self._buf[self._cur]
+            for k in range(len(new)):
+                new[k][self._irun] = 0.0  # placeholder (finite): these runs live in Y
+        self._steps += 1
+        if self._steps % self.every == 0:
+            self._check()
+
+    def _check(self) -> None:
+        """Move runs whose P became huge (or non-finite) to the information form, and back."""
+        if self._info is None:
+            return
+        buf = self._buf[self._cur]
+        big = ~(buf[self._diag[0]] <= self.limit)
+        for k in self._diag[1:]:
+            big |= ~(buf[k] <= self.limit)
+        if len(self._irun):
+            back = self._info.lam_max(self._Y) <= self.limit * 1e-4
+            if back.any():
+                P = self._info.covariance(self._Y[:, :, back])
+                for (i, j), k in self._idx.items():
+                    if i <= j:
+                        buf[k][self._irun[back]] = P[i, j]
+                self._irun, self._Y = self._irun[~back], self._Y[:, :, ~back]
+            big[self._irun] = False
+        if big.any():
+            new = np.flatnonzero(big)
+            P = np.empty((self.n, self.n, len(new)))
+            for (i, j), k in self._idx.items():
+                P[i, j] = buf[k][new]
+            self._Y = np.concatenate([self._Y, self._info.information(P)], axis=2)
+            self._irun = np.concatenate([self._irun, new])
+            self.rescued[new] = True
+            for k in range(len(buf)):
+                buf[k][new] = 0.0
+
+    def _cov_step(self, avail: np.ndarray) -> None:
         s, n, m = self.s, self.n, self.m
         A, C, Q, R = s.A, s.C, s.Q, s.R
         old = self._buf[self._cur]
@@ -281,6 +395,84 @@ class MKFBatch:
         self._cur = 1 - self._cur
 
 
+def check_every(s: LinearSystem) -> int:
+    """Steps between two overflow checks of :class:`MKFBatch`: P may grow by ‖A‖² per step, so
+    ``every`` steps grow it by at most ~1e4 (1 ≤ every ≤ 8)."""
+    g = float(np.linalg.norm(s.A, 2)) ** 2
+    if g <= 1.0:
+        return 8
+    return int(max(1, min(8, np.floor(4.0 / np.log10(g)))))
+
+
+def overflow_limit(s: LinearSystem) -> float:
+    """Diagonal size of P beyond which :class:`MKFBatch` switches a run to the information form:
+    1e8·max(1, q_ii, r_ii) / ‖A‖^(2·every), so that P⁻ ≤ ~1e8·scale at every covariance-form update
+    (relative rounding of the update ≤ ~1e-8) even though the check runs every ``check_every`` steps."""
+    scale = max(1.0, float(np.abs(np.diag(s.Q)).max()), float(np.abs(np.diag(s.R)).max()))
+    g = float(np.linalg.norm(s.A, 2)) ** 2
+    return 1e8 * scale / max(1.0, g) ** check_every(s)
+
+
+class _InfoForm:
+    """Information-form MKF step Y = P⁻¹ on ``(n, n, runs)`` stacks (see :class:`MKFBatch`)."""
+
+    def __init__(self, s: LinearSystem):
+        n = s.n
+        self.n = n
+        self.AinvT = np.linalg.solve(s.A, np.eye(n)).T  # A⁻ᵀ (solve, not inv)
+        w, V = np.linalg.eigh(riccati.sym(s.Q))
+        keep = w > 1e-300
+        self.L = V[:, keep] * np.sqrt(w[keep])  # Q = L Lᵀ
+        self.J = riccati.sym(s.C.T @ np.linalg.solve(s.R, s.C))  # Cᵀ R⁻¹ C
+
+    @classmethod
+    def create(cls, s: LinearSystem):
+        """None when A is singular (no information-form prediction)."""
+        if np.linalg.matrix_rank(s.A) < s.n:
+            return None
+        return cls(s)
+
+    def step(self, Y: np.ndarray, avail: np.ndarray) -> np.ndarray:
+        from netkf_cli import batched as bt
+
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            Z = bt.congruence(self.AinvT, Y)  # A⁻ᵀ Y A⁻¹
+            if self.L.shape[1]:
+                ZL = bt.right(Z, self.L)
+                S = bt.left(self.L.T, ZL) + np.eye(self.L.shape[1])[:, :, None]
+                Z = Z - bt.matmul(ZL, bt.solve_small(S, ZL.swapaxes(0, 1)))
+            Y = bt.sym(Z) + self.J[:, :, None] * avail.astype(float)[None, None, :]
+        return Y
+
+    def information(self, P: np.ndarray) -> np.ndarray:
+        """Y = P⁻¹ (a non-finite P: Y = 0 in every direction, i.e. no information)."""
+        finite = np.isfinite(P).all(axis=(0, 1))
+        out = np.zeros_like(P)
+        if finite.any():
+            Pm = np.moveaxis(P[:, :, finite], -1, 0)
+            out[:, :, finite] = np.moveaxis(np.linalg.solve(Pm, np.broadcast_to(np.eye(self.n), Pm.shape)), 0, -1)
+        return 0.5 * (out + out.swapaxes(0, 1))
+
+    def lam_max(self, Y: np.ndarray) -> np.ndarray:
+        """λ_max(Y⁻¹) = 1/λ_min(Y), ∞ when Y is singular or non-finite."""
+        finite = np.isfinite(Y).all(axis=(0, 1))
+        Ym = np.moveaxis(np.where(finite[None, None, :], Y, 0.0), -1, 0)
+        lmin = np.linalg.eigvalsh(Ym)[:, 0]
+        with np.errstate(divide="ignore", over="ignore"):
+            lam = np.where(lmin > 0, 1.0 / np.where(lmin > 0, lmin, 1.0), np.inf)
+        return np.where(finite & np.isfinite(lam), lam, np.inf)
+
+    def covariance(self, Y: np.ndarray) -> np.ndarray:
+        """P = Y⁻¹ per run; ∞ entries where Y is singular (P unbounded)."""
+        ok = np.isfinite(self.lam_max(Y))
+        out = np.full_like(Y, np.inf)
+        if ok.any():
+            Ym = np.moveaxis(Y[:, :, ok], -1, 0)
+            P = np.linalg.solve(Ym, np.broadcast_to(np.eye(self.n), Ym.shape))
+            out[:, :, ok] = np.moveaxis(0.5 * (P + P.swapaxes(1, 2)), 0, -1)
+        return out
+
+
 def _prod_sum(pairs, out: np.ndarray, tmp: np.ndarray) -> np.ndarray:
     """Σ x·y over array pairs into ``out``."""
     x, y = pairs[0]
@@ -319,6 +511,87 @@ def covariance_from_kept(s: LinearSystem, kept: np.ndarray, span: int, P0: np.nd
     for t in range(k):
         mkf.step(a[t])
     return mkf
+
+
+def single_link(channel, kind: str) -> None:
+    """Refuse a multi-sensor channel: one packet stream carries the whole measurement y_k here."""
+    S = getattr(channel, "sensors", 1)
+    if isinstance(S, int) and S > 1:
+        raise ConfigError.at("estimator.kind", f"the {kind} estimator reads one packet stream (the whole y_k per "
+                             f"packet), but channel {channel.kind!r} has {S} sensors: use a single-link channel "
+                             "(delay, bernoulli, gilbert_elliott, trace with one column) or estimator kind fusion")
+
+
+def trace_delays(trace) -> np.ndarray:
+    """(horizon, runs) delays of the single link of a trace: ``delay``, else ``arrival`` as 0 / LOST."""
+    if trace.sensors > 1:
+        raise ValueError(f"a buffered/smart-sensor estimator reads one link, the trace has {trace.sensors}")
+    if trace.delay is not None:
+        return trace.delay[0]
+    if trace.arrival is not None:
+        return np.where(trace.arrival[0], 0, LOST).astype(np.int32)
+    raise ValueError("the buffered estimator needs a trace with delay or arrival")
+
+
+def buffered_covariances(s: LinearSystem, trace, steps, span: int = 1, P0: np.ndarray | None = None,
+                         backend: str = "numpy"):
+    """Generator of (k, P_k (n, n, runs)) for ``BufferedEstimator.covariances`` (see there).
+
+    With one requested step and a compiled ``backend`` (``auto`` with numba, m ≤ 2) the MKF over
+    the time-k kept pattern runs in the compiled kernel (bitwise equal to the numpy path; a chunk
+    in which some run needs the information-form rescue falls back to numpy).
+    """
+    T, runs = trace.horizon, trace.runs
+    d = trace_delays(trace)
+    D = trace.meta.get("buffer")
+    Dmax = T if D is None else max_kept_delay(int(D), trace.meta.get("convention", "delay_le_D"))
+    P0 = (riccati.pbar(s) if s.P0 is None else s.P0) if P0 is None else np.asarray(P0, dtype=float)
+    steps = sorted(int(k) for k in steps)
+    if len(steps) == 1 and backend != "numpy":
+        from netkf_cli.estimators import buffered_numba as bn
+
+        if bn.resolve_backend("auto" if backend == "auto" else "numba", s) == "numba":
+            k = steps[0]
+            if not 1 <= k <= T:
+                raise ValueError(f"steps must lie in 1..{T}, got {k}")
+            age = (k - np.arange(1, k + 1))[:, None]
+            P = bn.covariance_from_kept(s, d[:k] <= np.minimum(age, Dmax), span, P0)
+            if P is not None:
+                yield k, P
+                return
+    final = d <= Dmax  # (T, runs): final kept status of packet t + 1
+    a_final = availability(final, span)
+    # packet s is in flight (kept later, not yet arrived) at times s … s + d_s − 1: the latest such
+    # time over runs, per packet (−1: never in flight)
+    dmax = np.where(final, d, 0).max(axis=1, initial=0).astype(np.int64)  # longest kept delay per packet
+    last = np.where(dmax > 0, np.arange(1, T + 1) + dmax - 1, -1)
+    base = MKFBatch(s, runs)
+    base.set(P0)
+    done = 0  # MKF steps of the final pattern applied to ``base``
+    for k in sorted(int(k) for k in steps):
+        if not 1 <= k <= T:
+            raise ValueError(f"steps must lie in 1..{T}, got {k}")
+        # packets before the oldest one still in flight at k have their final status; a pair packet
+        # (span 2) also needs the next packet's status, and packet k + 1 does not exist yet at k
+        inflight = np.flatnonzero(last[:k] >= k)
+        j = int(inflight[0]) if len(inflight) else k  # packets 1..j are final at time k
+        b = max(0, j - (span - 1))  # steps 1..b use final statuses (non-decreasing in k)
+        if b < done:  # pragma: no cover - cannot happen (the oldest in-flight packet only moves on)
+            base.set(P0)
+            done = 0
+        while done < b:
+            base.step(a_final[done])
+            done += 1
+        if b == k:
+            mkf = base
+        else:
+            mkf = base.clone()
+            age = (k - np.arange(b + 1, k + 1))[:, None]  # packets s = b+1..k
+            kept = d[b:k] <= np.minimum(age, Dmax)
+            a = availability(kept, span)
+            for t in range(k - b):
+                mkf.step(a[t])
+        yield k, np.ascontiguousarray(mkf.matrices().transpose(1, 2, 0))
 
 
 def leq_threshold(M: np.ndarray) -> np.ndarray:
@@ -370,9 +643,23 @@ class BufferedMCKernel:
         self.F_prev = np.where(self.ages >= 1, np.asarray(channel.cdf(np.maximum(self.ages - 1, 0)), dtype=float), 0.0)
 
     def __call__(self, rng: np.random.Generator, runs: int):
+        mkf, oldest = self._run(lambda idx, out: rng.random(out=out), runs)
+        lam = mkf.lam_max()
+        finite = np.isfinite(lam)
+        count = np.count_nonzero(lam[:, None] <= self.thr[None, :], axis=0)
+        Pm = mkf.matrices()
+        stats = chunk_statistics(Pm, finite, count, oldest, runs, self.s.n)
+        stats["rescued"] = np.int64(np.count_nonzero(mkf.rescued)) if not mkf.scalar else np.int64(0)
+        return stats
+
+    def run_uniforms(self, U: np.ndarray, runs: int):
+        """(MKFBatch at k = horizon, oldest) from given uniforms U (horizon, runs), time-major:
+        the same numbers ``__call__`` draws with ``horizon`` calls of ``rng.random(runs)``."""
+        return self._run(lambda idx, out: np.copyto(out, U[idx]), runs)
+
+    def _run(self, draw, runs: int):
         s, span, horizon, ages, Dmax = self.s, self.span, self.horizon, self.ages, self.Dmax
         F_keep, F_prev = self.F_keep, self.F_prev
-        n = s.n
         mkf = MKFBatch(s, runs)
         mkf.set(self.P0)
         u = np.empty(runs)
@@ -382,7 +669,7 @@ class BufferedMCKernel:
         oldest = np.zeros(runs)  # age of the oldest packet arriving exactly at k
         arrived = np.empty(runs, dtype=bool)
         for idx in range(horizon):
-            rng.random(out=u)
+            draw(idx, u)
             np.less(u, F_keep[idx], out=kept_cur)
             if ages[idx] <= Dmax:
                 np.greater_equal(u, F_prev[idx], out=arrived)
@@ -398,20 +685,24 @@ class BufferedMCKernel:
                 kept_prev, kept_cur = kept_cur, kept_prev
         if span == 2:
             mkf.step(kept_prev)  # time k: only packet k can carry y_k
-        lam = mkf.lam_max()
-        finite = np.isfinite(lam)
-        count = np.count_nonzero(lam[:, None] <= self.thr[None, :], axis=0)
-        Pm = mkf.matrices()
-        return chunk_statistics(Pm, finite, count, oldest, runs, n)
+        return mkf, oldest
+
+
+MOMENT_MAX = 1e100  # |P_ij| above this is left out of the moment sums (counted in ``overflow``)
 
 
 def chunk_statistics(Pm: np.ndarray, finite: np.ndarray, count: np.ndarray, oldest: np.ndarray,
                      runs: int, n: int) -> dict:
     """Additive statistics of one chunk (shared by the numpy and the compiled backends).
 
-    ``Pm`` (runs, n, n) final covariances (overflowed runs are zeroed here and counted in
-    ``overflow``), ``count`` runs with P_k ≤ M per M, ``oldest`` MKF re-runs minus one per run.
+    ``Pm`` (runs, n, n) final covariances, ``count`` runs with P_k ≤ M per M, ``oldest`` MKF re-runs
+    minus one per run. ``overflow`` counts runs whose P_k is unbounded (∞) or too large for its
+    square to be summed (> ``MOMENT_MAX``): they are counted as P_k ≰ M in ``count_leq`` (they are) and
+    left out of the moment sums Σ P_k, Σ P_k², Σ tr (so E[P_k] is over the ``n − overflow`` other
+    runs); ``nonfinite`` counts runs with a NaN (a numerical failure; 0 expected).
     """
+    nonfinite = np.isnan(Pm).any(axis=(1, 2))
+    finite = finite & ~nonfinite & (np.abs(np.where(np.isfinite(Pm), Pm, 0.0)).max(axis=(1, 2)) <= MOMENT_MAX)
     Pm[~finite] = 0.0
     updates = 1.0 + oldest
     tr = np.trace(Pm, axis1=1, axis2=2)
@@ -421,6 +712,7 @@ def chunk_statistics(Pm: np.ndarray, finite: np.ndarray, count: np.ndarray, olde
         "count_leq": np.asarray(count).astype(np.int64),
         "n": np.int64(runs),
         "overflow": np.int64(runs - np.count_nonzero(finite)),
+        "nonfinite": np.int64(np.count_nonzero(nonfinite)),
         "sum_P": Pm.sum(axis=0).reshape(n, n),
         "sumsq_P": (Pm**2).sum(axis=0).reshape(n, n),
         "sum_updates": float(updates.sum()),
@@ -501,3 +793,32 @@ def simulate_states(s: LinearSystem, channel, span: int, runs: int, horizon: int
 def _psd_sqrt(X: np.ndarray) -> np.ndarray:
     w, V = np.linalg.eigh((X + X.T) / 2)
     return V * np.sqrt(np.clip(w, 0, None))
+
+
+# ---------------------------------------------------------------------------------------------
+# Number of MKF runs per step (Prop. 3.1), for the updates_vs_buffer artefact
+# ---------------------------------------------------------------------------------------------
+
+
+class UpdatesKernel:
+    """Picklable kernel: R_k = 1 + I_k MKF runs at time k, I_k = max{i ≤ D_max : d_{k−i} = i} ∪ {0}.
+
+    The events {d_{k−i} = i} are independent with probabilities f(i), so Pr[I_k < j] =
+    ∏_{i=j}^{D_max} (1 − f(i)) =: S_j (non-decreasing in j). Inverse transform with one uniform per
+    run: I_k = #{j ∈ 1..D_max : u < 1 − S_j} — exact, O(D_max + runs·log D_max) per chunk.
+    Statistics: ``sum``, ``sumsq`` of R_k and ``n``.
+    """
+
+    def __init__(self, channel):
+        Dmax = max_kept_delay(channel.D, channel.convention)
+        F = np.asarray(channel.cdf(np.arange(Dmax + 1)), dtype=float).reshape(Dmax + 1)
+        f = np.diff(np.concatenate([[0.0], F]))
+        S = np.cumprod((1.0 - f[1:])[::-1])[::-1]  # S[j − 1] = S_j, j = 1..Dmax
+        self.ge = 1.0 - S  # Pr[I_k ≥ j], non-increasing in j
+
+    def __call__(self, rng, runs):
+        u = rng.random(runs)
+        asc = self.ge[::-1]
+        oldest = (len(asc) - np.searchsorted(asc, u, side="right")).astype(float)  # #{j : u < Pr[I ≥ j]}
+        R = 1.0 + oldest
+        return {"sum": float(R.sum()), "sumsq": float((R**2).sum()), "n": np.int64(runs)}

@@ -44,6 +44,7 @@ import numpy as np
 
 from netkf_cli import riccati
 from netkf_cli.errors import ConfigError
+from netkf_cli.estimators.buffered import overflow_limit
 from netkf_cli.system import LinearSystem
 
 NUMBA_BACKENDS = ("numba", "numba_philox")
@@ -260,9 +261,12 @@ def kernel_source(s: LinearSystem, span: int, block: int | None = BLOCK) -> str:
     n = s.n
     nu = n * (n + 1) // 2
     p = [f"p{k}" for k in range(nu)]
-    KP, OLD, UR = nu, nu + 1, nu + 2  # rows: kept_prev, oldest, 4 Philox uniforms
-    rows = nu + 6
+    KP, OLD, UR, FL = nu, nu + 1, nu + 2, nu + 6  # rows: kept_prev, oldest, 4 Philox uniforms, flag
+    rows = nu + 7
     B = block
+    idx = _unique_index(n)
+    diag = [idx[(i, i)] for i in range(n)]
+    lim = repr(float(overflow_limit(s)))
 
     def load(indent):
         return "\n".join(f"{indent}p{k} = st[{k * B} + r]" for k in range(nu))
@@ -271,6 +275,9 @@ def kernel_source(s: LinearSystem, span: int, block: int | None = BLOCK) -> str:
         lines, new = step_code(s, avail, p)
         body = [f"{indent}{ln}" for ln in lines]
         body += [f"{indent}st[{k * B} + r] = {new[k]}" for k in range(nu)]
+        if n > 1:  # MKFBatch would move this run to the information form: flag the chunk
+            cond = " and ".join(f"({new[k]} <= {lim})" for k in diag)
+            body += [f"{indent}if not ({cond}):", f"{indent}    st[{FL * B} + r] = 1.0"]
         return "\n".join(body)
 
     def inner(indent, uexpr, first):
@@ -333,9 +340,9 @@ def kernel_source(s: LinearSystem, span: int, block: int | None = BLOCK) -> str:
     fin = " and ".join(f"np.isfinite({x})" for x in p)
 
     def kernel(name, mode, parallel=True):
-        sig = "U, H, R, Fk, Fp, track, agef, P0u, thrs, out_state, out_oldest, out_level"
+        sig = "U, H, R, Fk, Fp, track, agef, P0u, thrs, out_state, out_oldest, out_level, out_flag"
         if mode == "philox":
-            sig = "k0, k1, H, R, Fk, Fp, track, agef, P0u, thrs, out_state, out_oldest, out_level"
+            sig = "k0, k1, H, R, Fk, Fp, track, agef, P0u, thrs, out_state, out_oldest, out_level, out_flag"
         return f'''
 @njit(parallel={parallel}, cache=True, error_model="numpy", nogil=True, boundscheck=False)
 def {name}({sig}):
@@ -349,10 +356,12 @@ def {name}({sig}):
 {chr(10).join(f"            st[{k * B} + r] = P0u[{k}]" for k in range(nu))}
             st[{OLD * B} + r] = 0.0
             st[{KP * B} + r] = 0.0
+            st[{FL * B} + r] = 0.0
 {time_loop(mode)}{final}        for r in range(nb):
 {load(' ' * 12)}
 {chr(10).join(f"            out_state[{k}, r0 + r] = p{k}" for k in range(nu))}
             out_oldest[r0 + r] = st[{OLD * B} + r]
+            out_flag[r0 + r] = st[{FL * B} + r]
             lo = 0
             hi = K
             if not ({fin}):
@@ -379,6 +388,18 @@ TWO_M32 = 2.0 ** -32
 @njit(inline="always", cache=True, error_model="numpy")
 def psd(thr, {pargs}):
     {psd}
+
+@njit(cache=True)
+def philox_uniforms(k0, k1, H, R, out):
+    """The uniforms run_philox uses: out[t, r] = word (t & 3) of Philox(t >> 2, r; k0, k1)."""
+    for t4 in range((H + 3) // 4):
+        for r in range(R):
+            w0, w1, w2, w3 = philox4x32(np.uint64(t4), np.uint64(r), ZERO, ZERO, k0, k1)
+            w = (w0, w1, w2, w3)
+            for j in range(4):
+                t = 4 * t4 + j
+                if t < H:
+                    out[t, r] = np.float64(w[j]) * TWO_M32
 
 {kernel("run_numpy", "numpy")}
 {kernel("run_philox", "philox")}
@@ -489,6 +510,8 @@ class NumbaMCKernel:
             raise ConfigError.at("estimator.backend", f"numba backend: m ≤ 2 outputs only, got m = {s.m}")
         require_numba()
         ref = BufferedMCKernel(s, channel, span, horizon, M_grid, P0)
+        self._ref_state = dict(ref.__dict__)
+        self.last_flagged = self.last_rescued = 0
         self.s, self.span, self.horizon, self.thr = s, ref.span, ref.horizon, ref.thr
         self.P0 = riccati.pbar(s) if P0 is None else np.asarray(P0, dtype=float)
         self.F_keep, self.F_prev = ref.F_keep, ref.F_prev
@@ -533,21 +556,44 @@ class NumbaMCKernel:
         state = np.empty((nu, runs))
         oldest = np.empty(runs)
         level = np.empty(runs, dtype=np.int64)
+        flag = np.zeros(runs)
         prev = numba.get_num_threads() if nt > 1 else None
         if nt > 1:
             numba.set_num_threads(nt)
         try:
             args = (self.F_keep, self.F_prev, self.track, self.agef, self._P0u, self._thr_sorted,
-                    state, oldest, level)
+                    state, oldest, level, flag)
             if self.rng_mode == "numpy":
                 U = chunk_uniforms(rng, self.horizon, runs, nt)
                 fn(U.reshape(-1), self.horizon, runs, *args)
             else:
                 k0, k1 = (np.uint64(x) for x in rng.integers(0, 1 << 32, size=2, dtype=np.uint64))
                 fn(k0, k1, self.horizon, runs, *args)
+                U = None
         finally:
             if prev is not None:
                 numba.set_num_threads(prev)
+        self.last_flagged = int(np.count_nonzero(flag))
+        if self.last_flagged:
+            # some run's P left the covariance form's safe range (MKFBatch's overflow_limit): the
+            # numpy reference, with its information-form rescue, redoes the chunk on the same uniforms
+            if U is None:
+                U = np.empty((self.horizon, runs))
+                compiled_module(self.s, self.span, self.block).philox_uniforms(k0, k1, self.horizon, runs, U)
+            return self._numpy_reference(U, runs)
+        self.last_rescued = 0
+        return state, oldest, level
+
+    def _numpy_reference(self, U: np.ndarray, runs: int):
+        from netkf_cli.estimators.buffered import BufferedMCKernel
+
+        ref = BufferedMCKernel.__new__(BufferedMCKernel)
+        ref.__dict__.update(self._ref_state)
+        mkf, oldest = ref.run_uniforms(U, runs)
+        self.last_rescued = 0 if mkf.scalar else int(np.count_nonzero(mkf.rescued))
+        Pm = mkf.matrices()
+        state = np.stack([Pm[:, i, j] for (i, j) in self._pairs])
+        level = np.searchsorted(self._thr_sorted, mkf.lam_max(), side="left").astype(np.int64)
         return state, oldest, level
 
     def __call__(self, rng: np.random.Generator, runs: int):
@@ -562,4 +608,58 @@ class NumbaMCKernel:
         count[self._order] = cnt_sorted
         from netkf_cli.estimators.buffered import chunk_statistics
 
-        return chunk_statistics(Pm, finite, count, oldest, runs, n)
+        stats = chunk_statistics(Pm, finite, count, oldest, runs, n)
+        stats["rescued"] = np.int64(self.last_rescued)
+        return stats
+
+
+# ---------------------------------------------------------------------------------------------
+# The compiled MKF on a given kept pattern (the generic engine's covariances(), one step k)
+# ---------------------------------------------------------------------------------------------
+
+
+def _threads_here(threads: int | None) -> int:
+    """Numba threads for a call in this process (1 inside an executor's worker process)."""
+    numba = require_numba()
+    if multiprocessing.parent_process() is not None:
+        return 1
+    nt = numba.config.NUMBA_NUM_THREADS if threads is None else int(threads)
+    return max(1, min(nt, numba.config.NUMBA_NUM_THREADS))
+
+
+def covariance_from_kept(s: LinearSystem, kept: np.ndarray, span: int, P0: np.ndarray,
+                         threads: int | None = None) -> np.ndarray | None:
+    """P_k, shaped (n, n, runs), of the MKF over the kept pattern ``kept`` (k, runs) — the compiled
+    twin of ``MKFBatch`` (bitwise equal: the same generated step code as the Monte Carlo kernel,
+    fed with uniforms 0/1 against a threshold ½). ``None`` when some run's P left the covariance
+    form's safe range (the caller then uses the numpy reference with its information-form rescue).
+    """
+    numba = require_numba()
+    k, runs = kept.shape
+    n = s.n
+    nt = _threads_here(threads)
+    mod = compiled_module(s, span, BLOCK)
+    fn = mod.run_numpy if nt > 1 else mod.run_numpy_serial
+    pairs = [(i, j) for i in range(n) for j in range(i, n)]
+    P0 = np.asarray(P0, dtype=float)
+    P0u = np.array([P0[i, j] for (i, j) in pairs], dtype=float)
+    U = np.where(kept, 0.0, 1.0).reshape(-1)
+    state = np.empty((len(pairs), runs))
+    oldest = np.empty(runs)
+    level = np.empty(runs, dtype=np.int64)
+    flag = np.zeros(runs)
+    half = np.full(k, 0.5)
+    prev = numba.get_num_threads() if nt > 1 else None
+    if nt > 1:
+        numba.set_num_threads(nt)
+    try:
+        fn(U, k, runs, half, np.zeros(k), np.zeros(k, dtype=bool), np.zeros(k), P0u, np.empty(0),
+           state, oldest, level, flag)
+    finally:
+        if prev is not None:
+            numba.set_num_threads(prev)
+    if flag.any():
+        return None
+    idx = _unique_index(n)
+    full = np.array([[idx[(i, j)] for j in range(n)] for i in range(n)])
+    return np.ascontiguousarray(state[full])

@@ -20,6 +20,7 @@ right-continuous steps — so the figure shows exactly what the numbers say.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Literal
 
 import numpy as np
@@ -203,6 +204,8 @@ class Distribution(AnalysisModel):
                     continue
                 curves += [dict(M=g, estimator=lab, series=name, value=x) for g, x in zip(grid, v) if np.isfinite(x)]
             meta["closed_forms"][lab] = {"attached": True, "floor_M": cf.floor(), "note": cf.why or None}
+        for w in meta["warnings"]:  # one line on the terminal, and in the manifest
+            warnings.warn(w, stacklevel=2)
         table = pd.DataFrame(rows, columns=COLUMNS)
         extra = {"curves": pd.DataFrame(curves, columns=["M", "estimator", "series", "value"])} if curves else {}
         summary = claims_summary(table, self.exact_tol)

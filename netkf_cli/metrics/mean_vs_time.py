@@ -8,6 +8,7 @@ how many were left out. Estimators in a list share the sampled traces.
 
 from __future__ import annotations
 
+import warnings
 from typing import Literal
 
 import numpy as np
@@ -52,12 +53,12 @@ class MeanVsTime(AnalysisModel):
         st = engine.simulate(s, ch, ests, engine.MomentReducer(ks), steps=ks, runs=runs, horizon=mc.horizon,
                              seed=mc.seed, chunk=mc.chunk, stream=0, progress=ctx.progress, label="mean_vs_time")
         labs = labels(ests)
-        rows, warnings = [], []
+        rows, warnings_ = [], []
         for j, lab in enumerate(labs):
             n = int(st["n"])
             bad = st[f"nonfinite_{j}"]
             if bad.any():
-                warnings.append(f"{lab}: {int(bad.max())} of {n} runs non-finite at some step (excluded, step flagged)")
+                warnings_.append(f"{lab}: {int(bad.max())} of {n} runs non-finite at some step (excluded, step flagged)")
             if self.of in ("trace", "lambda_max"):
                 ms = engine.mean_summary(st, j, "tr" if self.of == "trace" else "lmax")
                 heavy = ms.heavy_tail if self.of == "trace" else engine.mean_summary(st, j, "tr").heavy_tail
@@ -76,10 +77,12 @@ class MeanVsTime(AnalysisModel):
                         for b in range(a, nn):
                             rows.append(dict(k=k, estimator=lab, series=f"P[{a + 1},{b + 1}]", value=mean[i, a, b],
                                              stderr=se[i, a, b], n=n, nonfinite=int(bad[i]), heavy_tail=bool(heavy[i])))
+        for w in warnings_:  # one line on the terminal, and in the manifest
+            warnings.warn(w, stacklevel=2)
         table = pd.DataFrame(rows, columns=COLUMNS)
         return Artefact(table, meta={"runs": int(st["n"]), "estimators": labs, "steps": f"{ks[0]}…{ks[-1]}",
                                      "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE} "
-                                                        f"or any non-finite run", "warnings": warnings})
+                                                        f"or any non-finite run", "warnings": warnings_})
 
     def plot(self, tables, scenario):
         t = tables["main"]

@@ -14,7 +14,7 @@ from pydantic import Field
 
 from netkf_cli.analysis import delay_bounds as db
 from netkf_cli.channels.delay import CONVENTION_HELP
-from netkf_cli.plotting import footnote, new_figure
+from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt
 
@@ -34,7 +34,7 @@ def delay_label(channel) -> str:
 class ThetaVsBuffer(AnalysisModel):
     """``kind: theta_vs_buffer`` — θ(k₁(M), D) and θ(k₂(M), D) for D = 1 … D_max (Fig. 3)."""
 
-    kind: Literal["theta_vs_buffer"]
+    kind: Literal["theta_vs_buffer"] = Field(description="θ(k_i(M), D) against the buffer length D (Shi 2009, Fig. 3)")
     M: list[PositiveFloat] = Field(min_length=1, description="error bounds M (scalar M means M·I)")
     D_max: PositiveInt = Field(15, description="largest buffer length on the x-axis")
 
@@ -60,20 +60,40 @@ class ThetaVsBuffer(AnalysisModel):
 
     def plot(self, tables, scenario):
         t = tables["main"]
-        fig, ax = new_figure()
-        colors = iter(["C0", "C1", "C2", "C3", "C4", "C5", "C6"])
-        for M, g in t.groupby("M", sort=True):
-            c = next(colors)
-            for name, style, marker in (("k1", "-", "o"), ("k2", "--", "s")):
+        fig, ax = new_figure(width=7.6, height=4.6)
+        for ci, (M, g) in enumerate(t.groupby("M", sort=True)):
+            c = PALETTE[ci % len(PALETTE)]
+            ks = {name: g[g.series == name]["value"].iloc[0] for name in ("k1", "k2")}
+            same = ks["k1"] == ks["k2"] or (not np.isfinite(ks["k1"]) and not np.isfinite(ks["k2"]))
+            for name, ls, marker, ms in (("k1", "-", "o", 6.5), ("k2", "--", "s", 3.5)):
                 th = g[g.series == f"theta_{name}"].sort_values("D")
-                k = g[g.series == name]["value"].iloc[0]
-                ks = "∞" if not np.isfinite(k) else f"{int(k)}"
-                if (th.value > 0).any():
-                    ax.semilogy(th.D, th.value, style, marker=marker, ms=4, color=c,
-                                label=f"θ(k{name[1]}, D), M = {M:g} (k{name[1]} = {ks})")
-        ax.set_xlabel("buffer length D")
-        ax.set_ylabel("θ(k_i(M), D) = Pr[N_k ≥ k_i]")
-        ax.set_title(f"Fig. 3 — θ(k_i, D) for different M ({delay_label(scenario.channel)})")
-        ax.legend(fontsize=8)
-        footnote(fig, f"convention {t.convention.iloc[0]}: {CONVENTION_HELP[t.convention.iloc[0]]}")
+                k = ks[name]
+                kt = r"\infty" if not np.isfinite(k) else f"{int(k)}"
+                i = name[1]
+                note = r" (= $k_1$: curves coincide)" if (same and name == "k2") else ""
+                pos = th[th.value > 0]
+                if len(pos):
+                    # hollow large circles under small squares: both visible when k₁ = k₂
+                    ax.semilogy(pos.D, pos.value, linestyle=ls, marker=marker, ms=ms, mfc="none" if name == "k1" else c,
+                                color=c, label=rf"$\theta(k_{i}, D)$, $M = {M:g}$, $k_{i} = {kt}$" + note)
+        ax.set_xlabel(r"buffer length $D$ (time steps)")
+        ax.set_ylabel(r"$\theta(k_i(M), D) = \Pr[N_k \geq k_i]$")
+        fig.suptitle(paper_title("shi2009", 3, rf"$\theta(k_i(M), D)$ vs buffer length $D$, {_math_delay(scenario.channel)}"))
+        legend_outside(ax)
+        conv = t.convention.iloc[0]
+        footnote(fig, f"Convention {conv}: {CONVENTION_HELP[conv]}. "
+                      "θ(k, D) = product of (1 − γ̂ⱼ(D)) over j < k (eq. 8); k₁(M), k₂(M) of eqs (5)–(6); "
+                      "1 − θ(k₁, D) ≤ Pr[P_k ≤ M] ≤ 1 − θ(k₂, D) (Thm 3.8).")
         return fig
+
+
+def _math_delay(channel) -> str:
+    """The delay law in mathtext: 'Poisson $d = 5$' etc."""
+    if channel.kind == "bernoulli":
+        return rf"Bernoulli $\gamma = {channel.arrival:g}$"
+    dist = channel.delay
+    if dist.kind == "poisson":
+        return rf"Poisson $d = {dist.mean:g}$"
+    if dist.kind == "geometric":
+        return rf"geometric $p = {dist.p:g}$"
+    return rf"pmf (loss ${dist.loss:.3g}$)"

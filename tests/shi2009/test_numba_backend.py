@@ -138,12 +138,62 @@ def test_philox_backend_agrees_statistically(name):
 
 
 def test_backend_field_and_auto():
+    """Issue 15.3: ``auto`` is the default and picks the compiled kernel when numba imports."""
     est = BufferedEstimator(kind="buffered")
-    assert est.backend == "numpy"
-    assert BufferedEstimator(kind="buffered", backend="auto").backend == "auto"
+    assert est.backend == "auto"
+    assert BufferedEstimator(kind="buffered", backend="numpy").backend == "numpy"
     with pytest.raises(ValueError):
         BufferedEstimator(kind="buffered", backend="cuda")
     s = scalar_system()
     assert bn.resolve_backend("auto", s) == "numba"
+    k = buffered_mc_kernel(s, poisson(2, 3), 1, 10, [1.0], backend=est.backend)
+    assert k.backend == "numba" and est.resolved_backend(s) == "numba"
+    ref = buffered_mc_kernel(s, poisson(2, 3), 1, 10, [1.0], backend="numpy")
+    a, b = ref(np.random.default_rng(0), 300), k(np.random.default_rng(0), 300)
+    assert all(np.array_equal(a[x], b[x]) for x in a)  # same uniforms ⇒ identical statistics
+
+
+def test_auto_falls_back_to_numpy_when_numba_is_hidden(monkeypatch):
+    """``import numba`` fails (sys.modules entry None ⇒ ImportError): auto → numpy, explicit numba → error."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "numba", None)
+    assert not bn.numba_available()
+    s = scalar_system()
     k = buffered_mc_kernel(s, poisson(2, 3), 1, 10, [1.0], backend="auto")
-    assert k.backend == "numba"
+    assert k.backend == "numpy" and type(k).__name__ == "BufferedMCKernel"
+    assert BufferedEstimator(kind="buffered").resolved_backend(s) == "numpy"
+    with pytest.raises(bn.NumbaUnavailable):
+        buffered_mc_kernel(s, poisson(2, 3), 1, 10, [1.0], backend="numba")
+
+
+def test_auto_is_numpy_for_more_than_two_outputs():
+    s = LinearSystem.create(np.eye(3) * 0.9, np.eye(3), np.eye(3), np.eye(3))
+    assert bn.resolve_backend("auto", s) == "numpy"
+
+
+def test_philox_uniforms_are_the_kernel_stream():
+    """philox_uniforms (used to hand a chunk to the numpy reference) reproduces the in-kernel stream:
+    the numpy MKF on those uniforms gives the compiled philox kernel's P_k bit for bit."""
+    s, ch, span, M, H = CASES["vehicle_pairs"]
+    runs = 700
+    fast = buffered_mc_kernel(s, ch, span, H, M, backend="numba_philox", threads=1)
+    state, oldest, _ = fast.raw(np.random.default_rng(3), runs)
+    k0, k1 = (np.uint64(x) for x in np.random.default_rng(3).integers(0, 1 << 32, size=2, dtype=np.uint64))
+    U = np.empty((H, runs))
+    bn.compiled_module(s, span, fast.block).philox_uniforms(k0, k1, H, runs, U)
+    ref = buffered_mc_kernel(s, ch, span, H, M, backend="numpy")
+    mkf, old_ref = ref.run_uniforms(U, runs)
+    assert np.array_equal(state[fast._full].transpose(2, 0, 1), mkf.matrices())
+    assert np.array_equal(oldest, old_ref)
+
+
+def test_philox_overflow_chunk_is_handed_to_numpy():
+    """A = diag(1e6, 0.5), C = I, γ = 0.05: the compiled kernel flags the chunk, the numpy reference
+    (information-form rescue) redoes it on the same Philox uniforms; Pr[P_k ≤ M] within 5 s.e. of 0.05."""
+    s = LinearSystem.create(np.diag([1e6, 0.5]), np.eye(2), np.eye(2), np.eye(2))
+    n = 8000
+    k = buffered_mc_kernel(s, bernoulli(0.05), 1, 100, [2.0], backend="numba_philox", threads=1)
+    st = run_chunked(k, n, 4000, 2)
+    assert k.last_flagged > 0 and st["nonfinite"] == 0 and st["rescued"] > 0
+    assert abs(st["count_leq"][0] / n - 0.05) <= 5 * np.sqrt(0.05 * 0.95 / n)

@@ -1,0 +1,144 @@
+"""Benchmark cases of the Shi 2009 delay-buffer estimators for ``benchmarks/bench_estimators.py``.
+
+``CASES`` is a list of dicts::
+
+    {"estimator": "buffered" | "smart_sensor", "system": "scalar" | "3-state" | "vehicle",
+     "backend": "numpy" | "numba" | "numba_philox" | "auto", "threads": int | None,
+     ["path": "engine",]  # absent: the dedicated Monte Carlo kernel
+     "make": callable() -> (kernel, runs, horizon)}
+
+``kernel(rng, runs)`` is the picklable Monte Carlo kernel the artefacts use (one sample P_k at
+k = horizon per run, additive statistics); one run advanced one step is one run-step, so a case
+runs ``runs × horizon`` run-steps per call. Compiled cases are listed only when numba imports;
+``threads`` is the numba thread count of the chunk (1 or 2 cores).
+
+``per_run_loop(system, runs, horizon, seed)`` is the baseline the batched kernels are compared
+with: the obvious per-run, per-step intermittent-KF loop (``np.linalg.solve`` on one matrix at a
+time) on Bernoulli arrivals of the case's kept probability — and ``filterpy_loop`` the same with
+FilterPy's ``KalmanFilter`` (ImportError when FilterPy is missing).
+
+Systems:
+* scalar — Example 3.10 (A = 1.4, C = 1, Q = 0.2, R = 0.5), Poisson d = 5, D = 10 (Fig. 5);
+* 3-state — Mostofi & Murray Sec. 4.2's dense unstable A, C = [1 2 3], Bernoulli 0.95 (m = 1);
+* vehicle — Sec. 5.2's 4-state vehicle, Appendix B pair packets, Poisson d = 3, D = 5 (Fig. 9).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from netkf_cli.channels.bernoulli import BernoulliChannel
+from netkf_cli.channels.delay import DelayChannel
+from netkf_cli.estimators import buffered_numba as bn
+from netkf_cli.estimators.buffered import buffered_mc_kernel
+from netkf_cli.estimators.smart_sensor import smart_mc_kernel
+from netkf_cli.system import LinearSystem
+
+HORIZON = 100
+RUNS = 20_000  # one chunk of the artefacts' default layout
+
+
+def systems() -> dict:
+    """name → (system, channel, packet span, M grid)."""
+    scalar = LinearSystem.create(1.4, 1, 0.2, 0.5)
+    A = np.array([[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    vehicle = LinearSystem.create(A, np.hstack([np.eye(2), np.zeros((2, 2))]), 0.01 * np.eye(4), 0.001 * np.eye(2))
+    A3 = np.array([[2, 0.3, 0.45], [0.4, 0.2, 0.5], [1.5, 0.6, 0.34]])
+    three = LinearSystem.create(A3, np.array([[1.0, 2, 3]]), 0.001 * np.eye(3), 1e-8, np.eye(3))
+    return {
+        "scalar": (scalar, DelayChannel(kind="delay", delay={"kind": "poisson", "mean": 5}, buffer=10), 1,
+                   np.geomspace(0.5, 250, 60)),
+        "3-state": (three, BernoulliChannel(kind="bernoulli", arrival=0.95), 1, np.geomspace(1e-3, 1, 50)),
+        "vehicle": (vehicle, DelayChannel(kind="delay", delay={"kind": "poisson", "mean": 3}, buffer=5), 2,
+                    np.geomspace(0.06, 3, 50)),
+    }
+
+
+class _Make:
+    """Picklable ``make()``: builds the case's kernel (compiles/loads numba code on first use).
+
+    ``path="kernel"``: the dedicated Monte Carlo kernel; ``path="engine"``: the generic engine's
+    kernel (``channel.sample_trace`` → ``estimator.covariances`` → Pr[P_k ≤ M] counts), what the
+    ``distribution`` metric runs."""
+
+    def __init__(self, estimator: str, system: str, backend: str, threads: int | None, path: str = "kernel"):
+        self.estimator, self.system, self.backend, self.threads, self.path = estimator, system, backend, threads, path
+
+    def __call__(self):
+        s, ch, span, M = systems()[self.system]
+        P0 = s.P0
+        if self.path == "engine":
+            from netkf_cli.engine import DistributionReducer, PairKernel
+            from netkf_cli.estimators.buffered import BufferedEstimator
+            from netkf_cli.estimators.smart_sensor import SmartSensorEstimator
+
+            est = (SmartSensorEstimator(kind="smart_sensor") if self.estimator == "smart_sensor" else
+                   BufferedEstimator(kind="buffered", backend=self.backend, packet="pair" if span == 2 else "measurement"))
+            return PairKernel(s, ch, [est], HORIZON, [HORIZON], DistributionReducer(M, [HORIZON])), RUNS, HORIZON
+        if self.estimator == "smart_sensor":
+            return smart_mc_kernel(s, ch, M), RUNS, HORIZON
+        return buffered_mc_kernel(s, ch, span, HORIZON, M, P0=P0, backend=self.backend, threads=self.threads), RUNS, HORIZON
+
+
+def _cases() -> list[dict]:
+    out = []
+    compiled = bn.numba_available()
+    for name in ("scalar", "3-state", "vehicle"):
+        variants = [("numpy", None)]
+        if compiled:
+            variants += [("numba", 1), ("numba", 2), ("numba_philox", 1), ("numba_philox", 2)]
+        for backend, threads in variants:
+            out.append({"estimator": "buffered", "system": name, "backend": backend, "threads": threads,
+                        "make": _Make("buffered", name, backend, threads)})
+    for name in ("scalar", "vehicle"):  # the smart sensor's kernel samples N_k only (no MKF): numpy
+        out.append({"estimator": "smart_sensor", "system": name, "backend": "numpy", "threads": None,
+                    "make": _Make("smart_sensor", name, "numpy", None)})
+    # the generic engine (trace → covariances), as the distribution metric runs it
+    for name in ("scalar", "3-state", "vehicle"):
+        for backend in ("numpy", "auto") if compiled else ("numpy",):
+            out.append({"estimator": "buffered", "system": name, "backend": backend, "threads": None, "path": "engine",
+                        "make": _Make("buffered", name, backend, None, "engine")})
+    return out
+
+
+CASES = _cases()
+
+
+def _arrivals(system: str, runs: int, horizon: int, seed: int) -> tuple:
+    s, ch, span, _ = systems()[system]
+    keep = 1.0 - ch.loss_rate()
+    avail = np.random.default_rng(seed).random((horizon, runs)) < keep
+    return s, (s.P0 if s.P0 is not None else np.eye(s.n)), avail
+
+
+def per_run_loop(system: str, runs: int, horizon: int = HORIZON, seed: int = 0) -> np.ndarray:
+    """P_k (runs, n, n) of the intermittent KF, one run and one step at a time (the baseline)."""
+    s, P0, avail = _arrivals(system, runs, horizon, seed)
+    A, C, Q, R = s.A, s.C, s.Q, s.R
+    out = np.empty((runs, s.n, s.n))
+    for r in range(runs):
+        P = P0.copy()
+        for t in range(horizon):
+            P = A @ P @ A.T + Q
+            if avail[t, r]:
+                PCt = P @ C.T
+                P = P - PCt @ np.linalg.solve(C @ PCt + R, PCt.T)
+        out[r] = P
+    return out
+
+
+def filterpy_loop(system: str, runs: int, horizon: int = HORIZON, seed: int = 0) -> np.ndarray:
+    """The same with FilterPy (``predict`` every step, ``update`` on arrival)."""
+    from filterpy.kalman import KalmanFilter
+
+    s, P0, avail = _arrivals(system, runs, horizon, seed)
+    out = np.empty((runs, s.n, s.n))
+    z = np.zeros(s.m)
+    for r in range(runs):
+        kf = KalmanFilter(dim_x=s.n, dim_z=s.m)
+        kf.F, kf.H, kf.Q, kf.R, kf.P = s.A, s.C, s.Q, s.R, P0.copy()
+        for t in range(horizon):
+            kf.predict()
+            kf.update(z if avail[t, r] else None)
+        out[r] = kf.P
+    return out
