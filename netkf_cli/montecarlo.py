@@ -136,7 +136,9 @@ class Execution:
 
     def pool(self) -> Executor:
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=self.jobs, initializer=_worker_init)
+            from netkf_cli.workers import pool_kwargs  # workers ignore Ctrl-C and die with this process
+
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, **pool_kwargs())
         return self._pool
 
     def client(self):
@@ -149,6 +151,10 @@ class Execution:
                 self._cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
                                              dashboard_address=None)
                 self._client = Client(self._cluster)
+                from netkf_cli.workers import DieWithParentPlugin
+
+                register = getattr(self._client, "register_plugin", None) or self._client.register_worker_plugin
+                register(DieWithParentPlugin())  # local workers exit if this process is killed
             else:
                 self._client = Client(self.scheduler)
         return self._client
@@ -193,15 +199,6 @@ def execution(executor: str = "serial", jobs: int = 1, scheduler: str | None = N
     finally:
         _EXEC.reset(token)
         ex.close()
-
-
-def _worker_init() -> None:
-    """Pool-worker initializer: die with the parent (netkf_cli.workers, when available)."""
-    try:
-        from netkf_cli.workers import die_with_parent
-    except ImportError:  # pragma: no cover
-        return
-    die_with_parent()
 
 
 def _require_picklable(kernel, label: str) -> None:

@@ -46,6 +46,11 @@ from netkf_cli.system import LinearSystem
 
 K_MAX = 100_000
 PSD_TOL = 1e-10
+MAX_EXACT_LAG = 8
+"""Largest lag N of :func:`exact_probability`: it enumerates the 2^(N+1) future arrival patterns
+(N = 12 took 150 s for one column of a 2-state system; N = 8 is 16× less)."""
+MAX_MEAN_LAG = 8
+"""Largest lag N of :func:`exact_mean` (2^(N+1) − 1 bounded functions, each enumerated)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -131,22 +136,35 @@ def future_information(s: LinearSystem, pattern) -> np.ndarray:
     """J(f): Fisher information on x_k of the received y_{k+i} (f_i = 1), i = 0 … len(f)−1.
 
     y_{k+i} = C Aⁱ x_k + η_i, η_i = C Σ_{l<i} A^{i−1−l} w_{k+l} + v_{k+i} (correlated across i):
-    J = Hᵀ Σ_η⁻¹ H with H = [C Aⁱ]_{i received}.
+    J = Hᵀ Σ_η⁻¹ H with H = [C Aⁱ]_{i received} (:func:`_future_model`). Computed recursively — a
+    Kalman filter of the noise part started at x_k known: α_0 = I, V_0 = 0 and, for each i, if
+    f_i = 1 (S = C V Cᵀ + R): J += (Cα)ᵀ S⁻¹ (Cα), α ← α − V Cᵀ S⁻¹ C α, V ← V − V Cᵀ S⁻¹ C V;
+    then α ← A α, V ← A V Aᵀ + Q. Equal to the batch form, but never forms Σ_η, which is
+    numerically singular for a strongly unstable A (A = 10⁶: entries 1 and 10¹²⁴).
     """
-    H, Sig = _future_model(s, pattern)
-    if H is None:
-        return np.zeros((s.n, s.n))
-    return riccati.sym(H.T @ np.linalg.solve(Sig, H))
+    n = s.n
+    J = np.zeros((n, n))
+    al = np.eye(n)
+    V = np.zeros((n, n))
+    for i, b in enumerate(int(x) for x in pattern):
+        if i:
+            al = s.A @ al
+            V = riccati.sym(s.A @ V @ s.A.T) + s.Q
+        if b:
+            S = riccati.sym(s.C @ V @ s.C.T) + s.R
+            Ca = s.C @ al
+            J = J + Ca.T @ np.linalg.solve(S, Ca)
+            VC = V @ s.C.T
+            al = al - VC @ np.linalg.solve(S, Ca)
+            V = riccati.sym(V - VC @ np.linalg.solve(S, VC.T))
+    return riccati.sym(J)
 
 
 def smoothed_from_prior(P: np.ndarray, s: LinearSystem, pattern) -> np.ndarray:
-    """P_{k|k+N} from P_{k|k−1} = P and the future arrival pattern f (covariance form, P may be singular):
-    P − P Hᵀ (H P Hᵀ + Σ_η)⁻¹ H P."""
-    H, Sig = _future_model(s, pattern)
-    if H is None:
-        return P
-    PH = P @ H.T
-    return riccati.sym(P - PH @ np.linalg.solve(H @ PH + Sig, PH.T))
+    """P_{k|k+N} = (P⁻¹ + J(f))⁻¹ from P_{k|k−1} = P and the future arrival pattern f, computed as
+    (I + P J)⁻¹ P (valid for a singular P)."""
+    J = future_information(s, pattern)
+    return riccati.sym(np.linalg.solve(np.eye(s.n) + P @ J, P))
 
 
 def batch_posterior_covariance(s: LinearSystem, gamma, k: int, upto: int, P0: np.ndarray) -> np.ndarray:
@@ -200,6 +218,12 @@ class _Batch:
         self.CRC = riccati.sym(s.C.T @ np.linalg.solve(s.R, s.C))
         self.Pst = riccati.pstar(s)
         self.I = np.eye(s.n)
+        self.scalar = s.n == 1 and s.m == 1
+        if self.scalar:
+            a, c = float(s.A[0, 0]), float(s.C[0, 0])
+            self.a2, self.c2, self.q, self.r = a * a, c * c, float(s.Q[0, 0]), float(s.R[0, 0])
+            self.crc = self.c2 / self.r
+        self._J: dict = {}
 
     @staticmethod
     def sym(X):
@@ -208,6 +232,11 @@ class _Batch:
     def cov_step(self, P: np.ndarray, gam: np.ndarray) -> np.ndarray:
         """P ← A P Aᵀ + Q − γ A P Cᵀ (C P Cᵀ + R)⁻¹ C P Aᵀ, batched."""
         s = self.s
+        if self.scalar:  # elementwise: a² P r/(c² P + r) + q after an arrival, a² P + q after a loss
+            p = P[:, 0, 0]
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                upd = np.where(gam > 0, self.r / (self.c2 + self.r / p), p)
+                return (self.a2 * upd + self.q)[:, None, None]
         CP = s.C @ P
         S = CP @ s.C.T + s.R
         corr = np.swapaxes(CP, -1, -2) @ np.linalg.solve(S, CP)
@@ -216,6 +245,9 @@ class _Batch:
 
     def info_step(self, Y: np.ndarray, gam: np.ndarray) -> np.ndarray:
         """Y ← Z (I + Q Z)⁻¹, Z = A⁻ᵀ (Y + γ CᵀR⁻¹C) A⁻¹ (valid for singular Y, i.e. P = ∞ directions)."""
+        if self.scalar:  # Y ← Z/(1 + qZ), Z = (Y + γ c²/r)/a²
+            z = (Y[:, 0, 0] + gam * self.crc) / self.a2
+            return (z / (1.0 + self.q * z))[:, None, None]
         Z = self.Ainv.T @ (Y + gam[:, None, None] * self.CRC) @ self.Ainv
         K = self.I + self.s.Q @ Z
         out = np.swapaxes(np.linalg.solve(np.swapaxes(K, -1, -2), np.swapaxes(Z, -1, -2)), -1, -2)
@@ -234,13 +266,21 @@ class _Batch:
         return P, Y
 
     def smoothed(self, P: np.ndarray, pattern) -> np.ndarray:
-        """Batched :func:`smoothed_from_prior`: P − P Hᵀ (H P Hᵀ + Σ_η)⁻¹ H P."""
-        H, Sig = _future_model(self.s, pattern)
-        if H is None:
-            return P
-        PH = P @ H.T
-        S = H @ PH + Sig
-        return self.sym(P - PH @ np.linalg.solve(S, np.swapaxes(PH, -1, -2)))
+        """Batched :func:`smoothed_from_prior`: (P⁻¹ + J(f))⁻¹."""
+        if self.scalar:  # (P⁻¹ + J(f))⁻¹ = P / (1 + P J(f))
+            key = tuple(int(b) for b in pattern)
+            if key not in self._J:
+                self._J[key] = float(future_information(self.s, key)[0, 0])
+            J = self._J[key]
+            if J == 0.0:
+                return P
+            with np.errstate(over="ignore", invalid="ignore"):
+                return np.where(np.isinf(P), 1.0 / J, P / (1.0 + P * J))
+        key = tuple(int(b) for b in pattern)
+        if key not in self._J:
+            self._J[key] = future_information(self.s, key)
+        J = self._J[key]
+        return self.sym(np.linalg.solve(self.I + P @ J, P))  # (I + P J)⁻¹ P = (P⁻¹ + J)⁻¹
 
 
 def _future_model(s: LinearSystem, pattern):
@@ -306,6 +346,8 @@ def exact_probability(
     nodes of one level; returns a certified bracket. Nodes of joint weight < ``tol`` that are still
     undecided are dropped into the bracket's width.
     """
+    if lag is not None and not 0 <= lag <= MAX_EXACT_LAG:
+        raise ConfigError.at("analysis.lags", f"the exact probability enumerates 2^(N+1) future patterns: N must be in 0..{MAX_EXACT_LAG}, got {lag}")
     Mm = as_bound(M, s.n)
     Minv = np.linalg.inv(Mm)
     bt = _Batch(s)
@@ -318,7 +360,7 @@ def exact_probability(
     Js = [future_information(s, f) for f in futures]
     fw = np.array([np.prod([T[a, b] for a, b in zip(f[:-1], f[1:])]) if f else 1.0 for f in futures])
     first = np.array([f[0] if f else -1 for f in futures])
-    scale = max(1.0, float(np.abs(Minv).max()))
+    scale = float(np.abs(Minv).max())  # relative: an absolute tolerance would swamp M⁻¹ for a large M
     lower, lost, nodes, depth = 0.0, 0.0, 0, 0
     bits = np.zeros((1, 0), dtype=np.int8)
     W = np.array([[pi[f[0]] * fw[i] if f else 1.0 for i, f in enumerate(futures)]])
@@ -429,6 +471,8 @@ def exact_mean(s: LinearSystem, lam: float, lag: int | None, *, tol: float = 1e-
     """
     if not 0 < lam < 1:
         raise ConfigError.at("analysis.lambdas", f"arrival rates must be in (0, 1) for the exact mean, got {lam}")
+    if lag is not None and not 0 <= lag <= MAX_MEAN_LAG:
+        raise ConfigError.at("analysis.lags", f"the exact mean enumerates 2^(N+1) future patterns: N must be in 0..{MAX_MEAN_LAG}, got {lag}")
     Mbar = leong_mbar(s)
     bt = _Batch(s)
     A, Q = s.A, s.Q
@@ -437,7 +481,10 @@ def exact_mean(s: LinearSystem, lam: float, lag: int | None, *, tol: float = 1e-
 
     def phi_g(P_lo, Y_hi):
         lo = bt.cov_step(P_lo, np.ones(P_lo.shape[0]))
-        hi = bt.sym(A @ np.linalg.solve(Y_hi + bt.CRC, np.broadcast_to(A.T, Y_hi.shape)) + Q)
+        if bt.scalar:
+            hi = bt.a2 / (Y_hi + bt.crc) + bt.q
+        else:
+            hi = bt.sym(A @ np.linalg.solve(Y_hi + bt.CRC, np.broadcast_to(A.T, Y_hi.shape)) + Q)
         return lo, hi
 
     phis, caps, wts = [phi_g], [Mbar], [1.0 if a2 < 1 else 0.0]
@@ -447,6 +494,8 @@ def exact_mean(s: LinearSystem, lam: float, lag: int | None, *, tol: float = 1e-
         pf = lam ** sum(f) * (1 - lam) ** (len(f) - sum(f))
 
         def phi_f(P_lo, Y_hi, f=f, J=J):
+            if bt.scalar:
+                return bt.smoothed(P_lo, f), 1.0 / (Y_hi + J)
             return bt.smoothed(P_lo, f), bt.sym(np.linalg.inv(Y_hi + J))
 
         phis.append(phi_f)

@@ -24,7 +24,7 @@ exact (enumeration) analyses in :mod:`netkf_cli.analysis.smoothing`.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -32,57 +32,70 @@ from pydantic import Field, model_validator
 from netkf_cli.channels.bernoulli import BernoulliChannel, sample_arrivals
 from netkf_cli.errors import ConfigError
 from netkf_cli.spec import ChannelModel
+from netkf_cli.trace import Trace
 
 
-def sample_gilbert_elliott(
+def sample_gilbert_elliott_tm(
     rng: np.random.Generator, runs: int, horizon: int, p_gb: float, p_bg: float
 ) -> np.ndarray:
-    """Arrival indicators γ, shape ``(runs, horizon)``, bool, from the stationary Gilbert chain.
+    """Arrival indicators γ, shape ``(horizon, runs)`` (time-major, run axis innermost), bool, from
+    the stationary Gilbert chain: one uniform per step and run, ``rng.random((horizon, runs))``.
 
     Vectorized over runs (loop over time only). γ_0 ~ stationary law P(γ = 1) = p_bg/(p_gb+p_bg).
     """
     if runs < 0 or horizon < 0:
         raise ValueError(f"runs and horizon must be ≥ 0, got {runs}, {horizon}")
-    out = np.empty((runs, horizon), dtype=bool)
+    out = np.empty((horizon, runs), dtype=bool)
     if horizon == 0:
         return out
     u = rng.random((horizon, runs))
     pi_good = p_bg / (p_gb + p_bg) if (p_gb + p_bg) > 0 else 1.0
-    g = u[0] < pi_good
-    out[:, 0] = g
+    np.less(u[0], pi_good, out=out[0])
     for k in range(1, horizon):
         # good stays good with prob 1 − p_gb; bad becomes good with prob p_bg
-        g = np.where(g, u[k] >= p_gb, u[k] < p_bg)
-        out[:, k] = g
+        out[k] = np.where(out[k - 1], u[k] >= p_gb, u[k] < p_bg)
     return out
 
 
+def sample_gilbert_elliott(
+    rng: np.random.Generator, runs: int, horizon: int, p_gb: float, p_bg: float
+) -> np.ndarray:
+    """As :func:`sample_gilbert_elliott_tm`, shape ``(runs, horizon)`` (the historical layout)."""
+    return sample_gilbert_elliott_tm(rng, runs, horizon, p_gb, p_bg).T
+
+
 class GilbertElliottChannel(ChannelModel):
-    """``kind: gilbert_elliott`` — two-state Markov (bursty) loss; see the module docstring.
+    """``kind: gilbert_elliott`` — two-state Markov (Gilbert) bursty loss: loss_rate + mean_burst, or p_gb + p_bg.
 
     Give either ``loss_rate`` + ``mean_burst`` or ``p_gb`` + ``p_bg`` (not both, not a mix).
+    Trace (:meth:`sample_trace`): ``arrival`` (1, horizon, runs), the chain started stationary.
     """
 
+    trace_kinds: ClassVar[frozenset[str]] = frozenset({"arrival"})
+
     kind: Literal["gilbert_elliott"]
-    loss_rate: float | None = Field(None, gt=0.0, lt=1.0, description="stationary loss rate π_B = P(γ_k = 0)")
+    # YAML key ``loss_rate`` (alias): the attribute name is free for the contract method :meth:`loss_rate`
+    pi_loss: float | None = Field(None, alias="loss_rate", gt=0.0, lt=1.0,
+                                  description="stationary loss rate π_B = P(γ_k = 0)")
     mean_burst: float | None = Field(None, ge=1.0, description="mean length of a loss burst L_B = 1/p_bg (steps, ≥ 1)")
     p_gb: float | None = Field(None, gt=0.0, le=1.0, description="P(loss at k+1 | arrival at k)")
     p_bg: float | None = Field(None, gt=0.0, le=1.0, description="P(arrival at k+1 | loss at k)")
 
     @model_validator(mode="after")
     def _check_parameterisation(self):
-        by_rate = self.loss_rate is not None or self.mean_burst is not None
+        by_rate = self.pi_loss is not None or self.mean_burst is not None
         by_prob = self.p_gb is not None or self.p_bg is not None
         if by_rate and by_prob:
-            given = [f for f in ("loss_rate", "mean_burst", "p_gb", "p_bg") if getattr(self, f) is not None]
+            given = [a for a, f in (("loss_rate", "pi_loss"), ("mean_burst", "mean_burst"), ("p_gb", "p_gb"), ("p_bg", "p_bg"))
+                     if getattr(self, f) is not None]
             raise ValueError(f"give either loss_rate + mean_burst or p_gb + p_bg, not a mix (got {', '.join(given)})")
         if not by_rate and not by_prob:
             raise ValueError("gilbert_elliott needs loss_rate + mean_burst, or p_gb + p_bg")
         if by_rate:
-            missing = [f for f in ("loss_rate", "mean_burst") if getattr(self, f) is None]
+            missing = [a for a, f in (("loss_rate", "pi_loss"), ("mean_burst", "mean_burst")) if getattr(self, f) is None]
             if missing:
                 raise ValueError(f"{missing[0]} is required together with " + ("mean_burst" if missing[0] == "loss_rate" else "loss_rate"))
-            pi_b, lb = self.loss_rate, self.mean_burst
+            pi_b, lb = self.pi_loss, self.mean_burst
             need = pi_b / (1.0 - pi_b)
             if lb < need - 1e-12:
                 raise ValueError(
@@ -101,7 +114,7 @@ class GilbertElliottChannel(ChannelModel):
         if self.p_gb is not None:
             return float(self.p_gb), float(self.p_bg)
         p_bg = 1.0 / self.mean_burst
-        p_gb = min(1.0, self.loss_rate * p_bg / (1.0 - self.loss_rate))
+        p_gb = min(1.0, self.pi_loss * p_bg / (1.0 - self.pi_loss))
         return p_gb, p_bg
 
     @property
@@ -119,7 +132,19 @@ class GilbertElliottChannel(ChannelModel):
         """Mean loss-burst length 1 / p_bg."""
         return 1.0 / self.transition[1]
 
+    def loss_rate(self) -> float:
+        """Stationary loss probability π_B = p_gb / (p_gb + p_bg) (``loss_rate`` itself when given)."""
+        return float(self.pi_loss) if self.pi_loss is not None else float(self.stationary_loss)
+
+    def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
+        """``Trace.arrival`` (1, horizon, runs) from :func:`sample_gilbert_elliott_tm` (stationary start)."""
+        p_gb, p_bg = self.transition
+        arr = sample_gilbert_elliott_tm(rng, runs, horizon, p_gb, p_bg)
+        return Trace(runs=runs, horizon=horizon, arrival=arr[None],
+                     meta={"channel": "gilbert_elliott", "p_gb": p_gb, "p_bg": p_bg, "arrival": self.arrival})
+
     def sample(self, rng: np.random.Generator, runs: int, horizon: int) -> np.ndarray:
+        """γ of shape (runs, horizon), bool (legacy layout; :meth:`sample_trace` is the contract)."""
         p_gb, p_bg = self.transition
         return sample_gilbert_elliott(rng, runs, horizon, p_gb, p_bg)
 

@@ -24,13 +24,14 @@ Modes are returned 0-based (``q − 1``) as ``int8`` arrays of shape ``(runs, ho
 from __future__ import annotations
 
 import warnings
-from typing import Literal, Union
+from typing import ClassVar, Literal, Union
 
 import numpy as np
 from pydantic import Field, model_validator
 
 from netkf_cli.errors import ConfigError, Problem
 from netkf_cli.spec import ChannelModel, Matrix, Probability
+from netkf_cli.trace import Trace
 
 MODE_NAMES = ("ok", "delay", "missing", "dropout")
 N_MODES = 4
@@ -79,8 +80,14 @@ def sample_modes(rng: np.random.Generator, runs: int, horizon: int, T: np.ndarra
     """Mode paths θ(0..horizon−1), 0-based, ``int8`` of shape ``(runs, horizon)``.
 
     θ(0) ~ ``initial``; θ(k) | θ(k−1)=j ~ row j of ``T``. Vectorized over runs, loop over time
-    (inverse-CDF sampling with one uniform per run and step).
+    (inverse-CDF sampling with one uniform per run and step). The transpose of
+    :func:`sample_modes_tr` on the same generator state.
     """
+    return np.ascontiguousarray(sample_modes_tr(rng, runs, horizon, T, initial).T)
+
+
+def sample_modes_tr(rng: np.random.Generator, runs: int, horizon: int, T: np.ndarray, initial: np.ndarray) -> np.ndarray:
+    """Mode paths in the trace layout ``(horizon, runs)`` int8 (run axis innermost), see :func:`sample_modes`."""
     cumT = np.cumsum(T, axis=1)
     cumT[:, -1] = 1.0
     cum0 = np.cumsum(initial)
@@ -90,9 +97,12 @@ def sample_modes(rng: np.random.Generator, runs: int, horizon: int, T: np.ndarra
     modes[0] = np.searchsorted(cum0, u[0], side="right")
     N = T.shape[0]
     for k in range(1, horizon):
-        c = cumT[modes[k - 1]]  # (runs, N)
-        modes[k] = (u[k][:, None] >= c[:, : N - 1]).sum(axis=1)
-    return np.ascontiguousarray(modes.T)
+        prev = modes[k - 1]
+        acc = np.zeros(runs, dtype=np.int8)
+        for q in range(N - 1):  # θ(k) = #{q < N−1 : u ≥ cumT[θ(k−1), q]}
+            acc += u[k] >= cumT[prev, q]
+        modes[k] = acc
+    return modes
 
 
 class MarkovModesChannel(ChannelModel):
@@ -101,6 +111,8 @@ class MarkovModesChannel(ChannelModel):
     ``transition[j][q] = ρ_{q+1/j+1}`` (row = previous mode). ``initial`` is the distribution
     of θ(0): ``stationary`` (default, so every θ(k) has the marginal ρ_q) or four numbers.
     """
+
+    trace_kinds: ClassVar[frozenset[str]] = frozenset({"mode", "arrival"})
 
     kind: Literal["markov_modes"]
     transition: Matrix = Field(description="4×4 row-stochastic ρ_{q/j}: row j = previous mode, column q = next "
@@ -149,5 +161,20 @@ class MarkovModesChannel(ChannelModel):
         return p / p.sum()
 
     def sample(self, rng: np.random.Generator, runs: int, horizon: int) -> np.ndarray:
-        """0-based modes, ``int8`` array ``(runs, horizon)``."""
+        """0-based modes, ``int8`` array ``(runs, horizon)`` (legacy layout; :meth:`sample_trace` is the contract)."""
         return sample_modes(rng, runs, horizon, self.T, self.pi0)
+
+    def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
+        """``Trace.mode`` (horizon, runs) int8, 0-based (q − 1), and ``Trace.arrival`` (1, horizon, runs):
+        True in mode 1 only (the measurement of step k arrives on time; modes 2–4 deliver a delayed
+        packet, noise only, or a held copy — for an estimator that works from arrivals they are
+        unusable). ``meta`` carries the chain: ``transition`` (ρ_{q/j}), ``initial``, ``rho``."""
+        T = self.T
+        modes = sample_modes_tr(rng, runs, horizon, T, self.pi0)
+        return Trace(runs=runs, horizon=horizon, mode=modes, arrival=(modes == 0)[None],
+                     meta={"channel": "markov_modes", "transition": T.tolist(), "initial": self.pi0.tolist(),
+                           "rho": self.rho.tolist(), "modes": list(MODE_NAMES)})
+
+    def loss_rate(self) -> float:
+        """Stationary probability that y(k) is not an on-time measurement: 1 − ρ_1 (modes 2–4)."""
+        return float(1.0 - self.rho[0])

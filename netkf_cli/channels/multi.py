@@ -10,12 +10,13 @@ Links are independent across sensors and i.i.d. in time (the paper's Bernoulli m
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
 
 from netkf_cli.spec import ChannelModel, PositiveInt, Probability
+from netkf_cli.trace import Trace
 
 
 def sample_multi_arrivals(
@@ -40,6 +41,48 @@ def sample_multi_arrivals(
     return rng.random((runs, horizon, loss_arr.size)) < (1.0 - loss_arr)
 
 
+def _raw_threshold(p: np.ndarray) -> np.ndarray:
+    """uint64 thresholds t with P(raw < t) = p for a uniform 64-bit raw draw (exact to 2⁻⁵³ relative)."""
+    p = np.clip(np.asarray(p, dtype=float), 0.0, 1.0)
+    t = np.ldexp(p, 64)  # < 2**64 for p < 1 (the largest double below 2**64 is 2**64 − 2**11)
+    return np.where(p >= 1.0, np.uint64(2**64 - 1), np.minimum(t, 2.0**64 - 2.0**11).astype(np.uint64))
+
+
+def sample_multi_trace_arrivals(rng: np.random.Generator, runs: int, horizon: int, loss: np.ndarray) -> np.ndarray:
+    """Arrival indicators in the trace layout ``(N, horizon, runs)`` (run axis innermost), bool.
+
+    γ_t^i = 1{r_t^i < ⌊(1 − loss_i)·2⁶⁴⌋} with one raw 64-bit draw r per sensor, step and run (the
+    generator's native output: twice as fast as a float uniform, and as exact). Monotone in the loss,
+    so a grid of loss values on the same stream gives common random numbers. loss = 0 always arrives
+    (the threshold is 2⁶⁴ − 1: a raw draw of exactly 2⁶⁴ − 1, probability 2⁻⁶⁴, is the only miss) and
+    loss = 1 never does.
+    """
+    loss = np.asarray(loss, dtype=float).reshape(-1)
+    N = loss.size
+    raw = rng.bit_generator.random_raw(N * horizon * runs).reshape(N, horizon, runs)
+    thr = _raw_threshold(1.0 - loss)
+    out = raw < thr[:, None, None]
+    full = loss <= 0.0
+    if full.any():
+        out[full] = True  # exactly: no draw can be ≥ 2⁶⁴
+    return out
+
+
+def times_since_arrival_tr(arrival: np.ndarray) -> np.ndarray:
+    """τ_t^i in the trace layout: ``arrival`` (N, T, runs) bool → τ (T, runs, N) int32.
+
+    Same definition as :func:`times_since_arrival`; the output puts the sensor axis last because
+    the IBF/OLPEF evaluations reduce over sensors per (time, run) row.
+    """
+    N, T, runs = arrival.shape
+    # last arrival time ≤ t: a running maximum over time of (s if packet s arrived else −1)
+    steps = np.arange(T, dtype=np.int32)[:, None, None]
+    last = np.where(np.transpose(arrival, (1, 2, 0)), steps, np.int32(-1))  # (T, runs, N)
+    np.maximum.accumulate(last, axis=0, out=last)
+    np.subtract(steps, last, out=last)
+    return last
+
+
 def times_since_arrival(gamma: np.ndarray) -> np.ndarray:
     """τ_t^i: steps since sensor i's last received packet, shape like ``gamma`` (runs, T, N), int32.
 
@@ -57,6 +100,8 @@ def times_since_arrival(gamma: np.ndarray) -> np.ndarray:
 
 class MultiChannel(ChannelModel):
     """``kind: multi`` — N independent i.i.d. Bernoulli loss links, one per sensor (eq. (2))."""
+
+    trace_kinds: ClassVar[frozenset[str]] = frozenset({"arrival"})
 
     kind: Literal["multi"]
     sensors: PositiveInt = Field(description="number of sensors N (the paper's example: 25)")
@@ -89,5 +134,16 @@ class MultiChannel(ChannelModel):
         return self.model_copy(update={"loss": float(loss)})
 
     def sample(self, rng: np.random.Generator, runs: int, horizon: int) -> np.ndarray:
-        """γ of shape (runs, horizon, N), bool."""
+        """γ of shape (runs, horizon, N), bool (legacy layout; :meth:`sample_trace` is the contract)."""
         return sample_multi_arrivals(rng, runs, horizon, self.loss_array)
+
+    def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
+        """``Trace.arrival`` (N, horizon, runs): γ_t^i ~ Bernoulli(1 − loss_i), independent (eq. (2))."""
+        arr = sample_multi_trace_arrivals(rng, runs, horizon, self.loss_array)
+        return Trace(runs=runs, horizon=horizon, arrival=arr,
+                     meta={"channel": "multi", "sensors": self.sensors, "loss": self.loss_array.tolist()})
+
+    def loss_rate(self) -> float:
+        """Stationary probability that one sensor's packet is lost (the paper's λ; the mean over
+        sensors when the rates differ)."""
+        return float(self.loss_array.mean())

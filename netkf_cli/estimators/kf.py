@@ -54,6 +54,16 @@ def _guard(P, Pm, huge, arrived, info, full_rank: bool) -> np.ndarray:
     return P
 
 
+def _streams(channel) -> int | None:
+    """Number of arrival streams the channel produces (a 1-run, 1-step sample: generic and cheap)."""
+    if channel is None:
+        return None
+    try:
+        return channel.sample_trace(np.random.default_rng(0), 1, 1).sensors
+    except Exception:  # noqa: BLE001 - the channel reports its own problems when it runs
+        return None
+
+
 def initial_covariance(system) -> np.ndarray:
     """P0 of the system, or P̄ when it is unspecified/steady (the one meaning of P0 in netkf)."""
     return riccati.pbar(system) if system.P0 is None else np.asarray(system.P0, dtype=float)
@@ -70,8 +80,7 @@ class KalmanFilterEstimator(EstimatorModel):
     quantity: ClassVar[str] = "P_{k|k}"
 
     def check(self, system, channel) -> None:
-        S = getattr(channel, "sensors_count", None)
-        S = S() if callable(S) else S
+        S = _streams(channel)
         if S not in (None, 1, system.m):
             raise ConfigError.at("estimator.kind", f"kf needs one arrival stream or one per output (m = {system.m}); "
                                  f"the channel has {S} streams")

@@ -248,14 +248,24 @@ class _SDP:
         return self.L.value, np.array([L.value for L in self.Lu]), self.upd.value, self.upd.status, dt
 
 
+def sdp_check_steps(horizon: int, count: int) -> list[int]:
+    """The ``count`` steps (evenly spread over 0..horizon−1, always k = 0 and the last) checked by SDP."""
+    if count <= 0 or horizon <= 0:
+        return []
+    return sorted({int(round(v)) for v in np.linspace(0, horizon - 1, min(count, horizon))})
+
+
 def lmi_design(model: AugmentedModel, rho, x0, P0, horizon: int, *, design: str = "sdp",
                solver: str = "CLARABEL", tol: float = 1e-8, eps: float = 1e-5,
-               precedence: bool = True, progress=None) -> LMIDesign:
+               precedence: bool = True, progress=None, sdp_check: int = 0) -> LMIDesign:
     """Gains A_s(k), G_s(k), L(k), k = 0..horizon−1, by the conceptual algorithm of Sec. III-C.
 
     Initialization (eq. 35, with the prior mean x̂0 = E x(0) instead of 0):
     Λ_j(0) = E ζ(0)ζ(0)ᵀ + diag(0, εI), ζ(0) = [ξ(0); x̂0], for every j.
-    ``design='closed_form'`` replaces each SDP by :func:`step_closed_form`.
+    ``design='closed_form'`` replaces each SDP (eqs 34/34a, 37/37a) by :func:`step_closed_form` (the
+    same convex quadratic's normal equations: the SDP optimum matches it to the solver's tolerance);
+    with ``sdp_check = c > 0`` the SDPs are still solved at c steps (:func:`sdp_check_steps`) on the
+    same Φ_q, as a check recorded in the diagnostics (their gains are not used).
     """
     rho = np.asarray(rho, float)
     blocks = _Blocks(model)
@@ -268,7 +278,8 @@ def lmi_design(model: AugmentedModel, rho, x0, P0, horizon: int, *, design: str 
     Lam0[d:, d:] += eps * np.eye(n)
     Lam = np.repeat(Lam0[None], N_MODES, axis=0)
     W = design_weights(rho, precedence)
-    sdp = _SDP(blocks, rho, eps, solver, tol) if design == "sdp" else None
+    checks = set(sdp_check_steps(horizon, sdp_check)) if design == "closed_form" else set()
+    sdp = _SDP(blocks, rho, eps, solver, tol) if (design == "sdp" or checks) else None
     K = horizon
     As = np.zeros((K, n, n)); Gs = np.zeros((K, n, m)); Lf = np.zeros((K, n, m))
     mse_p, mse_f = np.empty(K), np.empty(K)
@@ -280,20 +291,26 @@ def lmi_design(model: AugmentedModel, rho, x0, P0, horizon: int, *, design: str 
         mse_p[k] = blocks.cost(rho, Lam) if k > 0 else float(np.trace(blocks.Gam @ Lam0 @ blocks.Gam.T))
         Asc, Gsc, Lc = step_closed_form(blocks, rho, Phi)
         best_u = blocks.cost(rho, blocks.update(Phi, Lc))
-        if sdp is not None:
+        use_sdp = design == "sdp"
+        if use_sdp or k in checks:
             L, Lam_sdp, val, status, dt = sdp.update(Phi)
             _record(diag, blocks, rho, val, status, dt, Lam_sdp, blocks.update(Phi, L), best_u, L - Lc)
+            if not use_sdp:
+                L = Lc
         else:
             L = Lc
         Lf[k] = L
         mse_f[k] = blocks.cost(rho, blocks.update(Phi, L))
         if k < K - 1:
             best_p = blocks.cost(rho, blocks.propagate(Phi, Asc, Gsc))
-            if sdp is not None:
+            if use_sdp or k in checks:
                 a, g, Lam_sdp, val, status, dt = sdp.predict(Phi)
                 Lam = blocks.propagate(Phi, a, g)
                 _record(diag, blocks, rho, val, status, dt, Lam_sdp, Lam, best_p,
                         np.concatenate([a - Asc, g - Gsc], axis=1))
+                if not use_sdp:
+                    a, g = Asc, Gsc
+                    Lam = blocks.propagate(Phi, a, g)
             else:
                 a, g = Asc, Gsc
                 Lam = blocks.propagate(Phi, a, g)
@@ -303,8 +320,8 @@ def lmi_design(model: AugmentedModel, rho, x0, P0, horizon: int, *, design: str 
         if progress is not None:
             progress(1)
     diag["statuses"] = sorted(diag["statuses"])
-    diag.update(design=design, solver=solver if design == "sdp" else None, tol=tol, eps=eps,
-                precedence=precedence, rho=rho.tolist())
+    diag.update(design=design, solver=solver if sdp is not None else None, tol=tol, eps=eps,
+                precedence=precedence, rho=rho.tolist(), sdp_checked_steps=sorted(checks) if design == "closed_form" else "all")
     filt = LinearFilter("lmi", As, Gs, np.eye(n), np.repeat(np.eye(n)[None], K, axis=0), Lf,
                         x0.copy(), np.eye(n), {"design_pred": mse_p, "design_filt": mse_f})
     return LMIDesign(filt, diag)

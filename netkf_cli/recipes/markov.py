@@ -33,6 +33,8 @@ from netkf_cli.errors import ConfigError, Problem
 from netkf_cli.estimators.markov_filters import (
     AugmentedModel,
     MarkovLMIEstimator,
+    MarkovMSEKernel,
+    resolve_backend,
     ModeAwareKF,
     draw_initial,
     draw_noise,
@@ -41,6 +43,7 @@ from netkf_cli.estimators.markov_filters import (
     naive_filter,
     plant_step,
 )
+from netkf_cli.estimators.fusion import heavy_tail_flag  # (a montecarlo-level primitive; to be hoisted)
 from netkf_cli.estimators.markov_lmi import lmi_design
 from netkf_cli.montecarlo import mean_and_stderr, run_chunked
 from netkf_cli.recipes.base import Artefact, RunContext
@@ -51,7 +54,8 @@ LABELS = {"mode_aware_kf": "mode-aware KF (knows θ)", "lmmse": "exact LMMSE (mo
           "lmi": "LMI filter (paper)", "naive_kf": "naive KF (ignores modes)", "true": "true state"}
 ESTIMATES = ("predicted", "filtered")
 Z5 = 5.0  # tolerance in standard errors for the claims (a 5σ two-sided event has p ≈ 6e-7)
-TRAJ_KEY = 2**20  # spawn key of the trajectory stream, disjoint from the chunk keys 0, 1, …
+MC_STREAM = 0  # Monte Carlo chunks: SeedSequence(seed, spawn_key=(0, chunk))
+TRAJ_STREAM = 1  # the plotted realization: SeedSequence(seed, spawn_key=(1, trajectory_seed))
 
 
 class MarkovFiltersAnalysis(AnalysisModel):
@@ -66,8 +70,8 @@ class MarkovFiltersAnalysis(AnalysisModel):
     x0: list[float] | None = Field(None, description="mean of x(0) (default 0); x(0) ~ N(x0, system.P0), P0 default 0")
     xs0: list[float] | None = Field(None, description="initial estimate of every filter in the trajectory figure "
                                                       "(the paper's x_s(0)); default = x0. The MSE runs start from x0")
-    trajectory_seed: NonNegInt = Field(0, description="which realization to plot: stream SeedSequence(seed, "
-                                                      "spawn_key=(2**20 + trajectory_seed,))")
+    trajectory_seed: NonNegInt = Field(0, description="which realization to plot: SeedSequence(seed, "
+                                                      "spawn_key=(1, trajectory_seed)) (stream 1; the Monte Carlo is stream 0)")
     plot_estimate: Literal["filtered", "predicted"] = Field("predicted", description="estimate drawn in the "
                                                                                      "panels: predicted = x_s(k) of eq. (24), the estimate the paper designs")
 
@@ -136,20 +140,19 @@ class MarkovFiltersAnalysis(AnalysisModel):
         ctx.total(K + runs)
         try:
             des = lmi_design(model, rho, x0, P0, K, design=est.design, solver=est.solver, tol=est.solver_tol,
-                             eps=est.eps, precedence=est.precedence, progress=ctx.tick)
+                             eps=est.eps, precedence=est.precedence, progress=ctx.tick, sdp_check=est.sdp_check)
         except RuntimeError as e:  # solver failure: a user-facing message, not a traceback
             raise ConfigError.at("estimator", f"{e}; try `solver: SCS`, a larger `eps` or `design: closed_form`") from None
         lmi = des.filter
         linear = {"lmmse": lmmse, "lmi": lmi, "naive_kf": naive}
         exact = {f: exact_mse(model, F, T, pi0, x0, P0) for f, F in linear.items()}
 
-        def kernel(rng, nr):
-            return _mc_kernel(rng, nr, model, ch, linear, x0, P0, K, burn)
+        backend = resolve_backend(est.backend, model.m)
+        kernel = MarkovMSEKernel(model, ch, linear, x0, P0, K, burn, backend=backend)
+        stats = run_chunked(kernel, runs, mc.chunk, mc.seed, stream=MC_STREAM, progress=ctx.progress, label=scenario.name)
 
-        stats = run_chunked(kernel, runs, mc.chunk, mc.seed, progress=ctx.progress, label=scenario.name)
-
-        # --- trajectory (one realization, every filter started from xs0)
-        rng = np.random.default_rng(np.random.SeedSequence(mc.seed, spawn_key=(TRAJ_KEY + self.trajectory_seed,)))
+        # --- trajectory (one realization, every filter started from xs0): stream TRAJ_STREAM, "chunk" trajectory_seed
+        rng = np.random.default_rng(np.random.SeedSequence(mc.seed, spawn_key=(TRAJ_STREAM, self.trajectory_seed)))
         traj = _trajectory(rng, model, ch, {f: F.with_initial_estimate(xs0) for f, F in linear.items()}, x0, P0, xs0, K)
         exact_xs0 = {f: exact_mse(model, F.with_initial_estimate(xs0), T, pi0, x0, P0) for f, F in linear.items()}
 
@@ -166,6 +169,7 @@ class MarkovFiltersAnalysis(AnalysisModel):
             "horizon": K, "burn_in": burn, "mse_window": f"k = {burn} … {K - 1}",
             "lmi_design": {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in des.diagnostics.items()},
             "claims_tolerance": f"{Z5:g} standard errors (paired per-run differences)",
+            "mode_aware_backend": backend,
             "nonfinite_runs": {f: int(stats[f"nonfinite_{f}"]) for f in FILTERS},
         }
         md = _markdown(mse, claims, modes)
@@ -175,128 +179,67 @@ class MarkovFiltersAnalysis(AnalysisModel):
 
     # ------------------------------------------------------------------ plot
     def plot(self, tables, scenario):
-        from netkf_cli.plotting import footnote, new_figure
+        from netkf_cli.plotting import LINESTYLES, PALETTE, footnote, legend_outside, new_figure, paper_title
 
         traj, mse_t, mse = tables["main"], tables["mse_time"], tables["mse"]
         comps = sorted(c for c in traj["component"].unique() if c > 0)
-        fig, axes = new_figure(nrows=len(comps) + 1, width=9.0, height=3.0)
-        colors = {"true": "black", "lmi": "tab:red", "lmmse": "tab:blue", "mode_aware_kf": "tab:green",
-                  "naive_kf": "tab:orange"}
-        styles = {"true": "-", "lmi": "--", "lmmse": ":", "mode_aware_kf": "-.", "naive_kf": (0, (1, 3))}
+        fig, axes = new_figure(nrows=len(comps) + 1, width=10.0, height=2.9)
+        colors = {"true": "black", "lmi": PALETTE[1], "lmmse": PALETTE[0], "mode_aware_kf": PALETTE[2],
+                  "naive_kf": PALETTE[4]}
+        styles = {"true": "-", "lmi": LINESTYLES[1], "lmmse": LINESTYLES[3], "mode_aware_kf": LINESTYLES[2],
+                  "naive_kf": LINESTYLES[4]}
         est = self.plot_estimate
+        hat = r"\hat{x}(k|k-1)" if est == "predicted" else r"\hat{x}(k|k)"
+        modes = traj[traj["series"] == "mode"]
         for ax, c in zip(axes, comps):
             d = traj[traj["component"] == c]
             for s in ("true", "lmi", "lmmse", "mode_aware_kf", "naive_kf"):
                 rows = d[(d["series"] == s) & ((d["estimate"] == est) | (s == "true"))]
                 if len(rows):
-                    ax.plot(rows["k"], rows["value"], linestyle=styles[s], color=colors[s], lw=1.6 if s in ("true", "lmi") else 1.1,
-                            label=LABELS[s])
-            ax.set_ylabel(f"x{c}(k)")
-            ax.set_title(f"({'abcdefgh'[c - 1]}) state {c}: true vs {est} estimates (one realization)", fontsize=9)
-        modes = traj[traj["series"] == "mode"]
-        ax0 = axes[0]
-        for q, mk in zip(range(2, 5), ("^", "x", "s")):
-            kk = modes.loc[modes["value"] == q, "k"]
-            if len(kk):
-                y0 = ax0.get_ylim()[0]
-                ax0.plot(kk, np.full(len(kk), y0), mk, ms=3, color="0.4", label=f"mode {q} ({MODE_NAMES[q - 1]})")
-        lo, hi = ax0.get_ylim()
-        ax0.set_ylim(lo, hi + 0.45 * (hi - lo))  # head-room for the legend
-        ax0.legend(ncol=3, fontsize=7, loc="upper center")
+                    ax.plot(rows["k"], rows["value"], linestyle=styles[s], color=colors[s],
+                            lw=1.8 if s in ("true", "lmi") else 1.2, label=LABELS[s] if c == comps[0] else "_same")
+            lo, hi = ax.get_ylim()
+            rug = lo - 0.06 * (hi - lo)
+            for q, mk in zip(range(2, 5), ("^", "x", "s")):
+                kk = modes.loc[modes["value"] == q, "k"]
+                if len(kk):
+                    ax.plot(kk, np.full(len(kk), rug), mk, ms=4, color="0.35", ls="none",
+                            label=f"mode {q} ({MODE_NAMES[q - 1]}) at k" if c == comps[0] else "_same")
+            ax.set_ylabel(rf"$x_{c}(k)$")
+            ax.set_xlabel("time step k")
+            ax.set_title(rf"({'abcdefgh'[c - 1]}) state {c}: true $x_{c}$ and ${hat}$ of each filter (one realization)")
+        legend_outside(axes[0])
         ax = axes[-1]
+        hat2 = r"\|x(k)-\hat{x}(k|k-1)\|^2" if est == "predicted" else r"\|x(k)-\hat{x}(k|k)\|^2"
         for f in FILTERS:
             r = mse_t[(mse_t["filter"] == f) & (mse_t["estimate"] == est) & (mse_t["quantity"] == "mc")]
             row = mse[(mse["filter"] == f) & (mse["estimate"] == est) & (mse["quantity"] == "mc")].iloc[0]
-            ax.plot(r["k"], r["value"], color=colors[f], lw=1.4,
+            ax.plot(r["k"], r["value"], color=colors[f], ls=styles[f], lw=1.5,
                     label=f"{LABELS[f]}: {row['value']:.4g} ± {row['stderr']:.2g}")
-            ax.fill_between(r["k"], r["value"] - 2 * r["stderr"], r["value"] + 2 * r["stderr"], color=colors[f], alpha=0.2)
+            ax.fill_between(r["k"], r["value"] - 2 * r["stderr"], r["value"] + 2 * r["stderr"], color=colors[f],
+                            alpha=0.2, lw=0)
+        first = True
+        for f in FILTERS:
             ex = mse_t[(mse_t["filter"] == f) & (mse_t["estimate"] == est) & (mse_t["quantity"] == "exact")]
             if len(ex):
-                ax.plot(ex["k"], ex["value"], color="black", lw=0.7, ls=":")
+                ax.plot(ex["k"], ex["value"], color="black", lw=0.8, ls=(0, (1, 1)),
+                        label="exact (second-moment recursion)" if first else "_same")
+                first = False
         ax.set_ylim(bottom=0)
-        lo, hi = ax.get_ylim()
-        ax.set_ylim(0, hi * 1.35)
         ax.set_xlabel("time step k")
-        ax.set_ylabel("E‖x(k) − x̂(k|k)‖²" if est == "filtered" else "E‖x(k) − x̂(k|k−1)‖²")
+        ax.set_ylabel(rf"$\mathrm{{E}}\,{hat2}$")
         n_runs = int(mse["n_runs"].max())
         w = mse["window"].iloc[0]
-        ax.set_title(f"mean squared error over {n_runs} runs (band ±2 s.e.; dotted = exact); legend: mean over {w}",
-                     fontsize=9)
-        ax.legend(fontsize=7, loc="upper center", ncol=2)
-        footnote(fig, f"{scenario.name}: Moayedi, Soh & Foo 2009 — modes 2 delay, 3 missing, 4 dropout; "
-                      f"every filter starts from x_s(0) in the top panels, from E x(0) in the MSE runs")
+        ax.set_title(f"(c) mean squared error over {n_runs} runs (band ±2 s.e.)")
+        legend_outside(ax, title=f"MSE mean ± s.e. over {w}")
+        fig.suptitle(paper_title("markov", f"Example {scenario.name[-1]}" if scenario.name[-1].isdigit() else None,
+                                 "LMI filter vs exact LMMSE, mode-aware and naive KF"))
+        footnote(fig, f"{scenario.name}: modes 2 delay, 3 missing, 4 dropout (markers under the state panels); every "
+                      r"filter starts from $x_s(0)$ in panels (a)–(b) and from $\mathrm{E}\,x(0)$ in the MSE runs")
         return fig
 
 
-# ---------------------------------------------------------------------- Monte Carlo
-def _mc_kernel(rng, nr, model, ch, linear, x0, P0, K, burn):
-    """Additive statistics of one chunk: per-k sums of squared errors, per-run window averages."""
-    modes = ch.sample(rng, nr, K)
-    xi = draw_initial(model, rng, nr, x0, P0)
-    eps = draw_noise(model, rng, nr, K)
-    n = model.n
-    states = {f: np.repeat(F.s0[None], nr, axis=0) for f, F in linear.items()}
-    mak = ModeAwareKF(model, nr, x0, P0)
-    st: dict = {}
-    win = {(f, e): np.zeros(nr) for f in FILTERS for e in ESTIMATES}
-    for f in FILTERS:
-        for e in ESTIMATES:
-            st[f"sum_{f}_{e}"] = np.zeros(K)
-            st[f"sq_{f}_{e}"] = np.zeros(K)
-    for e in ESTIMATES:
-        st[f"sum_trP_{e}"] = np.zeros(K)
-        st[f"sq_trP_{e}"] = np.zeros(K)
-    winP = {e: np.zeros(nr) for e in ESTIMATES}
-    for k in range(K):
-        mode = modes[:, k]
-        x = xi[:, :n]
-        y, xi_next = plant_step(model, xi, eps[k], mode)
-        err = {}
-        for f, F in linear.items():
-            s = states[f]
-            err[(f, "predicted")] = x - s @ F.Ep.T
-            err[(f, "filtered")] = x - (s @ F.Ef[k].T + y @ F.Lf[k].T)
-            states[f] = s @ F.As[k].T + y @ F.Gs[k].T
-        xp, trp = mak.predicted()
-        xf, trf = mak.step(y, mode)
-        err[("mode_aware_kf", "predicted")] = x - xp
-        err[("mode_aware_kf", "filtered")] = x - xf
-        for (f, e), ev in err.items():
-            se = np.einsum("ri,ri->r", ev, ev)
-            st[f"sum_{f}_{e}"][k] = se.sum()
-            st[f"sq_{f}_{e}"][k] = (se * se).sum()
-            if k >= burn:
-                win[(f, e)] += se
-        for e, tr in (("predicted", trp), ("filtered", trf)):
-            st[f"sum_trP_{e}"][k] = tr.sum()
-            st[f"sq_trP_{e}"][k] = (tr * tr).sum()
-            if k >= burn:
-                winP[e] += tr
-        xi = xi_next
-    L = K - burn
-    for (f, e), v in win.items():
-        v = v / L
-        st[f"win_{f}_{e}"] = v.sum()
-        st[f"winsq_{f}_{e}"] = (v * v).sum()
-    for e in ESTIMATES:
-        v = winP[e] / L
-        st[f"win_trP_{e}"] = v.sum()
-        st[f"winsq_trP_{e}"] = (v * v).sum()
-    # paired differences (same runs) for the ordering claims
-    for a, b in (("lmmse", "mode_aware_kf"), ("lmi", "lmmse"), ("naive_kf", "lmmse")):
-        for e in ESTIMATES:
-            dv = (win[(a, e)] - win[(b, e)]) / L
-            st[f"dwin_{a}_{b}_{e}"] = dv.sum()
-            st[f"dwinsq_{a}_{b}_{e}"] = (dv * dv).sum()
-    # LMMSE exactness on the window average, paired with nothing (MC vs a number)
-    for f in FILTERS:
-        st[f"nonfinite_{f}"] = float(sum(int((~np.isfinite(win[(f, e)])).sum()) for e in ESTIMATES))
-    freq = np.stack([(modes == q).mean(axis=1) for q in range(N_MODES)])  # (N, nr) per-run fractions
-    st["mode_frac_sum"] = freq.sum(axis=1)
-    st["mode_frac_sq"] = (freq * freq).sum(axis=1)
-    return st
-
-
+# ---------------------------------------------------------------------- trajectory
 def _trajectory(rng, model, ch, linear, x0, P0, xs0, K) -> pd.DataFrame:
     """One realization: true x(k) and every filter's predicted / filtered estimate, plus the modes."""
     modes = ch.sample(rng, 1, K)
@@ -339,28 +282,30 @@ def _tables(stats, exact, exact_xs0, linear, runs, K, burn, ch, rho):
             m, s = mean_and_stderr(stats[f"sum_{f}_{e}"], stats[f"sq_{f}_{e}"], runs)
             mt += [(int(k), f, e, "mc", float(a), float(b), runs) for k, a, b in zip(ks, m, s)]
             wm, ws = mean_and_stderr(stats[f"win_{f}_{e}"], stats[f"winsq_{f}_{e}"], runs)
-            mw.append((f, e, "mc", float(wm), float(ws), runs, window))
+            ht = heavy_tail_flag(stats[f"win_{f}_{e}"], stats[f"winsq_{f}_{e}"], stats[f"win3_{f}_{e}"],
+                                 stats[f"win4_{f}_{e}"], runs)
+            mw.append((f, e, "mc", float(wm), float(ws), runs, window, int(ht)))
             if f in exact:
                 ex = exact[f][ie]
                 mt += [(int(k), f, e, "exact", float(a), 0.0, 0) for k, a in zip(ks, ex)]
-                mw.append((f, e, "exact", float(ex[burn:].mean()), 0.0, 0, window))
+                mw.append((f, e, "exact", float(ex[burn:].mean()), 0.0, 0, window, 0))
                 exb = exact_xs0[f][ie]
-                mw.append((f, e, "exact_from_xs0", float(exb[burn:].mean()), 0.0, 0, window))
+                mw.append((f, e, "exact_from_xs0", float(exb[burn:].mean()), 0.0, 0, window, 0))
             if f == "lmi":
                 key = "design_pred" if e == "predicted" else "design_filt"
                 dz = linear["lmi"].predicted[key]
                 mt += [(int(k), f, e, "design", float(a), 0.0, 0) for k, a in zip(ks, dz)]
-                mw.append((f, e, "design", float(dz[burn:].mean()), 0.0, 0, window))
+                mw.append((f, e, "design", float(dz[burn:].mean()), 0.0, 0, window, 0))
             if f == "lmmse":
                 key = "pred" if e == "predicted" else "filt"
-                mw.append((f, e, "riccati", float(linear["lmmse"].predicted[key][burn:].mean()), 0.0, 0, window))
+                mw.append((f, e, "riccati", float(linear["lmmse"].predicted[key][burn:].mean()), 0.0, 0, window, 0))
             if f == "mode_aware_kf":
                 m2, s2 = mean_and_stderr(stats[f"sum_trP_{e}"], stats[f"sq_trP_{e}"], runs)
                 mt += [(int(k), f, e, "kf_trace", float(a), float(b), runs) for k, a, b in zip(ks, m2, s2)]
                 wm2, ws2 = mean_and_stderr(stats[f"win_trP_{e}"], stats[f"winsq_trP_{e}"], runs)
-                mw.append((f, e, "kf_trace", float(wm2), float(ws2), runs, window))
+                mw.append((f, e, "kf_trace", float(wm2), float(ws2), runs, window, 0))
     mse_time = pd.DataFrame(mt, columns=["k", "filter", "estimate", "quantity", "value", "stderr", "n_runs"])
-    mse = pd.DataFrame(mw, columns=["filter", "estimate", "quantity", "value", "stderr", "n_runs", "window"])
+    mse = pd.DataFrame(mw, columns=["filter", "estimate", "quantity", "value", "stderr", "n_runs", "window", "heavy_tail"])
 
     fm, fs = mean_and_stderr(stats["mode_frac_sum"], stats["mode_frac_sq"], runs)
     mrows = []

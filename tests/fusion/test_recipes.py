@@ -108,7 +108,6 @@ def _run(tmp_path, text):
         (dict(A=0.9, C=1, Q=1e-4, loss="[0.1, 0.2]", grid="[0.1]"), "channel", "one entry per sensor"),
         (dict(A=0.9, C=1, Q=1e-4, loss=0.1, grid="[0.1, 1.0]"), "analysis.loss[1]", "must be < 1"),
         (dict(A=1.1, C=1, Q=1e-4, loss=0.1, grid="[0.1]"), "system.A", "stable A"),
-        (dict(A="[[0.9, 0], [0, 0.5]]", C="[[1, 0]]", Q="[[1, 0], [0, 1]]", loss=0.1, grid="[0.1]"), "system.A", "scalar states"),
     ],
 )
 def test_bad_input_is_a_config_error_with_path(tmp_path, fields, path, msg):
@@ -129,3 +128,20 @@ def test_fig2_ell_above_sensors(tmp_path):
     text = "name: t\nsystem: {A: 0.9, C: 1, Q: 1, R: 10}\nanalysis: {kind: fusion_bounding_functions, sensors: 2, ell: [0, 3]}\n"
     with pytest.raises(ConfigError, match=r"analysis.ell\[1\]"):
         _run(tmp_path, text)
+
+
+def test_vector_state_runs_its_monte_carlo_and_omits_scalar_only_bounds(tmp_path):
+    # issue 12: a vector state used to refuse even its Monte Carlo. Now MF/IBF run for any n; the
+    # bounds built on L_f^LB (Prop. 1, Prop. 2 with k >= 2; Lemma 2 is scalar) are omitted and the
+    # manifest says why; Psi (any n) and Prop. 2 with k = 1 (any n) are still reported and must hold.
+    import json
+
+    text = BASE3.format(A="[[0.9, 0.1], [0, 0.5]]", C="[[1, 0.5]]", Q="[[1.0e-2, 0], [0, 1.0e-2]]", loss=0.1,
+                        grid="[0.0, 0.3, 0.6]").replace("runs: 20", "runs: 200")
+    out = _run(tmp_path, text)
+    t = pd.read_csv(out / "t.csv")
+    assert set(t.series) == {"mf_mc", "ibf_mc", "mf_ub_psi", "ibf_lb_k1"}
+    assert "bounds_omitted" in json.dumps(json.loads((out / "manifest.json").read_text()))
+    c = pd.read_csv(out / "t_claims.csv").set_index("claim")
+    for claim in ("mf_le_upper_bound", "ibf_lower_bounds_hold", "ibf_le_mf"):
+        assert c.loc[claim, "value"] == 1.0, claim

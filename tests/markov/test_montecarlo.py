@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli.estimators.markov_filters import exact_mse, lmmse_filter, naive_filter
+from netkf_cli.estimators.markov_filters import MarkovMSEKernel, exact_mse, lmmse_filter, naive_filter
 from netkf_cli.estimators.markov_lmi import lmi_design
 from netkf_cli.montecarlo import mean_and_stderr, run_chunked
-from netkf_cli.recipes.markov import ESTIMATES, _mc_kernel
+from netkf_cli.recipes.markov import ESTIMATES
 
 Z = 5.0  # 5σ two-sided: p ≈ 6e-7 per comparison, so ~60 comparisons below stay far from a false alarm
 
@@ -22,7 +22,7 @@ def test_linear_filters_exact_vs_monte_carlo(example):
     K, burn, R = 40, 20, 3000
     linear = {"lmmse": lmmse_filter(md, T, pi0, x0, P0, K), "naive_kf": naive_filter(md, x0, P0, K),
               "lmi": lmi_design(md, e["rho"], x0, P0, K, design="closed_form").filter}
-    st = run_chunked(lambda rng, n: _mc_kernel(rng, n, md, e["ch"], linear, x0, P0, K, burn), R, 1500, 11)
+    st = run_chunked(MarkovMSEKernel(md, e["ch"], linear, x0, P0, K, burn), R, 1500, 11)
     for f, F in linear.items():
         ex = exact_mse(md, F, T, pi0, x0, P0)
         for ie, est in enumerate(ESTIMATES):
@@ -48,7 +48,7 @@ def test_ordering_on_same_runs(example):
     K, burn, R = 40, 20, 3000
     linear = {"lmmse": lmmse_filter(md, T, pi0, x0, P0, K), "naive_kf": naive_filter(md, x0, P0, K),
               "lmi": lmi_design(md, e["rho"], x0, P0, K, design="closed_form").filter}
-    st = run_chunked(lambda rng, n: _mc_kernel(rng, n, md, e["ch"], linear, x0, P0, K, burn), R, 3000, 12)
+    st = run_chunked(MarkovMSEKernel(md, e["ch"], linear, x0, P0, K, burn), R, 3000, 12)
     for a, b in (("lmmse", "mode_aware_kf"), ("lmi", "lmmse"), ("naive_kf", "lmmse")):
         for est in ESTIMATES:
             dm, ds = mean_and_stderr(st[f"dwin_{a}_{b}_{est}"], st[f"dwinsq_{a}_{b}_{est}"], R)

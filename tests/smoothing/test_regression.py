@@ -110,3 +110,24 @@ def test_burstiness_claims(outputs, name):
     if name == "burstiness_common":  # at one arrival rate, a longer lag never hurts, whatever the burstiness
         piv = e.pivot_table(index="mean_burst", columns="lag", values="value")
         assert (np.diff(piv.to_numpy(), axis=1) > -1e-12).all()
+
+
+@pytest.mark.parametrize("name", list(SMALL))
+def test_proportions_have_wilson_intervals_of_positive_width(name, outputs):
+    """Every Monte Carlo proportion row has ci_low < value-or-equal < ci_high, also at p̂ ∈ {0, 1} (issue 13)."""
+    for p in outputs[name].glob("*.csv"):
+        t = pd.read_csv(p)
+        if "ci_low" not in t.columns:
+            continue
+        ci = t[t.ci_low.notna()]
+        assert len(ci), p.name
+        assert (ci.ci_low < ci.ci_high).all(), p.name
+        assert ((ci.ci_low <= ci.value + 1e-12) & (ci.value <= ci.ci_high + 1e-12)).all(), p.name
+        assert ((ci.ci_low >= 0) & (ci.ci_high <= 1)).all(), p.name
+
+
+def test_unreliable_monte_carlo_means_are_flagged(outputs):
+    t = pd.read_csv(outputs["critical_rate"] / "smoothing_critical_rate.csv")
+    m = t[t.series == "monte_carlo"]
+    assert ((m.heavy_tail == 1) == (m.lam <= m.lambda_2)).all()
+    assert (m[m.heavy_tail == 1].reliable == 0).all()

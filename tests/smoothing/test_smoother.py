@@ -92,15 +92,20 @@ def test_lost_packet_propagates_the_previous_estimate_covariance():
     assert res.smooth[1, 3, 0, 0, 0] < res.smooth[1, 2, 0, 0, 0]  # γ_4 = 1
 
 
-def test_overflow_is_inf_never_nan():
+def test_overflow_is_inf_never_nan_and_an_arrival_recovers():
     s = LinearSystem.create(30.0, 1, 1, 1, 1.0)
     g = np.zeros((3, 260), bool)
-    g[1, 200] = True  # an arrival after the overflow keeps the run at inf (counted as P > M), not NaN
+    g[1, 200] = True  # an arrival after the overflow: P_{k|k} = r / (c² + r/∞) = r/c² = 1 exactly
     with np.errstate(all="raise"):
-        res = fixed_lag_smoother(s, g, 2, times=[250])
+        res = fixed_lag_smoother(s, g, 2, times=[199, 200, 250])
     assert not np.isnan(res.smooth).any() and not np.isnan(res.pred).any()
-    assert np.isinf(res.pred).all()
-    assert not riccati.psd_leq(np.moveaxis(res.filt[0], -1, 0), np.array([[1e300]])).any()
+    assert np.isinf(res.pred[:, :, :, [0, 2]]).all() and np.isinf(res.pred[0, 0, 0, 1])
+    assert res.filt[1, 0, 0, 1] == 1.0  # the overflowed prediction is forgotten at the arrival
+    x = 1.0
+    for _ in range(50):  # then 50 losses: h⁵⁰(1) = 900⁵⁰ + …, finite (≈ 5e147)
+        x = 900.0 * x + 1.0
+    np.testing.assert_allclose(res.pred[2, 0, 0, 1], x, rtol=1e-12)
+    assert not riccati.psd_leq(np.moveaxis(res.filt[2], -1, 0), np.array([[1e300]]))[[0, 2]].any()
 
 
 def test_bad_input():

@@ -1,0 +1,201 @@
+"""Channel/estimator contract (issue 12) for `markov_modes` + `markov_lmi`: traces, per-run covariances."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from netkf_cli.channels.markov_modes import MarkovModesChannel
+from netkf_cli.errors import ConfigError
+from netkf_cli.estimators.markov_filters import (
+    AugmentedModel,
+    MarkovLMIEstimator,
+    MarkovMSEKernel,
+    ModeAwareKF,
+    ModeAwareKFTr,
+    exact_mse,
+    lmmse_filter,
+    naive_filter,
+)
+from netkf_cli.estimators.markov_lmi import lmi_design
+from netkf_cli.system import LinearSystem
+
+EX2 = LinearSystem.create([[0.8, 0], [0.9, 0.2]], [[1, 1]], [[0.36, 0.30], [0.30, 0.25]], 0.25, P0=[[0, 0], [0, 0]])
+CHAIN = [[0.7, 0.0, 0.1, 0.2], [0.7, 0.15, 0.05, 0.1], [0.7, 0.15, 0.05, 0.1], [0.7, 0.15, 0.05, 0.1]]
+
+
+def _ch(transition=CHAIN):
+    return MarkovModesChannel(kind="markov_modes", transition=transition)
+
+
+def test_trace_carries_modes_arrivals_and_the_chain():
+    ch = _ch()
+    assert ch.trace_kinds == {"mode", "arrival"}
+    tr = ch.sample_trace(np.random.default_rng(0), 4000, 30)
+    assert tr.mode.shape == (30, 4000) and tr.mode.dtype == np.int8
+    np.testing.assert_array_equal(tr.arrival[0], tr.mode == 0)
+    np.testing.assert_allclose(tr.meta["rho"], ch.rho)
+    assert ch.loss_rate() == pytest.approx(1 - ch.rho[0])
+    # same generator state ⇒ the legacy (runs, horizon) sampler is the transpose
+    np.testing.assert_array_equal(ch.sample(np.random.default_rng(0), 4000, 30), tr.mode.T)
+
+
+def test_perfect_channel_mode_aware_gives_the_dare_steady_state():
+    # every packet on time (mode 1 forever): the mode-aware KF is the ordinary KF, so its
+    # filtered P_x(k|k) converges to the filtering DARE solution.
+    perfect = _ch([[1.0, 0, 0, 0]] * 4)
+    tr = perfect.sample_trace(np.random.default_rng(1), 3, 200)
+    est = MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware")
+    P = dict(est.covariances(EX2, tr, [200]))[200]
+    Pp = scipy.linalg.solve_discrete_are(EX2.A.T, EX2.C.T, EX2.Q, EX2.R)
+    Pf = Pp - Pp @ EX2.C.T @ np.linalg.solve(EX2.C @ Pp @ EX2.C.T + EX2.R, EX2.C @ Pp)
+    for r in range(3):
+        np.testing.assert_allclose(P[:, :, r], Pf, rtol=1e-8, atol=1e-10)
+
+
+def test_mode_aware_run_innermost_equals_the_per_run_layout():
+    md = AugmentedModel.build(EX2.A, EX2.C, EX2.Q, EX2.R)
+    rng = np.random.default_rng(2)
+    R, K = 300, 30
+    modes = _ch().sample_trace(rng, R, K).mode
+    ys = rng.standard_normal((K, 1, R))
+    a = ModeAwareKF(md, R, np.zeros(2), np.eye(2))
+    b = ModeAwareKFTr(md, R, np.zeros(2), np.eye(2))
+    for k in range(K):
+        xa, ta = a.step(ys[k].T.copy(), modes[k])
+        xb, tb, Pb = b.step(ys[k], modes[k], want_cov=True)
+        np.testing.assert_allclose(xb, xa.T, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(tb, ta, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(np.trace(Pb), tb, rtol=1e-12)
+
+
+@pytest.mark.parametrize("which", ["lmi", "naive"])
+def test_fixed_gain_covariances_average_to_the_exact_mse(which):
+    # Given the mode path, P_k(θ) = E[e eᵀ | θ] exactly; its mean over independent mode paths is
+    # the unconditional MSE, which exact_mse computes without sampling. tr P_k(θ) is bounded, so
+    # the Monte Carlo mean over R paths has s.e. sd/√R: allow 5 s.e. at k = 5, 20, 40.
+    ch = _ch()
+    R, K = 4000, 40
+    tr = ch.sample_trace(np.random.default_rng(3), R, K)
+    est = MarkovLMIEstimator(kind="markov_lmi", filter=which)
+    got = dict(est.covariances(EX2, tr, [5, 20, 40]))
+    md = AugmentedModel.build(EX2.A, EX2.C, EX2.Q, EX2.R)
+    x0, P0 = np.zeros(2), np.zeros((2, 2))
+    filt = naive_filter(md, x0, P0, K) if which == "naive" else lmi_design(md, ch.rho, x0, P0, K, design="closed_form").filter
+    ex = exact_mse(md, filt, ch.T, ch.pi0, x0, P0)[1]
+    for k, P in got.items():
+        trP = np.trace(P)
+        assert np.all(trP > 0)
+        m, se = trP.mean(), trP.std(ddof=1) / np.sqrt(R)
+        assert abs(m - ex[k - 1]) <= 5 * se + 1e-12, (which, k, m, ex[k - 1], se)
+
+
+def test_lmmse_is_refused_with_a_clear_message():
+    est = MarkovLMIEstimator(kind="markov_lmi", filter="lmmse")
+    with pytest.raises(ConfigError, match="expectation over all mode paths"):
+        est.check(EX2, _ch())
+
+
+def test_mse_kernel_is_picklable_and_has_fixed_keys():
+    md = AugmentedModel.build(EX2.A, EX2.C, EX2.Q, EX2.R)
+    ch = _ch()
+    x0, P0, K = np.zeros(2), np.zeros((2, 2)), 12
+    lin = {"lmmse": lmmse_filter(md, ch.T, ch.pi0, x0, P0, K), "naive_kf": naive_filter(md, x0, P0, K),
+           "lmi": lmi_design(md, ch.rho, x0, P0, K, design="closed_form").filter}
+    k = MarkovMSEKernel(md, ch, lin, x0, P0, K, 6)
+    k2 = pickle.loads(pickle.dumps(k))
+    a, b = k(np.random.default_rng(5), 20), k2(np.random.default_rng(5), 20)
+    assert sorted(a) == sorted(k.keys())
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key])
+
+
+def test_compiled_mode_aware_kf_equals_numpy_on_the_same_inputs():
+    # issue 15: same uniforms ⇒ the same statistics up to floating-point rounding (different order of
+    # operations). Relative 1e-9 on a full kernel call (all four filters, Example 2 and a singular-noise case).
+    pytest.importorskip("numba")
+    ex1 = ([[1.7240, -0.7788], [1, 0]], [[0.0286, 0.0264]], [[1, 0], [0, 0]], 0.04, [[0.2], [0.0]])  # Σ singular
+    for A, C, Q, R, S in ((EX2.A, EX2.C, EX2.Q, EX2.R, None), ex1):
+        md = AugmentedModel.build(A, C, Q, R, S)
+        ch = _ch()
+        x0, P0, K = np.zeros(2), np.zeros((2, 2)), 25
+        lin = {"lmmse": lmmse_filter(md, ch.T, ch.pi0, x0, P0, K), "naive_kf": naive_filter(md, x0, P0, K),
+               "lmi": lmi_design(md, ch.rho, x0, P0, K, design="closed_form").filter}
+        a = MarkovMSEKernel(md, ch, lin, x0, P0, K, 10, backend="numpy")(np.random.default_rng(8), 500)
+        b = MarkovMSEKernel(md, ch, lin, x0, P0, K, 10, backend="numba")(np.random.default_rng(8), 500)
+        assert sorted(a) == sorted(b)
+        for key in a:
+            np.testing.assert_allclose(b[key], a[key], rtol=1e-9, atol=1e-12, err_msg=key)
+
+
+def test_backend_auto_picks_numba_when_present_and_numpy_when_hidden(monkeypatch):
+    import sys
+
+    from netkf_cli.estimators import markov_filters as mf
+
+    if mf.numba_available():
+        assert mf.resolve_backend("auto", 1) == "numba"
+    assert mf.resolve_backend("auto", 2) == "numpy"  # the compiled step handles m = 1 only
+    monkeypatch.setitem(sys.modules, "numba", None)  # import numba now raises ImportError
+    assert not mf.numba_available()
+    assert mf.resolve_backend("auto", 1) == "numpy"
+    with pytest.raises(ConfigError, match="estimator.backend"):
+        mf.resolve_backend("numba", 1)
+
+
+@pytest.mark.parametrize("which", ["lmi", "naive", "mode_aware"])
+def test_batched_covariances_equal_a_per_run_loop(which):
+    # issue 12: batched == per-run loop on the same trace. The loop is the textbook recursion one run
+    # at a time: for fixed gains M⁺ = 𝒜_q M 𝒜_qᵀ + ℬ_q Σ ℬ_qᵀ on ζ = [ξ; x_s], error of x̂(k|k) read off
+    # M; for the mode-aware KF the plain Riccati step with Σ_y⁺ (zero-variance innovations get no gain).
+    from netkf_cli.estimators.markov_filters import pinv_psd
+
+    ch = _ch()
+    R, K = 7, 18
+    tr = ch.sample_trace(np.random.default_rng(4), R, K)
+    est = MarkovLMIEstimator(kind="markov_lmi", filter=which)
+    got = dict(est.covariances(EX2, tr, range(1, K + 1)))
+    md = AugmentedModel.build(EX2.A, EX2.C, EX2.Q, EX2.R)
+    x0, P0, n, d = np.zeros(2), np.zeros((2, 2)), 2, md.d
+    xbar, cov = md.initial_moments(x0, P0)
+    Sg = md.Sigma
+    if which == "mode_aware":
+        for r in range(R):
+            P = cov.copy()
+            for t in range(K):
+                q = tr.mode[t, r]
+                F, G, H, J = md.F[q], md.G[q], md.H[q], md.J[q]
+                Sy = H @ P @ H.T + J @ Sg @ J.T
+                Si = pinv_psd(Sy, np.trace(Sg) + np.trace(P))
+                Kf = P @ H.T @ Si
+                np.testing.assert_allclose(got[t + 1][:, :, r], (P - Kf @ Sy @ Kf.T)[:n, :n], rtol=1e-8, atol=1e-10)
+                Kg = (F @ P @ H.T + G @ Sg @ J.T) @ Si
+                P = F @ P @ F.T + G @ Sg @ G.T - Kg @ Sy @ Kg.T
+                P = (P + P.T) / 2
+        return
+    filt = naive_filter(md, x0, P0, K) if which == "naive" else lmi_design(md, ch.rho, x0, P0, K, design="closed_form").filter
+    for r in range(R):
+        z0 = np.concatenate([xbar, filt.s0])
+        M = np.outer(z0, z0)
+        M[:d, :d] += cov
+        for t in range(K):
+            q = tr.mode[t, r]
+            Cf = np.concatenate([md.Ex - filt.Lf[t] @ md.H[q], -filt.Ef[t]], axis=1)
+            LJ = filt.Lf[t] @ md.J[q]
+            want = Cf @ M @ Cf.T + LJ @ Sg @ LJ.T
+            np.testing.assert_allclose(got[t + 1][:, :, r], want, rtol=1e-9, atol=1e-12)
+            Aq = np.block([[md.F[q], np.zeros((d, filt.As.shape[1]))], [filt.Gs[t] @ md.H[q], filt.As[t]]])
+            Bq = np.vstack([md.G[q], filt.Gs[t] @ md.J[q]])
+            M = Aq @ M @ Aq.T + Bq @ Sg @ Bq.T
+
+
+def test_mode_aware_covariances_compiled_equal_numpy():
+    pytest.importorskip("numba")
+    tr = _ch().sample_trace(np.random.default_rng(12), 300, 30)
+    a = dict(MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware", backend="numpy").covariances(EX2, tr, [1, 7, 30]))
+    b = dict(MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware", backend="numba").covariances(EX2, tr, [1, 7, 30]))
+    for k in a:
+        np.testing.assert_allclose(b[k], a[k], rtol=1e-9, atol=1e-12)
