@@ -52,8 +52,8 @@ def labels(estimators) -> list[str]:
         if kinds.count(e.kind) > 1:
             same = [o for o in estimators if o.kind == e.kind]
             for f, v in e.model_dump().items():
-                if f != "kind" and not isinstance(v, (list, dict)) and len({str(o.model_dump().get(f)) for o in same}) > 1:
-                    lab += f" {f}={v}"
+                if f != "kind" and len({str(o.model_dump().get(f)) for o in same}) > 1:
+                    lab += f" {f}=" + (",".join(map(str, v)) if isinstance(v, list) else str(v))
         out.append(lab)
     if len(set(out)) < len(out):
         out = [f"{lab} #{i + 1}" for i, lab in enumerate(out)]

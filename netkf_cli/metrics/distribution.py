@@ -31,7 +31,7 @@ from netkf_cli import engine, riccati
 from netkf_cli.errors import ConfigError
 from netkf_cli.metrics.common import MGrid, PaperRef, labels, m_values, needs, step_of
 from netkf_cli.montecarlo import proportion_stderr, wilson_interval
-from netkf_cli.plotting import MARKERS, PALETTE, footnote, new_figure, paper_title
+from netkf_cli.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt
 
@@ -216,7 +216,7 @@ class Distribution(AnalysisModel):
     def plot(self, tables, scenario):
         t = tables["main"]
         cur = tables.get("curves")
-        fig, ax = new_figure(width=7.4, height=4.8)
+        fig, ax = new_figure(width=7.4, height=5.6)
         styles = {"lower_bound": dict(ls="--", lw=1.3, lab=r"lower bound $1-\theta(k_1, D)$ (Thm 3.8)"),
                   "upper_bound": dict(ls="-.", lw=1.3, lab=r"upper bound $1-\theta(k_2, D)$ (Thm 3.8)"),
                   "exact": dict(ls="-", lw=1.0, lab="exact (certified)"),
@@ -245,7 +245,7 @@ class Distribution(AnalysisModel):
         ax.set_ylim(-0.02, 1.02)
         what = self.title or rf"$\Pr[P_k \leq M]$, {_channel_text(scenario.channel)}"
         ax.set_title(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
-        ax.legend(loc="lower right", fontsize=9, framealpha=0.9)  # a CDF leaves the lower right empty
+        legend_outside(ax, loc="below", ncol=1)
         k = int(t.k.iloc[0])
         footnote(fig, f"P_k at k = {k}" + (" (stationary: after the burn-in from P0)" if self.at == "stationary" else ""))
         return fig
