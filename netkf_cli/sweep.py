@@ -23,15 +23,24 @@ from netkf_cli.errors import ConfigError, Problem
 from netkf_cli.spec import StrictModel
 
 
+MAX_POINTS = 10_000
+"""Most points a sweep may have (each point is a full artefact run): checked before anything is built."""
+
+
 class SweepRange(StrictModel):
-    from_: float = Field(alias="from")
-    to: float
-    step: float = 1.0
+    from_: float = Field(alias="from", description="first value")
+    to: float = Field(description="last value (inclusive)")
+    step: float = Field(1.0, description="increment (> 0)")
 
     def values(self) -> list:
-        if self.step <= 0:
-            raise ValueError("step must be > 0")
+        if not (self.step > 0 and np.isfinite(self.step)):
+            raise ValueError("step must be a finite number > 0")
+        if not (np.isfinite(self.from_) and np.isfinite(self.to)):
+            raise ValueError("from and to must be finite numbers")
         n = int(np.floor((self.to - self.from_) / self.step + 1e-9)) + 1
+        if n > MAX_POINTS:
+            raise ValueError(f"{{from: {self.from_:g}, to: {self.to:g}, step: {self.step:g}}} has {n:,} values; "
+                             f"a sweep may have at most {MAX_POINTS:,} points")
         vals = [self.from_ + i * self.step for i in range(max(n, 0))]
         return [int(v) if float(v).is_integer() else v for v in vals]
 
@@ -77,6 +86,10 @@ class SweepSpec(StrictModel):
             raise ValueError("a sweep needs at least one dotted field path with values")
         if self.mode == "zip" and len({len(v) for v in self.axes.values()}) > 1:
             raise ValueError(f"mode zip needs lists of equal length, got {[len(v) for v in self.axes.values()]}")
+        count = len(next(iter(self.axes.values()))) if self.mode == "zip" else int(np.prod([len(v) for v in self.axes.values()], dtype=float))
+        if count > MAX_POINTS:
+            raise ValueError(f"the sweep has {count:,} points; at most {MAX_POINTS:,} are allowed (each point is a "
+                             f"whole run): split it or use coarser steps")
         return self
 
     def points(self) -> list[dict[str, Any]]:

@@ -19,16 +19,17 @@ RUNS = 20_000
 
 
 class _Make:
-    def __init__(self, system: str):
-        self.system = system
+    def __init__(self, system: str, backend: str = "numpy"):
+        self.system, self.backend = system, backend
 
     def __call__(self):
         s, _, _, M = systems()[self.system]
         ch = BernoulliChannel(kind="bernoulli", arrival=0.8)
-        kernel = PairKernel(s, ch, [KalmanFilterEstimator(kind="kf")], HORIZON, [HORIZON],
+        kernel = PairKernel(s, ch, [KalmanFilterEstimator(kind="kf", backend=self.backend)], HORIZON, [HORIZON],
                             DistributionReducer(np.asarray(M), [HORIZON]))
         return kernel, RUNS, HORIZON
 
 
-CASES = [{"estimator": "kf", "system": name, "backend": "numpy", "threads": None, "make": _Make(name)}
-         for name in ("scalar", "3-state", "vehicle")]
+CASES = [{"estimator": "kf", "system": name, "backend": be, "threads": None, "make": _Make(name, be),
+          "bound": "per-run n×n products in Python-level entry loops (numpy) / generic-n loops (numba)"}
+         for be in ("numpy", "numba") for name in ("scalar", "3-state", "vehicle")]

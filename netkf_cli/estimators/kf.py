@@ -75,6 +75,24 @@ class KalmanFilterEstimator(EstimatorModel):
     kind: Literal["kf"]
     report: Literal["filtered", "predicted"] = Field(
         "filtered", description="which covariance is reported: filtered P_{k|k} or predicted P_{k+1|k}")
+    backend: Literal["auto", "numpy", "numba"] = Field(
+        "auto", description="numpy (reference) | numba (compiled, equal to rounding) | auto = numba when importable")
+
+    def resolved_backend(self, system, streams: int = 1) -> str:
+        """The backend that runs: numba needs one arrival stream, filtered reporting and n, m ≤ 8."""
+        if self.backend == "numpy":
+            return "numpy"
+        ok = streams == 1 and self.report == "filtered" and system.n <= 8 and system.m <= 8
+        if self.backend == "numba" and not ok:
+            raise ConfigError.at("estimator.backend", "backend numba supports one arrival stream, report: filtered "
+                                 "and n, m ≤ 8; use backend: numpy (or auto)")
+        try:
+            import numba  # noqa: F401
+        except ImportError:
+            if self.backend == "numba":
+                raise ConfigError.at("estimator.backend", "backend numba needs numba installed") from None
+            return "numpy"
+        return "numba" if ok else "numpy"
 
     accepts: ClassVar[frozenset[str]] = frozenset({"arrival"})
     quantity: ClassVar[str] = "P_{k|k}"
@@ -93,6 +111,9 @@ class KalmanFilterEstimator(EstimatorModel):
         if S not in (1, system.m):
             raise ConfigError.at("estimator.kind", f"kf: the trace has {S} arrival streams, expected 1 or m = {system.m}")
         A, C, Q, R = system.A, system.C, system.Q, system.R
+        if self.resolved_backend(system, S) == "numba":
+            yield from self._compiled(system, trace, steps)
+            return
         P = np.repeat(initial_covariance(system)[:, :, None], trace.runs, axis=2)
         info = C.T @ np.linalg.solve(R, C)  # CᵀR⁻¹C: the information of one measurement
         P_one = np.linalg.inv(info) if np.linalg.matrix_rank(info) == system.n else None
@@ -120,3 +141,31 @@ class KalmanFilterEstimator(EstimatorModel):
                 if self.report == "filtered" and k == nxt:
                     yield k, P
                     nxt = next(want, None)
+
+    def _compiled(self, system, trace, steps):
+        """The numba path: advance between requested steps; flagged (overflowing) runs are redone in numpy."""
+        from netkf_cli.estimators.kf_numba import kernel
+
+        advance = kernel()
+        A, C, Q, R = (np.ascontiguousarray(x, dtype=float) for x in (system.A, system.C, system.Q, system.R))
+        info = C.T @ np.linalg.solve(R, C)
+        P_one = np.linalg.inv(info) if np.linalg.matrix_rank(info) == system.n else None
+        limit = RATIO * (np.trace(P_one) if P_one is not None else np.trace(R) * 1e8)
+        runs = trace.runs
+        P = np.ascontiguousarray(np.repeat(initial_covariance(system)[:, :, None], runs, axis=2))
+        gam = np.ascontiguousarray(trace.arrival[0])
+        flag = np.zeros(runs, dtype=np.bool_)
+        t = 0
+        for k in steps:
+            advance(P, gam, A, C, Q, R, t, k, limit, flag)
+            t = k
+            if flag.any():  # rare: overflowing runs go through the numpy reference from the start
+                idx = np.flatnonzero(flag)
+                sub = type(trace)(len(idx), trace.horizon, arrival=trace.arrival[:, :, idx])
+                ref = self.model_copy(update={"backend": "numpy"})
+                done = dict(ref.covariances(system, sub, [k]))
+                out = P.copy()
+                out[:, :, idx] = done[k]
+                yield k, out
+            else:
+                yield k, P.copy()
