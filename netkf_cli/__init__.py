@@ -12,6 +12,11 @@ import os as _os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")
 
+# numba's parallel kernels may run in this process before a process pool forks its workers
+# (GNU OpenMP aborts a forked child: "fork() called from a process already using GNU OpenMP");
+# the fork-safe threading layers (tbb, workqueue) do not. A user's own setting wins.
+_os.environ.setdefault("NUMBA_THREADING_LAYER", "forksafe")
+
 __version__ = "0.1.0"
 
 

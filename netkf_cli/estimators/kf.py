@@ -76,7 +76,8 @@ class KalmanFilterEstimator(EstimatorModel):
     report: Literal["filtered", "predicted"] = Field(
         "filtered", description="which covariance is reported: filtered P_{k|k} or predicted P_{k+1|k}")
     backend: Literal["auto", "numpy", "numba"] = Field(
-        "auto", description="numpy (reference) | numba (compiled, equal to rounding) | auto = numba when importable")
+        "auto", description="numpy (reference) | numba (compiled, equal to rounding) | auto = numpy: measured, the "
+                            "compiled generic-n kernel is no faster than the run-innermost numpy path (benchmarks/)")
 
     def resolved_backend(self, system, streams: int = 1) -> str:
         """The backend that runs: numba needs one arrival stream, filtered reporting and n, m ≤ 8."""
@@ -92,7 +93,9 @@ class KalmanFilterEstimator(EstimatorModel):
             if self.backend == "numba":
                 raise ConfigError.at("estimator.backend", "backend numba needs numba installed") from None
             return "numpy"
-        return "numba" if ok else "numpy"
+        # auto: numpy — on this machine the compiled generic-n kernel measured no faster (scalar 3.5e7 vs
+        # 8e7, 3-state 1.8e7 vs 1.7e7, vehicle 8.7e6 vs 9.0e6 run-steps/s; bench_estimators.py --only engine)
+        return "numba" if (ok and self.backend == "numba") else "numpy"
 
     accepts: ClassVar[frozenset[str]] = frozenset({"arrival"})
     quantity: ClassVar[str] = "P_{k|k}"

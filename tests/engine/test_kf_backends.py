@@ -43,9 +43,14 @@ def test_numba_hands_overflowing_runs_to_the_reference():
     assert np.all(b[0, 0, arrived] <= 1.0)  # an arrival bounds P by (CᵀR⁻¹C)⁻¹ = I, never a cancelled 0 or NaN
 
 
-def test_auto_picks_numba_when_present_and_numpy_when_hidden(monkeypatch):
+def test_auto_is_numpy_and_numba_needs_numba(monkeypatch):
+    """auto = numpy for the KF (the compiled kernel measured no faster); an explicit numba without numba is a
+    clear error."""
+    from netkf_cli.errors import ConfigError
+
     s = LinearSystem.create(1.2, 1, 1, 1)
-    assert KalmanFilterEstimator(kind="kf").resolved_backend(s) == "numba"
+    assert KalmanFilterEstimator(kind="kf").resolved_backend(s) == "numpy"
+    assert KalmanFilterEstimator(kind="kf", backend="numba").resolved_backend(s) == "numba"
     real = builtins.__import__
 
     def no_numba(name, *args, **kw):
@@ -54,4 +59,5 @@ def test_auto_picks_numba_when_present_and_numpy_when_hidden(monkeypatch):
         return real(name, *args, **kw)
 
     monkeypatch.setattr(builtins, "__import__", no_numba)
-    assert KalmanFilterEstimator(kind="kf").resolved_backend(s) == "numpy"
+    with pytest.raises(ConfigError, match="needs numba"):
+        KalmanFilterEstimator(kind="kf", backend="numba").resolved_backend(s)
