@@ -6,22 +6,135 @@ This is the only place where exceptions become messages and exit codes:
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
 import sys
+import time
 import warnings
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+from typer.core import TyperGroup
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from netkf_cli import __version__
-from netkf_cli.errors import ConfigError, NetkfError
+from netkf_cli.errors import ConfigError, NetkfError, Problem
+
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, the shell convention for a command stopped by Ctrl-C
+LARGE_RUN_S = 120.0  # runs expected to take longer than this say so (with an ETA) before starting
+RUN_STEPS_PER_S = 1e7  # rough per-process speed of the covariance recursions, for that ETA only
+_STATE: dict = {"debug": False, "t0": None}
+
+
+def _process_age() -> float | None:
+    """Seconds since this process started (Linux ``/proc``), or None."""
+    try:
+        stat = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        start_ticks = int(stat[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def command_started() -> float:
+    """``time.perf_counter()`` value at which this command started: the process start when run as
+    the ``netkf`` program (so start-up and imports count), else the moment the command was invoked."""
+    t0 = _STATE["t0"] if _STATE["t0"] is not None else time.perf_counter()
+    argv0 = Path(sys.argv[0]).name if sys.argv else ""
+    if argv0 in ("netkf", "cli.py", "__main__.py"):
+        age = _process_age()
+        if age is not None:
+            return min(t0, time.perf_counter() - age)
+    return t0
+
+
+def _report_unexpected(exc: BaseException) -> int:
+    """One line for anything that is not a NetkfError; returns the exit code."""
+    if isinstance(exc, KeyboardInterrupt):
+        err.print("[bold red]interrupted[/] (Ctrl-C): what had finished is kept, nothing is half-written.",
+                  highlight=False)
+        return EXIT_INTERRUPTED
+    if isinstance(exc, MemoryError):
+        err.print("[bold red]error:[/] out of memory; reduce montecarlo.chunk, the grid or --jobs", highlight=False)
+        return 1
+    if isinstance(exc, OSError):
+        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+        err.print("[bold red]error:[/] " + escape(f"cannot access{where}: {exc.strerror or exc}"), highlight=False)
+        return 1
+    err.print("[bold red]error:[/] " + escape(f"internal error ({type(exc).__name__}: {exc}). This is a bug in netkf: "
+              "please report it with the scenario; `netkf --debug …` shows the traceback."), highlight=False)
+    return 1
+
+
+def _refuse_non_finite_options(args: list[str]) -> None:
+    """``--d inf``, ``--tol nan``: one clear message (exit 1) for every option of every command,
+    before click's range checks, which compare NaN falsely ("should be ≤ 0.1")."""
+    import math
+
+    problems = []
+    for i, tok in enumerate(args):
+        if tok == "--":
+            break
+        opt, val = (tok.split("=", 1) if tok.startswith("--") and "=" in tok
+                    else (args[i - 1], tok) if i and args[i - 1].startswith("-") and not tok.startswith("--")
+                    else (None, None))
+        if opt is None or not opt.startswith("-"):
+            continue
+        try:
+            bad = not math.isfinite(float(val))
+        except ValueError:
+            continue
+        if bad:
+            problems.append(Problem(opt, f"must be a finite number, got {val}"))
+    if problems:
+        raise ConfigError(problems)
+
+
+def _cli_control() -> tuple[type[BaseException], ...]:
+    """Exceptions typer/click use for exits and usage errors (exit 2): never turned into messages."""
+    kinds: list = [typer.Exit, typer.Abort]
+    for mod, names in (("typer.exceptions", ("TyperException",)), ("typer._click.exceptions", ("ClickException",)),
+                       ("click.exceptions", ("ClickException", "Exit", "Abort"))):
+        try:
+            m = __import__(mod, fromlist=list(names))
+        except ImportError:
+            continue
+        kinds += [getattr(m, n) for n in names if hasattr(m, n)]
+    return tuple(kinds)
+
+
+_CLI_CONTROL = _cli_control()
+
+
+class NetkfGroup(TyperGroup):
+    """Every command runs inside one error layer: user errors (NetkfError) become one block and
+    exit 1; OS errors, interrupts and bugs one line each; a traceback only with ``--debug``."""
+
+    def invoke(self, ctx):
+        try:
+            _refuse_non_finite_options([*getattr(ctx, "_protected_args", []), *ctx.args])
+            return super().invoke(ctx)
+        except _CLI_CONTROL:
+            raise
+        except NetkfError as exc:
+            if _STATE["debug"]:
+                raise
+            _print_error(exc)
+            raise typer.Exit(1) from None
+        except BaseException as exc:  # noqa: BLE001 - the one place exceptions become messages
+            if _STATE["debug"] or isinstance(exc, (SystemExit, GeneratorExit)):
+                raise
+            raise typer.Exit(_report_unexpected(exc)) from None
+
 
 app = typer.Typer(
+    cls=NetkfGroup,
     name="netkf",
     help="Kalman filtering over lossy, delaying and fading networks: scenarios → Monte Carlo + closed-form bounds → CSV + PNG.",
     context_settings={"help_option_names": ["-h", "--help"]},
@@ -35,22 +148,24 @@ err = Console(stderr=True, soft_wrap=True)
 
 def fail(exc: NetkfError) -> None:
     """Print a user error as one block and exit 1."""
+    _print_error(exc)
+    raise typer.Exit(1)
+
+
+def _print_error(exc: NetkfError) -> None:
     if isinstance(exc, ConfigError):
         err.print("[bold red]error:[/] invalid input", highlight=False)
         for p in exc.problems:
             err.print(f"  • {p.render()}", highlight=False, markup=False)
     else:
-        err.print(f"[bold red]error:[/] {exc}", highlight=False)
-    raise typer.Exit(1)
+        err.print("[bold red]error:[/] " + escape(str(exc)), highlight=False)
 
 
 def user_errors(fn):
+    """Kept for commands that use it; the group's error layer (:class:`NetkfGroup`) does the work."""
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except NetkfError as exc:
-            fail(exc)
+        return fn(*args, **kwargs)
 
     return wrapper
 
@@ -68,17 +183,31 @@ def version_callback(value: bool):
         raise typer.Exit()
 
 
+_SEEN_WARNINGS: set[str] = set()
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None):
-    """User-facing warnings (e.g. a scenario the paper's assumptions do not cover) as one line."""
-    err.print(f"[yellow]warning:[/] {message}", highlight=False)
+    """User-facing warnings (e.g. a scenario the paper's assumptions do not cover) as one line,
+    each distinct message once per command (numpy's overflow warnings would repeat per chunk)."""
+    text = str(message)
+    if text in _SEEN_WARNINGS:
+        return
+    _SEEN_WARNINGS.add(text)
+    if issubclass(category, RuntimeWarning) and "encountered" in text:
+        text = f"numerical {text} (shown once; typically runs whose covariance diverged)"
+    err.print("[yellow]warning:[/] " + escape(text), highlight=False)
 
 
 @app.callback()
 def main(
     version: Annotated[Optional[bool], typer.Option("--version", callback=version_callback, is_eager=True,
                                                     help="Print the version and exit.")] = None,
+    debug: Annotated[bool, typer.Option("--debug", help="Show the full traceback of any error.")] = False,
 ):
     """netkf — networked Kalman filtering: reproduce the papers, answer design questions."""
+    _STATE["t0"] = time.perf_counter()
+    _STATE["debug"] = debug
+    _SEEN_WARNINGS.clear()
     warnings.showwarning = _show_warning
 
 
@@ -98,7 +227,7 @@ def run(
 ):
     """Run a scenario: write <name>.csv, <name>.png and manifest.json into the result folder."""
     from netkf_cli.loader import load_scenario
-    from netkf_cli.runner import run_scenario
+    from netkf_cli.runner import ProgressTotals, result_paths, run_scenario, work_size
 
     if executor not in ("local", "dask"):
         raise typer.BadParameter("must be 'local' or 'dask'", param_hint="--executor")
@@ -107,23 +236,80 @@ def run(
     n_jobs = jobs or os.cpu_count() or 1
     mode = "dask" if executor == "dask" else ("process" if n_jobs > 1 else "serial")
     scenario = load_scenario(config)
-    with make_progress(quiet or as_json) as prog:
+    out_path, cache = result_paths(scenario, out_dir, runs)
+    size = work_size(scenario, runs)
+    eta = size / (RUN_STEPS_PER_S * n_jobs)
+    if eta > LARGE_RUN_S:
+        err.print(f"[yellow]large run:[/] {scenario.name} is about {size:.2g} run-steps (Monte Carlo runs × horizon"
+                  f"{' × sweep points' if scenario.sweep is not None else ''}); rough ETA {_duration(eta)} on {n_jobs} "
+                  f"process{'es' if n_jobs > 1 else ''}. Ctrl-C stops it keeping finished chunks; --resume continues.",
+                  highlight=False)
+    with _terminate_as_interrupt(), make_progress(quiet or as_json) as prog:
         task = prog.add_task(f"{scenario.name} (Monte Carlo runs)", total=None)
-        folder = run_scenario(
-            scenario, source=config, out_dir=out_dir, runs=runs, force=force,
-            progress=lambda n: prog.advance(task, n), set_total=lambda n: prog.update(task, total=n),
-            add_total=lambda n: prog.update(task, total=(prog.tasks[0].total or 0) + n),
-            executor=mode, jobs=n_jobs, scheduler=scheduler or ("local" if executor == "dask" else None),
-            resume=resume,
-        )
+        totals = ProgressTotals(lambda t: prog.update(task, total=t))
+        try:
+            folder = run_scenario(
+                scenario, source=config, out_dir=out_dir, runs=runs, force=force,
+                progress=lambda n: prog.advance(task, n), set_total=totals.set_total, add_total=totals.add_total,
+                executor=mode, jobs=n_jobs, scheduler=scheduler or ("local" if executor == "dask" else None),
+                resume=resume,
+            )
+        except KeyboardInterrupt:
+            done = int(prog.tasks[0].completed)
+            again = " ".join(["netkf run", str(config)] + (["--out", str(out_dir)] if out_dir else [])
+                             + (["--runs", str(runs)] if runs else []) + ["--resume"])
+            what = (f"{done:,} of {totals.total:,} Monte Carlo runs finished" if totals.total and done
+                    else "no Monte Carlo run had finished")
+            kept = (f"; their chunks are kept in {cache}/ — `{again}` continues from there"
+                    if cache.is_dir() and any(cache.rglob("*.npz")) else "; nothing was kept, rerun to start again")
+            err.print("[bold red]interrupted:[/] " + escape(f"{what}, {out_path} not written{kept}"), highlight=False)
+            raise typer.Exit(EXIT_INTERRUPTED) from None
+    wall = time.perf_counter() - command_started()
     manifest = json.loads((folder / "manifest.json").read_text())
     if as_json:
         out.print_json(json.dumps({"folder": str(folder), "files": manifest["files"],
-                                   "wall_time_s": manifest["wall_time_s"], "meta": manifest["meta"]}))
+                                   "wall_time_s": round(wall, 3), "compute_time_s": manifest["wall_time_s"],
+                                   "meta": manifest["meta"]}))
         return
     conv = manifest["meta"].get("convention")
-    out.print(f"[green]✓[/] {scenario.name}: wrote {folder}/ ({', '.join(manifest['files'])}) in {manifest['wall_time_s']:.2f} s"
+    out.print(f"[green]✓[/] {scenario.name}: wrote {folder}/ ({', '.join(manifest['files'])}) in {wall:.2f} s"
               + (f"; buffer convention {conv}" if conv else ""), highlight=False)
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """Inside this block ``kill PID`` (SIGTERM) stops a run like Ctrl-C: locks released, finished
+    chunks kept for --resume, one line. (Pool workers reset SIGTERM: netkf_cli.workers.)"""
+    import signal
+    import threading
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        try:
+            if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+                previous = signal.signal(signal.SIGTERM, handler)
+        except (ValueError, OSError):  # pragma: no cover
+            previous = None
+    try:
+        yield
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 2 * 86400:
+        return f"{seconds / 3600:.1f} h"
+    if seconds < 2 * 365 * 86400:
+        return f"{seconds / 86400:.0f} days"
+    return f"{seconds / (365 * 86400):.2g} years"
 
 
 @app.command()
@@ -138,6 +324,14 @@ def validate(
     for c in configs:
         try:
             sc = load_scenario(c)
+            if sc.sweep is not None:  # every sweep point is validated too, as `run` does first
+                from netkf_cli import sweep
+                from netkf_cli.loader import locate
+
+                try:
+                    sweep.expand(sc, str(c))
+                except ConfigError as exc:
+                    raise locate(exc, c) from None
             out.print(f"[green]✓[/] {c}: {sc.name} (analysis {sc.analysis.kind})", highlight=False)
         except ConfigError as exc:
             problems.extend(exc.problems)
@@ -154,27 +348,51 @@ def schema():
 
 
 @app.command("list")
-def list_kinds():
-    """List the channel, estimator and analysis kinds a scenario may use."""
-    from netkf_cli.scenario import kinds
-    from netkf_cli.spec import AnalysisModel, ChannelModel, EstimatorModel
+@user_errors
+def list_kinds(
+    kind: Annotated[Optional[str], typer.Argument(help="Show one kind in full (its fields), e.g. `netkf list kf`.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
+):
+    """List the channel, estimator and analysis kinds, their fields and which combine."""
+    from netkf_cli.kinds import describe
 
-    for title, base in (("channel", ChannelModel), ("estimator", EstimatorModel), ("analysis", AnalysisModel)):
-        out.print(f"[bold]{title} kinds[/]")
-        for k, cls in sorted(kinds(base).items()):
-            doc = (cls.__doc__ or "").strip().splitlines()[0].replace("``", "") if cls.__doc__ else ""
-            out.print(f"  {k:<22} {doc}", highlight=False, markup=False)
-
-
+    info = describe()
+    if kind is not None:
+        found = {fam: entries[kind] for fam, entries in info.items() if kind in entries}
+        if not found:
+            known = sorted(k for entries in info.values() for k in entries)
+            raise NetkfError(f"unknown kind {kind!r}; known kinds: {', '.join(known)}")
+        info = {fam: {kind: e} for fam, e in found.items()}
+    if as_json:
+        sys.stdout.write(json.dumps(info, indent=2, ensure_ascii=False) + "\n")
+        return
+    for fam, entries in info.items():
+        out.print(f"[bold]{fam} kinds[/]")
+        for k, e in entries.items():
+            out.print(f"  {k:<22} {e['doc']}", highlight=False, markup=False)
+            if fam == "channel":
+                out.print(f"  {'':<22} trace: {', '.join(e['trace']) or '—'}; estimators: {', '.join(e['estimators']) or '—'}",
+                          highlight=False, markup=False)
+            elif fam == "estimator":
+                out.print(f"  {'':<22} accepts: {', '.join(e['accepts']) or '—'}; channels: {', '.join(e['channels']) or '—'}",
+                          highlight=False, markup=False)
+            elif e.get("generic"):
+                out.print(f"  {'':<22} generic metric: {e['works_with']}", highlight=False, markup=False)
+            if kind is not None or len(entries) == 1:
+                for f in e["fields"]:
+                    out.print(f"      {f['name']:<14} {f['type']:<28} default {f['default']:<14} {f['description']}",
+                              highlight=False, markup=False)
+    if kind is None:
+        out.print("`netkf list KIND` shows a kind's fields.", highlight=False)
 
 
 @app.command()
 @user_errors
 def mind(
     M: Annotated[float, typer.Option("--M", help="Error-covariance bound M (a scalar; for n > 1 it means M·I).")],
-    eps: Annotated[float, typer.Option("--eps", help="Allowed probability ε of P_k ≰ M.", min=0.0, max=1.0)] = 0.05,
+    eps: Annotated[float, typer.Option("--eps", help="Allowed probability ε of P_k ≰ M (in [0, 1]).")] = 0.05,
     config: Annotated[Optional[Path], typer.Option("--config", help="Take the system and the delay channel from this scenario.")] = None,
-    d: Annotated[Optional[float], typer.Option("--d", help="Poisson mean delay d (default 5, the mean Example 3.10's printed θ values imply).", min=0.0)] = None,
+    d: Annotated[Optional[float], typer.Option("--d", help="Poisson mean delay d ≥ 0 (default 5, the mean Example 3.10's printed θ values imply).")] = None,
     sensor: Annotated[str, typer.Option("--sensor", help="raw: the sensor sends y_k (Sec. 3, D_s and D_n); smart: it sends its estimate (Sec. 4, D*).")] = "raw",
     convention: Annotated[Optional[str], typer.Option("--convention", help="delay_le_D (default; kept iff delay ≤ D, as the paper's printed numbers) or delay_lt_D (kept iff delay < D, eq. 4).")] = None,
     D_max: Annotated[Optional[int], typer.Option("--D-max", help="Largest buffer you can afford; longer answers count as infeasible.", min=1)] = None,
@@ -203,6 +421,27 @@ def mind(
 
 @app.command()
 @user_errors
+def critical(
+    config: Annotated[Optional[Path], typer.Option("--config", help="Take the system (and the channel, if any) from this scenario.")] = None,
+    arrival: Annotated[Optional[float], typer.Option("--arrival", help="Judge i.i.d. arrivals at this rate λ (overrides the scenario's channel).", min=0.0, max=1.0)] = None,
+    tol: Annotated[float, typer.Option("--tol", help="Bisection tolerance on λ_max.", min=1e-9, max=0.1)] = 1e-5,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+):
+    """Critical arrival rate λ_c (Sinopoli et al. 2004): λ_min ≤ λ_c ≤ λ_max, exact where proven, E[P] bounds.
+
+    Without --config: Example 3.10 of Shi, Xie & Murray 2009 (A = 1.4, C = 1, Q = 0.2, R = 0.5), as `netkf mind`.
+    """
+    from netkf_cli.recipes.critical import critical_answer
+
+    answer = critical_answer(config=config, arrival=arrival, tol=tol)
+    if as_json:
+        sys.stdout.write(json.dumps(answer.as_json(), indent=2, ensure_ascii=False) + "\n")
+    else:
+        out.print(answer.text(), highlight=False, markup=False)
+
+
+@app.command()
+@user_errors
 def reproduce(
     topics: Annotated[Optional[list[str]], typer.Argument(help="Topics to run (default: all): shi2009, fading, smoothing, fusion, markov.")] = None,
     quick: Annotated[bool, typer.Option("--quick", help="Small Monte Carlo sizes; tolerances widened by their standard errors.")] = False,
@@ -211,12 +450,13 @@ def reproduce(
     jobs: Annotated[int, typer.Option("--jobs", min=1, help="Artefacts run concurrently on this many local processes.")] = 1,
     report: Annotated[bool, typer.Option("--report/--no-report", help="Write <out>/REPORT.md.")] = True,
     quiet: Annotated[bool, typer.Option("--quiet", "-q")] = False,
+    allow_dirty: Annotated[bool, typer.Option("--allow-dirty", help="Write into the repository's results/ even with uncommitted changes.")] = False,
 ):
     """Regenerate every paper artefact (configs/), compare with experiments/<topic>/published.yaml, write a report."""
     from netkf_cli.reproduce import reproduce as do_reproduce
 
     ok = do_reproduce(topics or [], quick=quick, out_root=out_dir, check=check, jobs=jobs, write_report=report,
-                      console=out, quiet=quiet)
+                      console=out, quiet=quiet, allow_dirty=allow_dirty)
     if check and not ok:
         raise typer.Exit(1)
 

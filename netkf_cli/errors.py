@@ -60,3 +60,11 @@ class TheoremConditionError(ConfigError):
 
 class ResultExistsError(NetkfError):
     """The result folder exists and ``--force`` was not given."""
+
+
+class OutputError(NetkfError):
+    """The result folder cannot be written or may not be replaced (not netkf's, read-only …)."""
+
+
+class BusyError(NetkfError):
+    """Another netkf run holds the lock of the same result folder or resume cache."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -12,14 +14,75 @@ from netkf_cli.errors import ConfigError, Problem
 from netkf_cli.scenario import SystemSpec, scenario_model
 
 
-class _LineLoader(yaml.SafeLoader):
-    """SafeLoader that rejects duplicate keys (a silent overwrite hides a typo)."""
+MAX_FILE_BYTES = 4 * 1024 * 1024
+"""Largest scenario file read (scenarios are a few kB; a bigger file is not a scenario)."""
+MAX_NODES = 200_000
+"""Largest scenario, in YAML nodes after expanding aliases (refuses "billion laughs" bombs)."""
+MAX_DEPTH = 200
+"""Deepest nesting of lists/mappings accepted."""
+
+
+class _Yaml12Resolver(yaml.resolver.BaseResolver):
+    """YAML 1.2 core-schema scalars: ``1e-3``, ``1e6`` and ``1.0e6`` are floats; only
+    ``true``/``false`` are booleans (``yes``, ``no``, ``on``, ``off`` stay strings); no sexagesimal
+    numbers; ``0o17``/``0x1F`` integers; ``.inf``/``.nan`` floats (refused later as non-finite)."""
+
+
+_Yaml12Resolver.yaml_implicit_resolvers = {}
+_Yaml12Resolver.add_implicit_resolver(
+    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF"))
+_Yaml12Resolver.add_implicit_resolver(
+    "tag:yaml.org,2002:int", re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"), list("-+0123456789"))
+_Yaml12Resolver.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
+               r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"),
+    list("-+.0123456789"))
+_Yaml12Resolver.add_implicit_resolver(
+    "tag:yaml.org,2002:null", re.compile(r"^(?:~|null|Null|NULL|)$"), ["~", "n", "N", ""])
+
+
+class _LineLoader(yaml.reader.Reader, yaml.scanner.Scanner, yaml.parser.Parser, yaml.composer.Composer,
+                  yaml.constructor.SafeConstructor, _Yaml12Resolver):
+    """Safe loader with YAML 1.2 scalars that rejects duplicate keys (a silent overwrite hides a typo)."""
+
+    def __init__(self, stream):
+        yaml.reader.Reader.__init__(self, stream)
+        yaml.scanner.Scanner.__init__(self)
+        yaml.parser.Parser.__init__(self)
+        yaml.composer.Composer.__init__(self)
+        yaml.constructor.SafeConstructor.__init__(self)
+        _Yaml12Resolver.__init__(self)
+
+
+def _construct_int(loader, node):
+    text = loader.construct_scalar(node).replace("_", "")
+    if text.startswith(("0o", "0x")):
+        return int(text[2:], 8 if text[1] == "o" else 16)
+    return int(text)
+
+
+def _construct_float(loader, node):
+    text = loader.construct_scalar(node).lower()
+    if text.endswith(".inf"):
+        return float("-inf") if text.startswith("-") else float("inf")
+    if text == ".nan":
+        return float("nan")
+    return float(text)
+
+
+_LineLoader.add_constructor("tag:yaml.org,2002:int", _construct_int)
+_LineLoader.add_constructor("tag:yaml.org,2002:float", _construct_float)
 
 
 def _construct_mapping(loader, node, deep=False):
     keys = set()
     for key_node, _ in node.value:
         key = loader.construct_object(key_node, deep=deep)
+        if not isinstance(key, str):
+            raise yaml.constructor.ConstructorError(
+                None, None, f"keys must be names (text), got {key!r}", key_node.start_mark
+            )
         if key in keys:
             raise yaml.constructor.ConstructorError(
                 None, None, f"duplicate key {key!r}", key_node.start_mark
@@ -31,11 +94,42 @@ def _construct_mapping(loader, node, deep=False):
 _LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
 
 
+def _check_size(root, file: str | None) -> None:
+    """Refuse a document whose alias-expanded size or depth is beyond :data:`MAX_NODES` /
+    :data:`MAX_DEPTH`, in time linear in the number of distinct nodes (sizes are memoized)."""
+    sizes: dict[int, int] = {}
+    aliased = 0
+
+    def size(node, depth: int) -> int:
+        nonlocal aliased
+        if depth > MAX_DEPTH:
+            raise ConfigError([Problem("", f"nested more than {MAX_DEPTH} levels deep; not a scenario",
+                                       file, node.start_mark.line + 1)])
+        key = id(node)
+        if key in sizes:
+            aliased += 1
+            return sizes[key]
+        if isinstance(node, yaml.MappingNode):
+            n = 1 + sum(size(k, depth + 1) + size(v, depth + 1) for k, v in node.value)
+        elif isinstance(node, yaml.SequenceNode):
+            n = 1 + sum(size(v, depth + 1) for v in node.value)
+        else:
+            n = 1
+        sizes[key] = n = min(n, 10 * MAX_NODES)
+        return n
+
+    if root is not None and size(root, 0) > MAX_NODES:
+        raise ConfigError([Problem("", f"expands to more than {MAX_NODES:,} YAML nodes"
+                                       + (" through aliases (*name); refusing an alias bomb" if aliased else "")
+                                       + "; a scenario is much smaller", file, 1)])
+
+
 def line_index(text: str) -> dict[tuple, int]:
     """Map every key path (tuple of keys / list indices) to its 1-based line in the YAML text."""
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-    except yaml.YAMLError:
+        root = yaml.compose(text, Loader=_LineLoader)
+        _check_size(root, None)
+    except (yaml.YAMLError, ConfigError, RecursionError):
         return {}
     index: dict[tuple, int] = {}
 
@@ -120,7 +214,7 @@ def _message(err: dict) -> str:
     if t == "union_tag_not_found":
         return "needs a `kind:` field"
     msg = msg.removeprefix("Value error, ")
-    if inp is not None and not isinstance(inp, (dict, list)):
+    if inp is not None and not isinstance(inp, (dict, list)) and " got " not in msg:
         return f"{msg}, got {inp!r}"
     return msg
 
@@ -132,12 +226,38 @@ def validation_problems(exc: ValidationError, data: Any, index: dict, file: str 
         if err["type"] == "union_tag_invalid":
             loc = loc + ("kind",)
         msg = _message(err)
+        loc, msg = _hoist_field(loc, msg, data)
         key = (loc, msg)
         if key in seen:
             continue
         seen.add(key)
         problems.append(Problem(_dotted(loc), msg, file, line_of(index, loc)))
     return problems
+
+
+_FIELD_PREFIX = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)((?:\[\d+\])*): (.+)$", re.S)
+
+
+def _hoist_field(loc: tuple, msg: str, data: Any) -> tuple[tuple, str]:
+    """A model-level check that names its field (``"initial: needs 4 probabilities"`` at
+    ``channel``) is reported at that field (``channel.initial``), so its line is the field's."""
+    m = _FIELD_PREFIX.match(msg)
+    if not m:
+        return loc, msg
+    try:
+        block = _get(data, loc)
+    except (KeyError, IndexError, TypeError):
+        return loc, msg
+    if not isinstance(block, dict) or m[1] not in block:
+        return loc, msg
+    new = loc + (m[1],)
+    cur = block[m[1]]
+    for idx in re.findall(r"\[(\d+)\]", m[2]):
+        i = int(idx)
+        if not isinstance(cur, list) or i >= len(cur):
+            break
+        new, cur = new + (i,), cur[i]
+    return new, m[3]
 
 
 def _get(data, path):
@@ -147,23 +267,60 @@ def _get(data, path):
 
 
 def parse_yaml(text: str, file: str | None = None) -> Any:
+    """Parse one YAML document under YAML 1.2 scalar rules, within the size limits; every
+    number must be finite. Errors are :class:`ConfigError` with file and line."""
+    loader = _LineLoader(text)
     try:
-        return yaml.load(text, Loader=_LineLoader)
+        root = loader.get_single_node()
+        _check_size(root, file)
+        data = loader.construct_document(root) if root is not None else None
+    except RecursionError:
+        raise ConfigError([Problem("", "nested too deeply; not a scenario", file)]) from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark else None
         col = f", column {mark.column + 1}" if mark else ""
         what = exc.problem or str(exc)
+        if isinstance(exc, yaml.constructor.ConstructorError):
+            if what.startswith(("duplicate key", "keys must be")):
+                why = " (the second would silently replace the first)" if what.startswith("duplicate") else ""
+                raise ConfigError([Problem("", f"{what}{col}{why}", file, line)]) from None
+            raise ConfigError([Problem("", f"YAML error{col}: {what} (netkf reads plain YAML: no tags)",
+                                       file, line)]) from None
         raise ConfigError([Problem("", f"YAML syntax error{col}: {what}", file, line)]) from None
     except yaml.YAMLError as exc:
         raise ConfigError([Problem("", f"YAML error: {exc}", file)]) from None
+    finally:
+        loader.dispose()
+    bad = list(_non_finite(data, ()))
+    if bad:
+        index = line_index(text)
+        raise ConfigError([Problem(_dotted(path), f"must be a finite number, got {v!r}", file, line_of(index, path))
+                           for path, v in bad])
+    return data
+
+
+def _non_finite(data: Any, path: tuple):
+    """Paths of every non-finite float (``.nan``, ``.inf``) in parsed YAML."""
+    if isinstance(data, float) and not math.isfinite(data):
+        yield path, data
+    elif isinstance(data, dict):
+        for k, v in data.items():
+            yield from _non_finite(v, path + (k,))
+    elif isinstance(data, list):
+        for i, v in enumerate(data):
+            yield from _non_finite(v, path + (i,))
 
 
 def load_scenario_text(text: str, file: str | None = None, overrides: dict | None = None):
     """Parse and validate; raise one :class:`ConfigError` with every problem found."""
     data = parse_yaml(text, file)
+    if data is None:
+        raise ConfigError([Problem("", "the file is empty; a scenario is a mapping with keys name, analysis, …", file, 1)])
     if not isinstance(data, dict):
-        raise ConfigError([Problem("", "a scenario must be a mapping with keys name, analysis, …", file, 1)])
+        got = {list: "a list", str: "a single string"}.get(type(data), f"a {type(data).__name__}")
+        raise ConfigError([Problem("", f"a scenario must be a mapping with keys name, analysis, …; this file holds {got}",
+                                   file, 1)])
     if overrides:
         data = deep_merge(data, overrides)
     index = line_index(text)
@@ -171,7 +328,8 @@ def load_scenario_text(text: str, file: str | None = None, overrides: dict | Non
     problems: list[Problem] = []
     scenario = None
     try:
-        scenario = Model.model_validate(data)
+        base_dir = str(Path(file).resolve().parent) if file else None
+        scenario = Model.model_validate(data, context={"base_dir": base_dir})
     except ValidationError as exc:
         problems.extend(validation_problems(exc, data, index, file))
     # semantic checks of the system block (shapes, definiteness), reported with the others
@@ -186,32 +344,79 @@ def load_scenario_text(text: str, file: str | None = None, overrides: dict | Non
                 problems.append(Problem(p.path, p.message, file, line_of(index, tuple(p.path.split(".")))))
     if problems:
         raise ConfigError(problems)
+    from netkf_cli.compat import check_scenario  # cross-block checks: channel × estimator × analysis
+
+    try:
+        check_scenario(scenario)
+    except ConfigError as exc:
+        raise ConfigError([p if p.file else Problem(p.path, p.message, file, line_of(index, _keys(p.path)))
+                           for p in exc.problems]) from None
     return scenario
 
 
-def load_scenario(path: str | Path, overrides: dict | None = None):
-    p = Path(path)
+def _keys(dotted: str) -> tuple:
+    return tuple(int(k) if k.isdigit() else k for k in dotted.replace("[", ".").replace("]", "").split(".") if k)
+
+
+def read_text(path: str | Path) -> str:
+    """A scenario file's text: UTF-8 (a UTF-8 BOM is allowed), at most :data:`MAX_FILE_BYTES`;
+    anything else is one :class:`ConfigError` saying what the file is instead."""
+    p, f = Path(path), str(path)
     if not p.exists():
-        raise ConfigError([Problem("", "file not found", str(path))])
+        raise ConfigError([Problem("", "file not found", f)])
     if p.is_dir():
-        raise ConfigError([Problem("", "is a folder, expected a scenario YAML file", str(path))])
-    return load_scenario_text(p.read_text(encoding="utf-8"), str(path), overrides)
+        raise ConfigError([Problem("", "is a folder, expected a scenario YAML file", f)])
+    try:
+        with open(p, "rb") as fh:
+            raw = fh.read(MAX_FILE_BYTES + 1)
+    except OSError as exc:
+        raise ConfigError([Problem("", f"cannot read the file: {exc.strerror or exc}", f)]) from None
+    if len(raw) > MAX_FILE_BYTES:
+        raise ConfigError([Problem("", f"is larger than {MAX_FILE_BYTES // 2**20} MB; not a scenario file", f)])
+    head = raw[:64] if len(raw) % 2 == 0 else b""
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")) or (len(head) >= 4 and (not any(head[1::2]) or not any(head[0::2]))
+                                                       and any(head)):
+        raise ConfigError([Problem("", "is UTF-16 text; netkf reads UTF-8 scenario files (save it as UTF-8)", f)])
+    if b"\x00" in raw:
+        raise ConfigError([Problem("", "is a binary file, not a YAML scenario (UTF-8 text)", f)])
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError([Problem("", f"is not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start}); "
+                                       "save it as UTF-8", f, line)]) from None
+    return text
+
+
+def load_scenario(path: str | Path, overrides: dict | None = None):
+    return load_scenario_text(read_text(path), str(path), overrides)
 
 
 def locate(exc: ConfigError, path: str | Path) -> ConfigError:
     """Attach file and line (looked up from the dotted path) to problems raised after loading."""
     try:
-        index = line_index(Path(path).read_text(encoding="utf-8"))
-    except OSError:
+        index = line_index(read_text(path))
+    except ConfigError:
         index = {}
     probs = []
     for p in exc.problems:
-        if p.file:
+        if p.line is not None or (p.file and Path(p.file) != Path(path)):
             probs.append(p)
             continue
         keys = tuple(int(k) if k.isdigit() else k for k in p.path.replace("[", ".").replace("]", "").split(".") if k)
-        probs.append(Problem(p.path, p.message, str(path), line_of(index, keys)))
+        line = None
+        if p.path.startswith("sweep."):  # sweep keys are dotted paths themselves
+            line = index.get(("sweep", p.path.removeprefix("sweep.")))
+        elif "(sweep point " in p.message:  # a bad value at a sweep point: the sweep entry's line
+            line = next((index[("sweep", k)] for k in _sweep_keys(p.message) if ("sweep", k) in index), None)
+        probs.append(Problem(p.path, p.message, p.file or str(path), line or line_of(index, keys)))
     return type(exc)(probs)
+
+
+def _sweep_keys(message: str) -> list[str]:
+    """The swept field paths named in a ``(sweep point a.b=1, c=2)`` message."""
+    m = re.search(r"\(sweep point (.*)\)", message)
+    return [kv.split("=", 1)[0].strip() for kv in m[1].split(", ")] if m else []
 
 
 def deep_merge(base: dict, over: dict) -> dict:

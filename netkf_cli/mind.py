@@ -126,9 +126,28 @@ class MindReport:
         return "\n".join(lines)
 
 
+MAX_D = 1e4
+"""Largest Poisson mean delay accepted by ``--d`` (θ is 1 to machine precision long before)."""
+
+
+def check_arguments(*, M: float, eps: float, d: float | None) -> None:
+    """Refuse non-finite or out-of-range ``--M``, ``--eps``, ``--d`` with one message each."""
+    problems = []
+    for opt, v in (("--M", M), ("--eps", eps), ("--d", d)):
+        if v is not None and not math.isfinite(v):
+            problems.append(ConfigError.at(opt, f"must be a finite number, got {v}").problems[0])
+    if math.isfinite(eps) and not 0.0 <= eps <= 1.0:
+        problems.append(ConfigError.at("--eps", f"must be a probability in [0, 1], got {eps:g}").problems[0])
+    if d is not None and math.isfinite(d) and not 0.0 <= d <= MAX_D:
+        problems.append(ConfigError.at("--d", f"must be a mean delay in [0, {MAX_D:g}] steps, got {d:g}").problems[0])
+    if problems:
+        raise ConfigError(problems)
+
+
 def mind_report(*, M: float, eps: float, config: Path | None, d: float | None, sensor: str,
                 convention: str | None, D_max: int | None) -> MindReport:
     """Size the buffer for the default Example 3.10 or a scenario's system and delay channel."""
+    check_arguments(M=M, eps=eps, d=d)
     if config is not None:
         from netkf_cli.loader import load_scenario, locate
         from netkf_cli.recipes.shi2009_theta import delay_label

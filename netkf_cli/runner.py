@@ -10,16 +10,17 @@ from __future__ import annotations
 
 import hashlib
 import json
-import shutil
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from netkf_cli import io, montecarlo, sweep
-from netkf_cli.errors import ConfigError, ResultExistsError
+from netkf_cli.errors import ConfigError
 from netkf_cli.loader import load_scenario, locate
 from netkf_cli.plotting import save
 from netkf_cli.recipes.base import Artefact, RunContext
@@ -37,6 +38,26 @@ def scenario_hash(scenario, runs: int | None) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def same_scenario(manifest: dict, scenario, runs: int | None) -> bool:
+    """Whether an existing result (its manifest) was made from this scenario at this run size, so
+    that rerunning it loses nothing. The same hash, or — for results written before fields were
+    added to the schema — every field the old manifest recorded has the same value now."""
+    if manifest.get("scenario_hash") == scenario_hash(scenario, runs):
+        return True
+    old, mc = manifest.get("scenario"), manifest.get("montecarlo") or {}
+    if not isinstance(old, dict) or mc.get("runs") != int(runs or scenario.montecarlo.runs):
+        return False
+    return _covers(old, scenario.model_dump(mode="json", by_alias=True))
+
+
+def _covers(old, new) -> bool:
+    if isinstance(old, dict):
+        return isinstance(new, dict) and all(k in new and _covers(v, new[k]) for k, v in old.items())
+    if isinstance(old, list):
+        return isinstance(new, list) and len(old) == len(new) and all(_covers(a, b) for a, b in zip(old, new))
+    return old == new
+
+
 def compute(scenario, ctx: RunContext, source: str | Path | None = None) -> Artefact:
     """Run the scenario's analysis (every sweep point); ConfigErrors get file and line."""
     try:
@@ -46,8 +67,16 @@ def compute(scenario, ctx: RunContext, source: str | Path | None = None) -> Arte
             return art
         points = sweep.expand(scenario, str(source) if source else None)  # validate all before running
         tables, extras, metas = [], {}, []
+        done_total = 0  # progress units declared by the points already finished
         for coords, sc in points:
-            art = sc.analysis.compute(sc, ctx)
+            declared = [0]
+
+            def point_total(n: int, _d=declared, _base=done_total) -> None:
+                _d[0] = n
+                ctx.total(_base + n)
+
+            art = sc.analysis.compute(sc, replace(ctx, set_total=point_total if ctx.set_total else None))
+            done_total += declared[0]
             _check_artefact(sc, art)
             tables.append(sweep.add_coords(art.table, coords))
             for k, df in art.extra_tables.items():
@@ -62,6 +91,35 @@ def compute(scenario, ctx: RunContext, source: str | Path | None = None) -> Arte
         raise
 
 
+class ProgressTotals:
+    """The one total of a run's progress bar, from two sources that describe the same work.
+
+    A recipe may declare its whole size up front (``ctx.total(n)``: every Monte Carlo run of every
+    series, plus non-Monte-Carlo units such as LMI iterations) while :func:`montecarlo.run_chunked`
+    announces each call's runs as it starts (``add_total``). Adding both counted the runs twice (a
+    bar ending at 50 %, an ETA twice too long); the total is the larger of the two.
+    """
+
+    def __init__(self, update: Callable[[int | None], None] | None = None):
+        self.declared = 0
+        self.planned = 0
+        self._update = update
+
+    @property
+    def total(self) -> int | None:
+        return max(self.declared, self.planned) or None
+
+    def set_total(self, n: int) -> None:
+        self.declared = int(n)
+        if self._update:
+            self._update(self.total)
+
+    def add_total(self, n: int) -> None:
+        self.planned += int(n)
+        if self._update:
+            self._update(self.total)
+
+
 def _check_artefact(scenario, art) -> None:
     if not isinstance(art, Artefact):
         raise TypeError(f"{type(scenario.analysis).__name__}.compute must return an Artefact")
@@ -70,7 +128,8 @@ def _check_artefact(scenario, art) -> None:
 def write_result(scenario, art: Artefact, out: Path, *, force: bool, ctx: RunContext,
                  source: str | Path | None, wall_time: float, execution: dict | None = None) -> Path:
     name = scenario.name
-    with io.atomic_folder(out, force=force) as tmp:
+    with io.atomic_folder(out, force=force, scenario_hash=scenario_hash(scenario, ctx.runs),
+                          same=lambda man: same_scenario(man, scenario, ctx.runs)) as tmp:
         io.write_csv(art.table, tmp / f"{name}.csv")
         for key, df in art.extra_tables.items():
             io.write_csv(df, tmp / f"{name}_{key}.csv")
@@ -80,11 +139,12 @@ def write_result(scenario, art: Artefact, out: Path, *, force: bool, ctx: RunCon
         for key in art.extra_tables:
             tables[key] = io.read_csv(tmp / f"{name}_{key}.csv")
         fig = sweep.plot(tables, scenario) if scenario.sweep is not None else scenario.analysis.plot(tables, scenario)
-        save(fig, tmp / f"{name}.png", dpi=scenario.output.dpi)
+        save(fig, tmp / f"{name}.png", dpi=scenario.output.dpi, formats=scenario.output.formats)  # <name>.<fmt>
         mc = scenario.montecarlo
         manifest = {
             "name": name,
-            "source": str(source) if source else None,
+            "written_by": io.WRITTEN_BY,
+            "source": io.display_path(source),
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "wall_time_s": round(wall_time, 3),
             "scenario": scenario.model_dump(mode="json", by_alias=True),
@@ -102,6 +162,24 @@ def write_result(scenario, art: Artefact, out: Path, *, force: bool, ctx: RunCon
     return out
 
 
+def result_paths(scenario, out_dir: str | Path | None = None, runs: int | None = None) -> tuple[Path, Path]:
+    """``(result folder, resume cache folder)`` of a run."""
+    out = Path(out_dir) if out_dir is not None else default_out_dir(scenario)
+    return out, out.parent / CACHE_DIR / scenario_hash(scenario, runs)
+
+
+def work_size(scenario, runs: int | None = None, quick: bool = False) -> int:
+    """Rough size of a run in run-steps: Monte Carlo runs × horizon × sweep points (for the
+    up-front warning on large runs; recipes with several series take a small multiple of it)."""
+    mc = scenario.montecarlo
+    n = int(runs or (mc.quick_size() if quick else mc.runs))
+    points = 1
+    if scenario.sweep is not None:
+        sizes = [len(v) for v in scenario.sweep.axes.values()] or [1]
+        points = max(sizes) if scenario.sweep.mode == "zip" else int(np.prod(sizes, dtype=float))
+    return int(min(n * mc.horizon * points, 2**62))
+
+
 def run_scenario(scenario, *, source: str | Path | None = None, out_dir: str | Path | None = None,
                  runs: int | None = None, quick: bool = False, force: bool = False,
                  progress: Callable[[int], None] | None = None,
@@ -111,25 +189,45 @@ def run_scenario(scenario, *, source: str | Path | None = None, out_dir: str | P
                  resume: bool = False) -> Path:
     """Compute and write one scenario. Finished Monte Carlo chunks are kept in
     ``<out>/../.netkf-cache/<scenario hash>/`` until the result is written, so ``resume=True``
-    after an interruption reuses them and gives exactly the uninterrupted numbers."""
+    after an interruption reuses them and gives exactly the uninterrupted numbers.
+
+    Before any work: the result folder must be writable and replaceable (:func:`io.check_target`:
+    an existing folder is replaced only if netkf wrote it and the scenario is the same, or with
+    ``force``); the folder and the cache are locked for the whole run (a concurrent run into the
+    same folder or cache gets :class:`BusyError`); leftovers of killed runs are cleaned.
+    """
     ctx = RunContext(runs=runs, quick=quick, progress=progress, set_total=set_total)
-    out = Path(out_dir) if out_dir is not None else default_out_dir(scenario)
-    if out.exists() and not force:
-        raise ResultExistsError(f"{out} already exists; use --force to replace it or --out to choose another folder")
-    cache = out.parent / CACHE_DIR / scenario_hash(scenario, runs)
-    if cache.exists() and not resume:
-        shutil.rmtree(cache, ignore_errors=True)
-    t0 = time.perf_counter()
-    with montecarlo.execution(executor, jobs, scheduler, cache_dir=cache, progress=progress, add_total=add_total):
-        art = compute(scenario, ctx, source)
-    folder = write_result(scenario, art, out, force=force, ctx=ctx, source=source,
-                          wall_time=time.perf_counter() - t0,
-                          execution={"executor": executor, "jobs": jobs, "scheduler": scheduler, "resumed": resume})
-    shutil.rmtree(cache, ignore_errors=True)
+    out, cache = result_paths(scenario, out_dir, runs)
+    io.check_target(out, force=force, scenario_hash=scenario_hash(scenario, runs),
+                    same=lambda man: same_scenario(man, scenario, runs))
+    io.make_parent(out)
+    keep_cache = True
     try:
-        cache.parent.rmdir()  # only if empty
-    except OSError:
-        pass
+        with io.FileLock(out, "result folder"), io.FileLock(cache, "resume cache"):
+            io.clean_leftovers(out.parent)
+            if cache.exists() and not resume:
+                io._rmtree(cache)
+            t0 = time.perf_counter()
+            try:
+                with montecarlo.execution(executor, jobs, scheduler, cache_dir=cache, progress=progress,
+                                          add_total=add_total) as ex:
+                    art = compute(scenario, ctx, source)
+                    where = ex.report()  # where the chunks really ran (tested: a promise in the manifest)
+                folder = write_result(scenario, art, out, force=force, ctx=ctx, source=source,
+                                      wall_time=time.perf_counter() - t0,
+                                      execution={"executor": executor, "jobs": jobs, "scheduler": scheduler,
+                                                 "resumed": resume, "chunks_ran": where})
+            except ConfigError:
+                keep_cache = False  # the scenario must change: its chunks can never be resumed
+                raise
+            keep_cache = False
+    finally:
+        if not keep_cache and cache.exists():
+            io._rmtree(cache)
+        try:
+            cache.parent.rmdir()  # only if empty
+        except OSError:
+            pass
     return folder
 
 

@@ -53,9 +53,12 @@ def test_run_writes_csv_png_manifest_and_refuses_overwrite(tmp_path):
     assert man["meta"]["convention"] == "delay_le_D"
     assert man["scenario"]["channel"]["convention"] == "delay_le_D"
     assert "numpy" in man["versions"]
-    r = invoke("run", cfg, "--out", out)
-    assert r.exit_code == 1 and "already exists" in r.output
-    r = invoke("run", cfg, "--out", out, "--force")
+    assert man["written_by"] == "netkf" and man["source"] == "s.yaml" or not man["source"].startswith("/")
+    r = invoke("run", cfg, "--out", out)  # same scenario, same hash: a reproducible rerun replaces it
+    assert r.exit_code == 0, r.output
+    r = invoke("run", cfg, "--out", out, "--runs", 7)  # another run size: refused without --force
+    assert r.exit_code == 1 and "different scenario" in r.output
+    r = invoke("run", cfg, "--out", out, "--runs", 7, "--force")
     assert r.exit_code == 0
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".res")]  # no temp folders left
 
@@ -176,7 +179,8 @@ def test_mind_refuses_M_below_mbar():
 
 def test_mind_usage_errors():
     assert invoke("mind", "--M", 50, "--sensor", "clever").exit_code == 2
-    assert invoke("mind", "--M", 50, "--eps", 1.5).exit_code == 2
+    r = invoke("mind", "--M", 50, "--eps", 1.5)  # a bad value is bad input (exit 1), like --d inf
+    assert r.exit_code == 1 and "--eps: must be a probability in [0, 1]" in r.output
     assert invoke("mind").exit_code == 2
 
 
