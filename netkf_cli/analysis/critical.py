@@ -86,7 +86,7 @@ def _sym(X: np.ndarray) -> np.ndarray:
 def lambda_min(A: np.ndarray) -> float:
     """λ_min = 1 − 1/ρ(A)² (Sinopoli et al. 2004, Thm 3), 0 when A is Schur stable."""
     rho = spectral_radius(A)
-    return max(0.0, 1.0 - 1.0 / rho**2) if rho > 0 else 0.0
+    return max(0.0, 1.0 - (1.0 / rho) ** 2) if rho > 0 else 0.0  # (1/ρ)² cannot overflow (ρ up to 1e308)
 
 
 def observable_basis(A: np.ndarray, C: np.ndarray, tol: float = 1e-9) -> np.ndarray:
@@ -600,5 +600,13 @@ class CriticalReport:
 def critical_report(A, C, *, tol: float = DEFAULT_BISECTION_TOL, solver: str = "CLARABEL") -> CriticalReport:
     """λ_min, λ_max (bisection) and the proven case for (A, C)."""
     A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
-    return CriticalReport(A.shape[0], C.shape[0], spectral_radius(A), lambda_min(A),
-                          lambda_max(A, C, tol=tol, solver=solver), exact_case(A, C))
+    exact = exact_case(A, C)
+    try:
+        lm = lambda_max(A, C, tol=tol, solver=solver)
+    except CriticalRateError as exc:
+        if exact is None:
+            raise CriticalRateError(f"{exc}. The LMI is badly scaled for this system (ρ(A) = {spectral_radius(A):.3g}); "
+                                    f"proven: λ_c ≥ λ_min = {lambda_min(A):.6g}") from None
+        # the exact case does not need the LMI: report λ_max as not computed (hi = ∞ is never a claim)
+        lm = LambdaMax(lambda_min(A), math.inf, tol, 0, solver, ("not solved: " + str(exc)[:120],))
+    return CriticalReport(A.shape[0], C.shape[0], spectral_radius(A), lambda_min(A), lm, exact)

@@ -123,7 +123,10 @@ class CriticalAnswer:
             f"              n = {r.n}, m = {r.m}, ρ(A) = {r.rho:.6g}",
             f"  λ_min = 1 − 1/ρ(A)² = {r.lam_min:.6g}                          (Thm 3: λ_c ≥ λ_min)",
         ]
-        if math.isinf(lm.hi):
+        if math.isinf(lm.hi) and lm.statuses and str(lm.statuses[0]).startswith("not solved"):
+            lines.append(f"  λ_max: not computed — {lm.solver} could not solve the LMI for this badly scaled system "
+                         f"(ρ(A) = {r.rho:.3g}); not needed, λ_c is proven below")
+        elif math.isinf(lm.hi):
             lines.append(f"  λ_max: none — the LMI Ψ_λ(Y, Z) > 0 is infeasible even at λ = 1 ({lm.solver}, status "
                          f"{'/'.join(lm.statuses)})")
         else:

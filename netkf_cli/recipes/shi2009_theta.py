@@ -36,7 +36,7 @@ class ThetaVsBuffer(AnalysisModel):
 
     kind: Literal["theta_vs_buffer"] = Field(description="θ(k_i(M), D) against the buffer length D (Shi 2009, Fig. 3)")
     M: list[PositiveFloat] = Field(min_length=1, description="error bounds M (scalar M means M·I)")
-    D_max: PositiveInt = Field(15, description="largest buffer length on the x-axis")
+    D_max: PositiveInt = Field(15, le=10_000, description="largest buffer length on the x-axis (≤ 10 000: one θ per D and M)")
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         s = scenario.linear_system()
