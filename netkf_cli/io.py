@@ -228,15 +228,10 @@ def check_target(final: Path, *, force: bool, scenario_hash: str | None = None,
 
 
 def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    except OSError:
-        return False
-    return True
+    """True if ``pid`` exists and is not a zombie (one definition: :func:`netkf_cli.workers._alive`)."""
+    from netkf_cli.workers import _alive as alive
+
+    return alive(pid)
 
 
 def _rmtree(path: Path) -> None:

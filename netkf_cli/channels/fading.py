@@ -6,10 +6,12 @@ Gaussian gain h (Rayleigh fading, so Υ is exponential with mean Υ_ave):
 * ``correlation: {model: iid}`` — h[k] independent from one transmission to the next (Sec. 2).
 * ``correlation: {model: jakes, carrier_hz, speed, interval_s}`` — E h[t]h*[t−k] = J₀(2π f_D k T),
   f_D = s_mob F_c / c (eq. 65). Generated exactly (for the horizon) as a stationary complex
-  Gaussian sequence: the Toeplitz covariance Σ_ij = J₀(2π f_D T |i−j|) is factored once by a
-  symmetric eigendecomposition (negative rounding-level eigenvalues clipped) and
-  h = V √Λ z, z ~ CN(0, I). The sampled Jakes spectrum vanishes above f_D, so Σ is
-  ill-conditioned and a Cholesky factor would fail; the eigen square root does not.
+  Gaussian sequence: h = L z, z ~ CN(0, I), L the Cholesky factor of the Toeplitz covariance
+  Σ_ij = (J₀(2π f_D T |i−j|) + ε δ_ij)/(1 + ε). The sampled Jakes spectrum vanishes above f_D, so
+  J₀'s Toeplitz matrix is singular up to rounding; the white floor ε (``nugget``, default 1e-9 of
+  the fading power) makes it positive definite, and gives every step a well-defined conditional
+  law given the past (used by the sequential Monte Carlo of Fig. 7). Results at the Fig. 7
+  thresholds where the estimates are reliable do not change between ε = 1e-9 and 1e-6.
 
 The communication-noise model σ_n²(Υ) lives here as well (``noise:``): ``model: ber`` is
 α + δ·Ω(√Υ) (Sec. 3.1) with α, δ given or derived from N_p and Δ; ``model: inverse_snr`` is
@@ -22,19 +24,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
 
 from netkf_cli.analysis import fading as fa
 from netkf_cli.spec import ChannelModel, FiniteFloat, NonNegFloat, PositiveFloat, PositiveInt, StrictModel
+from netkf_cli.trace import Trace
 
 
 class Snr(StrictModel):
     """An SNR with its unit: ``{value: 20, unit: dB}`` or ``{value: 100, unit: linear}``."""
 
-    value: FiniteFloat
+    value: FiniteFloat = Field(description="the SNR value (Υ) in the given unit")
     unit: Literal["linear", "dB"] = Field(description="'linear' (power ratio) or 'dB' (10 log10)")
 
     @model_validator(mode="after")
@@ -49,8 +52,10 @@ class Snr(StrictModel):
 
 
 class Speed(StrictModel):
-    value: NonNegFloat
-    unit: Literal["m/s", "mph", "km/h"]
+    """A speed with its unit."""
+
+    value: NonNegFloat = Field(description="mobile speed s_mob (≥ 0)")
+    unit: Literal["m/s", "mph", "km/h"] = Field(description="unit of the speed")
 
     @property
     def mps(self) -> float:
@@ -58,14 +63,20 @@ class Speed(StrictModel):
 
 
 class IidCorrelation(StrictModel):
-    model: Literal["iid"]
+    """Independent gains from one transmission to the next (Sec. 2)."""
+
+    model: Literal["iid"] = Field(description="iid: h[k] independent over k")
 
 
 class JakesCorrelation(StrictModel):
-    model: Literal["jakes"]
+    """Jakes-correlated gains E h[t]h*[t−k] = J₀(2π f_D k T) (eq. 65)."""
+
+    model: Literal["jakes"] = Field(description="jakes: Clarke/Jakes autocorrelation J₀ (eq. 65)")
     carrier_hz: PositiveFloat = Field(description="carrier frequency F_c in Hz")
     speed: Speed = Field(description="mobile speed s_mob")
     interval_s: PositiveFloat = Field(description="time between consecutive transmissions in seconds")
+    nugget: NonNegFloat = Field(1e-9, description="white floor ε added to the J₀ covariance (relative to the fading "
+                                                  "power) so that it is positive definite (Cholesky generation)")
 
     @property
     def doppler(self) -> float:
@@ -78,9 +89,9 @@ class JakesCorrelation(StrictModel):
 class NoiseModel(StrictModel):
     """σ_n²(Υ). ``ber``: α + δ Ω(√Υ), give (alpha, delta) or (N_p, Delta). ``inverse_snr``: β/Υ (eq. 50)."""
 
-    model: Literal["ber", "inverse_snr"]
-    alpha: NonNegFloat | None = None
-    delta: NonNegFloat | None = None
+    model: Literal["ber", "inverse_snr"] = Field(description="ber: σ_n² = α + δ Ω(√Υ) (Sec. 3.1); inverse_snr: σ_n² = β/Υ (eq. 50)")
+    alpha: NonNegFloat | None = Field(None, description="α, quantization floor of σ_n² (model ber)")
+    delta: NonNegFloat | None = Field(None, description="δ, weight of the bit-error term of σ_n² (model ber)")
     N_p: PositiveInt | None = Field(None, description="bits per packet")
     Delta: PositiveFloat | None = Field(None, description="quantization step Δ")
     beta: NonNegFloat | None = Field(None, description="β of σ_n² = β/Υ (model inverse_snr)")
@@ -122,13 +133,17 @@ class FadingTrace:
 
 
 @lru_cache(maxsize=16)
-def _jakes_factor(horizon: int, phase_step: float) -> np.ndarray:
+def _jakes_factor(horizon: int, phase_step: float, nugget: float) -> np.ndarray:
+    """Lower Cholesky factor of Σ_ts = (J₀(phase_step·|t−s|) + ε δ_ts)/(1 + ε) (unit power)."""
     lags = np.arange(horizon)
     r = fa.special.j0(phase_step * lags)
-    S = r[np.abs(lags[:, None] - lags[None, :])]
-    w, V = np.linalg.eigh(S)
-    w = np.clip(w, 0.0, None)
-    return np.ascontiguousarray(V * np.sqrt(w)[None, :])
+    S = r[np.abs(lags[:, None] - lags[None, :])] + nugget * np.eye(horizon)
+    return np.linalg.cholesky(S / (1.0 + nugget))
+
+
+def jakes_factor(horizon: int, corr) -> np.ndarray:
+    """The factor L with h = L z (z ~ CN(0, I)) used by :func:`sample_gain` for a Jakes correlation."""
+    return _jakes_factor(int(horizon), float(2 * np.pi * corr.doppler * corr.interval_s), float(corr.nugget))
 
 
 def sample_gain(rng: np.random.Generator, runs: int, horizon: int, corr) -> np.ndarray:
@@ -136,16 +151,20 @@ def sample_gain(rng: np.random.Generator, runs: int, horizon: int, corr) -> np.n
     z = (rng.standard_normal((horizon, runs)) + 1j * rng.standard_normal((horizon, runs))) / np.sqrt(2.0)
     if corr.model == "iid":
         return z
-    L = _jakes_factor(horizon, 2 * np.pi * corr.doppler * corr.interval_s)
-    return L @ z.real + 1j * (L @ z.imag)
+    L = jakes_factor(horizon, corr)
+    # einsum, not BLAS: a multi-threaded GEMM's rounding depends on the thread count, and the
+    # channel must be bit-for-bit the same in the parent and in any worker process
+    return np.einsum("ij,jk->ik", L, z.real) + 1j * np.einsum("ij,jk->ik", L, z.imag)
 
 
 class FadingChannel(ChannelModel):
     """``kind: fading`` — Rayleigh fading SNR Υ (exponential, mean ``snr_avg``), i.i.d. or Jakes-correlated."""
 
     kind: Literal["fading"]
+    trace_kinds: ClassVar[frozenset[str]] = frozenset({"snr"})
     snr_avg: Snr = Field(description="average received SNR Υ_ave with its unit")
-    correlation: IidCorrelation | JakesCorrelation = Field(IidCorrelation(model="iid"), discriminator="model")
+    correlation: IidCorrelation | JakesCorrelation = Field(IidCorrelation(model="iid"), discriminator="model",
+                                                           description="time correlation of the gain h: iid or jakes (eq. 65)")
     noise: NoiseModel = Field(description="communication-noise variance σ_n²(Υ)")
 
     @model_validator(mode="after")
@@ -161,3 +180,28 @@ class FadingChannel(ChannelModel):
     def sample(self, rng: np.random.Generator, runs: int, horizon: int) -> FadingTrace:
         h = sample_gain(rng, runs, horizon, self.correlation)
         return FadingTrace(self.mean_snr * (h.real**2 + h.imag**2))
+
+    def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
+        """Issue-12 trace: ``snr`` (horizon, runs) linear Υ_t (eq. 3); ``meta['noise']`` is σ_n²(·) (picklable).
+
+        Same random numbers as :meth:`sample`. A receiver turns Υ_t into the drop (Υ_t < Υ_T, eq. 5)
+        and the communication-noise variance σ_n²(Υ_t) of each step.
+        """
+        from netkf_cli.estimators.fading_receivers import NoiseFn
+
+        return Trace(runs=runs, horizon=horizon, snr=self.sample(rng, runs, horizon).snr,
+                     meta={"noise": NoiseFn.of(self.noise), "snr_avg": self.mean_snr,
+                           "correlation": self.correlation.model})
+
+    def snr_law(self) -> dict:
+        """What closed forms may use: Υ is exponential with mean Υ_ave (Rayleigh, eq. 3); i.i.d. or Jakes (eq. 65).
+
+        ``mu_ave(T)`` = Pr[Υ < Υ_T] (eq. 15) holds marginally for both correlation models; the
+        mean recursions (eqs 14, 20) need ``correlation == 'iid'``.
+        """
+        law = {"distribution": "exponential", "mean": self.mean_snr, "correlation": self.correlation.model,
+               "mu_ave": lambda T: fa.mu_ave(T, self.mean_snr)}
+        if self.correlation.model == "jakes":
+            law["doppler_hz"] = self.correlation.doppler
+            law["autocorr"] = self.correlation.autocorr
+        return law

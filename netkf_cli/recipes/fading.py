@@ -20,11 +20,11 @@ import pandas as pd
 from pydantic import Field, model_validator
 
 from netkf_cli.analysis import fading as fa
-from netkf_cli.channels.fading import FadingChannel, Snr, sample_gain
+from netkf_cli.channels.fading import FadingChannel, Snr, jakes_factor
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators import fading_receivers as fr
 from netkf_cli.montecarlo import run_chunked
-from netkf_cli.plotting import footnote, new_figure
+from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, FiniteFloat, PositiveFloat, PositiveInt, StrictModel
 
@@ -38,11 +38,11 @@ RELIABLE_REL_SE = 0.05  # a Monte Carlo mean is flagged unreliable above 5 % rel
 class Grid(StrictModel):
     """A grid of SNR values with its unit: ``{unit: linear, values: [...]}`` or ``{unit, start, stop, num}``."""
 
-    unit: Literal["linear", "dB"]
-    values: list[FiniteFloat] | None = None
-    start: FiniteFloat | None = None
-    stop: FiniteFloat | None = None
-    num: PositiveInt | None = None
+    unit: Literal["linear", "dB"] = Field(description="unit of the values: linear power ratio or dB")
+    values: list[FiniteFloat] | None = Field(None, description="explicit grid values (or give start, stop, num)")
+    start: FiniteFloat | None = Field(None, description="first grid value (with stop and num)")
+    stop: FiniteFloat | None = Field(None, description="last grid value, inclusive")
+    num: PositiveInt | None = Field(None, description="number of evenly spaced grid values")
 
     @model_validator(mode="after")
     def _check(self):
@@ -181,27 +181,29 @@ class FadingNoiseCurves(AnalysisModel):
 
     def plot(self, tables, scenario):
         t, p = tables["main"], tables["params"]
-        fig, (ax1, ax2) = new_figure(ncols=2, width=5.6)
+        fig, (ax1, ax2) = new_figure(ncols=2, width=5.2)
         s = t[t.series == "sigma2_n"]
-        ax1.semilogy(s.snr_db, s.value, "-", color="C0", label="σ_n²(Υ) = α + δ Ω(√Υ)")
+        ax1.semilogy(s.snr_db, s.value, "-", color=PALETTE[0], label=r"$\sigma_n^2(\Upsilon) = \alpha + \delta\,\Omega(\sqrt{\Upsilon})$")
         a = float(p[p.quantity == "alpha"].value.iloc[0])
         d = float(p[p.quantity == "delta"].value.iloc[0])
-        ax1.axhline(a, ls=":", color="0.4", label=f"quantization floor α = {a:.3g}")
-        ax1.set_xlabel("instantaneous SNR Υ (dB)")
-        ax1.set_ylabel("communication noise variance σ_n²")
-        ax1.set_title(f"Fig. 3(a) — σ_n²(Υ), δ = {d:.4g}")
-        ax1.legend(fontsize=8)
-        for series, style, lab in (("packet_error", "-", "packet error 1 − (1 − Ω(√Υ))^{N_p}"),
-                                   ("drop_step", "*--", "threshold model, eq. (5)")):
+        ax1.axhline(a, ls=":", color="0.3", label=rf"quantization floor $\alpha$ = {a:.3g}")
+        ax1.set_xlabel(r"instantaneous SNR $\Upsilon$ (dB)")
+        ax1.set_ylabel(r"communication noise variance $\sigma_n^2$")
+        ax1.set_title(rf"(a) $\sigma_n^2(\Upsilon)$, $\delta$ = {d:.4g}")
+        ax1.legend(loc="upper right")
+        for i, (series, lab) in enumerate((("packet_error", r"packet error $1 - (1 - \Omega(\sqrt{\Upsilon}))^{N_p}$"),
+                                           ("drop_step", "threshold model, eq. (5)"))):
             g = t[t.series == series]
-            ax2.plot(g.snr_db, g.value, style, ms=4, label=lab)
+            st = series_style(i)
+            ax2.plot(g.snr_db, g.value, color=st["color"], ls=st["linestyle"], marker=None if i == 0 else st["marker"],
+                     ms=3, markevery=8, label=lab)
         T = float(p[p.quantity == "threshold"].value.iloc[0])
-        ax2.set_xlabel("instantaneous SNR Υ (dB)")
-        ax2.set_ylabel("probability of packet drop μ")
-        ax2.set_title(f"Fig. 3(b) — μ vs Υ (Υ_T = {T:g} = {10 * np.log10(T):.3g} dB)")
-        ax2.legend(fontsize=8)
+        ax2.set_xlabel(r"instantaneous SNR $\Upsilon$ (dB)")
+        ax2.set_ylabel(r"probability of packet drop $\mu$")
+        ax2.set_title(rf"(b) $\mu$ vs $\Upsilon$ ($\Upsilon_T$ = {T:g} = {10 * np.log10(T):.3g} dB)")
+        ax2.legend(loc="center right")  # both curves are at 0 or 1 there
+        fig.suptitle(paper_title("fading", 3, r"communication noise and packet drop vs SNR"))
         return fig
-
 
 # --------------------------------------------------------------------------- Fig. 4
 
@@ -210,7 +212,7 @@ class FadingAverages(AnalysisModel):
     """``kind: fading_averages`` — Fig. 4: μ_ave(Υ_T) and σ²_n,ave(Υ_T), eqs (15)–(16): closed form, quadrature, Monte Carlo."""
 
     kind: Literal["fading_averages"]
-    thresholds: Grid
+    thresholds: Grid = Field(description="the drop thresholds Υ_T (eq. 5) with their unit")
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         ch = _fading(scenario, iid_only=True)
@@ -219,13 +221,8 @@ class FadingAverages(AnalysisModel):
         T = self.thresholds.linear
         N = ctx.mc_runs(scenario)
 
-        def kernel(rng, n):
-            Y = ch.sample(rng, n, 1).snr[0]
-            keep = Y[None, :] >= T[:, None]
-            s2 = np.where(keep, ch.noise.variance(Y)[None, :], 0.0)
-            return {"drop": (~keep).sum(1).astype(float), "s2": s2.sum(1), "s2sq": (s2**2).sum(1)}
-
-        mc = run_chunked(kernel, N, scenario.montecarlo.chunk, scenario.montecarlo.seed, progress=ctx.progress)
+        mc = run_chunked(fr.FadingAveragesKernel(ch, T), N, scenario.montecarlo.chunk, scenario.montecarlo.seed,
+                         stream=0, progress=ctx.progress, label="fading_averages")
         rows = []
         mu_mc = mc["drop"] / N
         s2_mc = mc["s2"] / N
@@ -244,26 +241,27 @@ class FadingAverages(AnalysisModel):
 
     def plot(self, tables, scenario):
         t = tables["main"]
-        fig, ax = new_figure()
-        ax2 = ax.twinx()
-        for q, axis, c, lab in (("mu_ave", ax, "C0", "μ_ave (eq. 15)"), ("sigma2_n_ave", ax2, "C1", "σ²_n,ave (eq. 16)")):
+        fig, axs = new_figure(ncols=2, width=5.0)
+        for i, (q, lab, ylab) in enumerate((("mu_ave", r"$\mu_{ave}$ (eq. 15)", r"average drop probability $\mu_{ave}$"),
+                                            ("sigma2_n_ave", r"$\sigma^2_{n,ave}$ (eq. 16)",
+                                             r"average communication noise $\sigma^2_{n,ave}$"))):
+            ax = axs[i]
             g = t[t.quantity == q]
             cf = g[g.method == "closed_form"]
-            axis.plot(cf.threshold, cf.value, "-", color=c, label=f"{lab}, closed form")
+            ax.plot(cf.threshold, cf.value, ls="-", color=PALETTE[0], label=f"{lab}, closed form")
             qd = g[g.method == "quadrature"]
-            axis.plot(qd.threshold, qd.value, "o", mfc="none", ms=6, color=c, label=f"{lab}, quadrature")
+            ax.plot(qd.threshold, qd.value, "o", mfc="none", ms=8, color=PALETTE[1], ls="none", label=f"{lab}, quadrature")
             mc = g[g.method == "monte_carlo"]
-            axis.errorbar(mc.threshold, mc.value, yerr=5 * mc.stderr, fmt="x", ms=4, color=c, label=f"{lab}, Monte Carlo ±5 s.e.")
-        ax2.set_yscale("log")
-        ax.set_xlabel("drop threshold Υ_T (linear)")
-        ax.set_ylabel("average probability of packet drop μ_ave", color="C0")
-        ax2.set_ylabel("average communication noise σ²_n,ave (log)", color="C1")
-        ax2.grid(False)
+            ax.errorbar(mc.threshold, mc.value, yerr=5 * mc.stderr, fmt="x", ms=5, color=PALETTE[2],
+                        label=rf"{lab}, Monte Carlo $\pm$5 s.e.")
+            ax.set_xlabel(r"drop threshold $\Upsilon_T$ (linear power ratio)")
+            ax.set_ylabel(ylab)
+            if i == 1:
+                ax.set_yscale("log")
+            ax.legend(loc="upper left" if i == 0 else "upper right")
+            ax.set_title("(a) drop probability" if i == 0 else "(b) communication noise of kept packets")
         ch = scenario.channel
-        ax.set_title(f"Fig. 4 — μ_ave and σ²_n,ave vs Υ_T (Υ_ave = {ch.snr_avg.value:g} {ch.snr_avg.unit})")
-        h1, l1 = ax.get_legend_handles_labels()
-        h2, l2 = ax2.get_legend_handles_labels()
-        ax.legend(h1 + h2, l1 + l2, fontsize=7, loc="center right")
+        fig.suptitle(paper_title("fading", 4, rf"averages vs $\Upsilon_T$, $\Upsilon_{{ave}}$ = {ch.snr_avg.value:g} {ch.snr_avg.unit}"))
         return fig
 
 
@@ -314,26 +312,36 @@ class FadingScenario2Steady(AnalysisModel):
                               "note": "eq. (20) solved with scipy.linalg.solve_discrete_lyapunov; R enters as in eq. (38)"})
 
     def plot(self, tables, scenario):
+        """Υ_T in dB (log axis): every Υ_ave's stable range fills a large part of the width, so the optimum
+        of each curve (the paper's "14" at 20 dB = 11.5 dB) is visible; the curve at Υ_T = 0 is the left end."""
         t, o = tables["main"], tables["optima"]
-        fig, ax = new_figure()
-        for i, (Ya_db, g) in enumerate(t[t.series == "norm_EPinf"].groupby("snr_avg_db")):
-            c = f"C{i}"
-            ax.semilogy(g.threshold, g.value, "-", color=c, label=f"Υ_ave = {Ya_db:.3g} dB")
+        fig, ax = new_figure(width=8.0, height=4.6)
+        for k, (Ya_db, g) in enumerate(t[t.series == "norm_EPinf"].groupby("snr_avg_db")):
+            st = series_style(k)
+            g = g[g.threshold > 0]
             oo = o[np.isclose(o.snr_avg_db, Ya_db)]
             on = oo[oo.quantity == "opt_norm_numerical"]
-            ax.plot(on.threshold, on.objective, "o", color=c, ms=7)
-            r = oo[oo.quantity == "root_eq24"]
-            ax.plot(r.threshold, [g.value.min()] * len(r), "x", color="k", ms=8)
+            Topt = float(on.threshold.iloc[0])
+            ax.semilogy(g.threshold_db, g.value, color=st["color"], ls=st["linestyle"],
+                        label=rf"$\Upsilon_{{ave}}$ = {Ya_db:.3g} dB (optimum $\Upsilon_T$ = {Topt:.2f})")
+            ax.plot(on.threshold_db, on.objective, ls="none", marker=st["marker"], color=st["color"], ms=8,
+                    label=rf"numerical optimum, $\Upsilon_{{ave}}$ = {Ya_db:.3g} dB")
             lim = oo[oo.quantity == "stability_limit"].threshold.iloc[0]
-            ax.axvline(lim, color=c, ls=":", lw=0.8)
-        ax.plot([], [], "o", color="0.3", label="numerical optimum (eq. 21)")
-        ax.plot([], [], "x", color="k", label="root of eq. (24), Thm 1")
-        ax.plot([], [], ":", color="0.3", label="stability limit μ_ave = ρ_max⁻² (eq. 19)")
-        ax.set_xlabel("drop threshold Υ_T (linear)")
-        ax.set_ylabel("‖E P[∞]‖ (spectral norm, log)")
-        ax.set_title("Fig. 5 — scenario 2 (no cross-layer path): ‖E P∞‖ vs Υ_T")
-        ax.legend(fontsize=7)
-        footnote(fig, "eq. (20) by a discrete Lyapunov solve; Thm 1 assumes a symmetric A (not the case here)")
+            if np.isfinite(lim):
+                ax.axvline(10 * np.log10(lim), color=st["color"], ls=":", lw=1.0)
+        r = o[o.quantity == "root_eq24"]
+        rv = []
+        for _, row in r.iterrows():
+            g = t[(t.series == "norm_EPinf") & np.isclose(t.snr_avg_db, row.snr_avg_db)]
+            rv.append(float(np.interp(row.threshold, g.threshold, g.value)))
+        ax.plot(r.threshold_db, rv, "x", color="k", ms=10, mew=1.5, ls="none", label="root of eq. (24), Theorem 1")
+        ax.plot([], [], color="0.3", ls=":", lw=1.0, label=r"stability limit $\mu_{ave}\rho_{max}^2 = 1$ (eq. 19)")
+        ax.set_xlabel(r"drop threshold $\Upsilon_T$ (dB; $\Upsilon_T$ = 14 linear is 11.5 dB)")
+        ax.set_ylabel(r"$\|E\,P[\infty]\|$ (spectral norm)")
+        fig.suptitle(paper_title("fading", 5, r"scenario 2, $\|E\,P[\infty]\|$ vs $\Upsilon_T$"))
+        legend_outside(ax)
+        footnote(fig, "eq. (20) by a discrete Lyapunov solve; the curves start at the smallest positive grid "
+                      "threshold; Theorem 1 assumes a symmetric A (not the case here)")
         return fig
 
 
@@ -343,14 +351,19 @@ class FadingScenario2Steady(AnalysisModel):
 class FadingReceivers(AnalysisModel):
     """``kind: fading_receivers`` — ‖E P[k]‖ after ``horizon`` steps vs Υ_T for receiver scenarios (Fig. 6, Sec. 4.2).
 
-    i.i.d. channel. Series per scenario s: ``s{s}_conditioned`` (burst-conditioned Monte Carlo),
-    ``s{s}_naive`` (plain sample mean), and where they exist the exact means: ``s2_exact`` (eq. 14,
-    invertible C) and ``s1_R0_exact`` (eq. 32, Lemma 5's lower bound for scenario 3).
+    i.i.d. channel. Series per scenario s: ``s{s}_exact`` where the mean has a closed form
+    (scenario 2 with an invertible C: eq. 14), else ``s{s}_conditioned`` — the burst-conditioned
+    Monte Carlo estimator (Rao–Blackwellized over σ_n² for scenario 2), unbiased with a small,
+    finite variance; ``s1_R0_exact`` is Lemma 5's lower bound for scenario 3 (eq. 32). The plain
+    sample mean of P[k] along the simulated paths is heavy-tailed (infinite variance once
+    μ ρ_max⁴ ≥ 1) and goes to the diagnostic table ``path_mean`` only (never plotted).
     """
 
     kind: Literal["fading_receivers"]
-    thresholds: Grid
-    scenarios: list[Literal[1, 2, 3]] = Field([2, 3], min_length=1)
+    thresholds: Grid = Field(description="the drop thresholds Υ_T (eq. 5) with their unit")
+    scenarios: list[Literal[1, 2, 3]] = Field([2, 3], min_length=1, description="receiver scenarios to compare (1, 2, 3)")
+    backend: fr.BackendKind = Field("auto", description="Monte Carlo backend: numpy | numba | auto (numba if importable)")
+    paper_figure: str | None = Field(None, description="the paper's figure this reproduces (title), e.g. 'Fig. 6'")
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         ch = _fading(scenario, iid_only=True)
@@ -363,88 +376,100 @@ class FadingReceivers(AnalysisModel):
         N = ctx.mc_runs(scenario)
         mus = fa.mu_ave(T, Ya)
         rho = fa.rho_max(s.A)
-        models = {sc: _receiver_model(scenario, sc, s) for sc in self.scenarios}
-
-        def kernel(rng, n):
-            out = {}
-            th, mu = np.repeat(T, n), np.repeat(mus, n)
-            for sc, rm in models.items():
-                P, U = fr.burst_conditioned_paths(rm, rng, th, mu, Ya, P0, H, [H])
-                for lab, X in (("naive", P[0]), ("conditioned", U[0])):
-                    for k, v in _stats(X, G, n).items():
-                        out[f"s{sc}_{lab}_{k}"] = v
-            return out
-
-        tot = run_chunked(kernel, N, scenario.montecarlo.chunk, scenario.montecarlo.seed, progress=ctx.progress)
-        frames = []
-        for sc in self.scenarios:
-            for lab in ("conditioned", "naive"):
-                t = {k: tot[f"s{sc}_{lab}_{k}"] for k in ("sum", "sumsq", "tr", "tr2", "inf")}
-                fv = np.ones(G, bool) if lab == "conditioned" else mus * rho**4 < 1
-                df = _summ(t, N, f"s{sc}_{lab}", fv)
-                df.insert(0, "scenario", sc)
-                df.insert(1, "method", lab)
-                for k, v in _thr_cols(T).items():
-                    df.insert(2, k, v)
-                frames.append(df)
-        exact = []
         square = s.m == s.n and abs(np.linalg.det(s.C)) > 1e-12
-        if square and ch.noise.model == "ber":
+        has_exact2 = square and ch.noise.model == "ber"
+        models = {sc: _receiver_model(scenario, sc, s) for sc in self.scenarios if not (sc == 2 and has_exact2)}
+        backend = fr.resolve_backend(self.backend)
+        frames, paths = [], []
+        if models:
+            kern = fr.ReceiverMeanKernel(models, T, Ya, P0, H, backend=backend)
+            tot = run_chunked(kern, N, scenario.montecarlo.chunk, scenario.montecarlo.seed, stream=0,
+                              progress=ctx.progress, label="fading_receivers")
+            for sc in models:
+                for lab in ("conditioned", "path"):
+                    t = {k: tot[f"s{sc}_{lab}_{k}"] for k in fr.STAT_KEYS}
+                    fv = np.ones(G, bool) if lab == "conditioned" else mus * rho**4 < 1
+                    df = _summ(t, N, f"s{sc}_{lab}" if lab == "conditioned" else f"s{sc}_path_mean", fv)
+                    df.insert(0, "scenario", sc)
+                    df.insert(1, "method", "conditioned" if lab == "conditioned" else "path_mean")
+                    for k, v in _thr_cols(T).items():
+                        df.insert(2, k, v)
+                    (frames if lab == "conditioned" else paths).append(df)
+        exact = []
+        if has_exact2 and 2 in self.scenarios:
             a, d = ch.noise.params
             exact.append(("s2_exact", 2, [fa.spectral_norm(fa.ep_recursion(s.A, s.C, s.Q, m_, float(fa.sigma2_n_ave(t_, Ya, a, d)), P0, H, s.R)[-1]) for m_, t_ in zip(mus, T)]))
-        exact.append(("s1_R0_exact", 1, [fa.spectral_norm(fa.lower_bound_recursion(s.A, s.Q, m_, P0, H)[-1]) for m_ in mus]))
+        if 3 in self.scenarios:
+            exact.append(("s1_R0_exact", 1, [fa.spectral_norm(fa.lower_bound_recursion(s.A, s.Q, m_, P0, H)[-1]) for m_ in mus]))
         for lab, sc, v in exact:
             frames.append(pd.DataFrame({"scenario": sc, "method": "exact", **{k: v_ for k, v_ in _thr_cols(T).items()},
                                         "series": lab, "value": v, "stderr": 0.0, "n": np.nan, "ess_frac": np.nan,
                                         "finite_variance": 1, "reliable": 1, "overflowed": 0.0}))
         table = pd.concat(frames, ignore_index=True)
-        # the best threshold per scenario from the conditioned estimator, with the set of thresholds
-        # statistically indistinguishable from it (within 2 combined standard errors)
+        # the best threshold per scenario (exact mean where it exists, else the conditioned estimator's
+        # reliable points), with the set of thresholds statistically indistinguishable from it
+        # (within 2 combined standard errors): an argmin of a flat objective is an interval
         opt = []
         for sc in self.scenarios:
-            g = table[table.series == f"s{sc}_conditioned"].reset_index(drop=True)
+            g = table[table.series == f"s{sc}_exact"]
+            if not len(g):
+                g = table[(table.series == f"s{sc}_conditioned") & (table.reliable == 1)]
+            g = g.reset_index(drop=True)
+            if not len(g):
+                continue
             i = int(np.nanargmin(g.value.to_numpy()))
             near = g[(g.value - g.value[i]) <= 2 * np.hypot(g.stderr, g.stderr[i])]
-            opt.append({"scenario": sc, "quantity": "argmin_conditioned", "threshold": g.threshold[i],
-                        "value": g.value[i], "stderr": g.stderr[i],
+            opt.append({"scenario": sc, "quantity": "argmin_exact" if g.method[0] == "exact" else "argmin_conditioned",
+                        "threshold": g.threshold[i], "value": g.value[i], "stderr": g.stderr[i],
                         "threshold_low": near.threshold.min(), "threshold_high": near.threshold.max()})
         opt.append({"scenario": 0, "quantity": "stability_limit_eq19", "threshold": fa.max_stable_threshold(Ya, rho),
                     "value": np.nan, "stderr": np.nan, "threshold_low": np.nan, "threshold_high": np.nan})
-        return Artefact(table, extra_tables={"optima": pd.DataFrame(opt)},
-                        meta={"horizon": H, "runs": N, "snr_avg_linear": Ya, "rho_max": rho,
-                              "reliable_rule": f"stderr/value < {RELIABLE_REL_SE}, finite variance (naive: mu*rho_max^4 < 1), no overflow",
+        extra = {"optima": pd.DataFrame(opt)}
+        if paths:
+            extra["path_mean"] = pd.concat(paths, ignore_index=True)
+        return Artefact(table, extra_tables=extra,
+                        meta={"horizon": H, "runs": N, "snr_avg_linear": Ya, "rho_max": rho, "backend": backend,
+                              "reliable_rule": f"stderr/value < {RELIABLE_REL_SE}, no overflow (conditioned estimator)",
+                              "path_mean": "plain sample mean of P[k] (diagnostic only, heavy-tailed: not plotted)",
+                              "scenario2": "exact eq. (14)" if has_exact2 else
+                              "Monte Carlo, burst-conditioned + Rao-Blackwellized over sigma_n^2 (general C: KF believing R_f = 0, Joseph form)",
                               "scenario2_general_C": bool(not square)})
 
     def plot(self, tables, scenario):
         t, o = tables["main"], tables["optima"]
-        fig, ax = new_figure()
-        styles = {"conditioned": ("-", "o"), "naive": ("none", "x"), "exact": ("--", None)}
-        colors = {1: "C2", 2: "C0", 3: "C1"}
-        names = {"s2_exact": "scenario 2 exact (eq. 14)", "s1_R0_exact": "Lemma 5 lower bound (eq. 32)"}
-        for lab, g in t.groupby("series", sort=False):
-            sc, method = int(g.scenario.iloc[0]), g.method.iloc[0]
-            ls, mk = styles[method]
-            c = colors[sc] if lab != "s1_R0_exact" else "0.5"
-            name = names.get(lab, f"scenario {sc}, {method} MC")
-            if method == "exact":
-                ax.semilogy(g.threshold, g.value, ls=ls, color=c, label=name)
+        fig, ax = new_figure(width=7.6)
+        names = {"s2_exact": "scenario 2, exact mean (eq. 14)", "s1_R0_exact": "Lemma 5 lower bound for scenario 3 (eq. 32)",
+                 "s1_conditioned": "scenario 1, Monte Carlo ±2 s.e.", "s2_conditioned": "scenario 2, Monte Carlo ±2 s.e.",
+                 "s3_conditioned": "scenario 3, Monte Carlo ±2 s.e."}
+        omitted = 0
+        for i, (lab, g) in enumerate(t.groupby("series", sort=False)):
+            st = series_style(i)
+            name = names.get(lab, lab)
+            if g.method.iloc[0] == "exact":
+                ax.plot(g.threshold, g.value, color=st["color"], ls=st["linestyle"], marker=None, label=name)
                 continue
             rel = g[g.reliable == 1]
-            bad = g[g.reliable == 0]
-            ax.errorbar(rel.threshold, rel.value, yerr=2 * rel.stderr, ls=ls, marker=mk, ms=4, color=c, label=f"{name} ±2 s.e.")
-            if len(bad):
-                ax.plot(bad.threshold, bad.value, ls="none", marker=mk, ms=7, mfc="none", mec="r")
-        ax.plot([], [], ls="none", marker="o", mfc="none", mec="r", label="flagged unreliable MC mean")
+            omitted += int((g.reliable == 0).sum())
+            ax.errorbar(rel.threshold, rel.value, yerr=2 * rel.stderr, color=st["color"], ls=st["linestyle"],
+                        marker=st["marker"], ms=4, label=name)
         lim = o[o.quantity == "stability_limit_eq19"].threshold.iloc[0]
         if np.isfinite(lim):
-            ax.axvline(lim, color="k", ls=":", lw=0.8, label="stability limit (eqs 19, 45)")
+            ax.axvline(lim, color="k", ls=":", lw=0.9, label=r"stability limit $\mu_{ave}\rho_{max}^2 = 1$ (eq. 19)")
         ax.set_yscale("log")
-        ax.set_xlabel("drop threshold Υ_T (linear)")
-        ax.set_ylabel(f"‖E P[k]‖, k = {scenario.montecarlo.horizon}")
+        ax.set_xlabel(r"drop threshold $\Upsilon_T$ (linear power ratio)")
+        H = scenario.montecarlo.horizon
+        ax.set_ylabel(rf"$\|E\,P[{H}]\|_2$ (spectral norm)")
         ch = scenario.channel
-        ax.set_title(f"{scenario.name}: receivers, Υ_ave = {ch.snr_avg.value:g} {ch.snr_avg.unit}")
-        ax.legend(fontsize=7)
-        footnote(fig, f"{int(t.n.dropna().iloc[0])} runs; conditioned = exact average over the final drop burst")
+        unit = "dB" if ch.snr_avg.unit == "dB" else ""
+        fig.suptitle(paper_title("fading", self.paper_figure,
+                                 rf"$\|E\,P[{H}]\|$ vs $\Upsilon_T$, $\Upsilon_{{ave}}$ = {ch.snr_avg.value:g} {unit}".strip()))
+        legend_outside(ax)
+        n = t.n.dropna()
+        note = (f"Monte Carlo: {int(n.iloc[0])} runs, burst-conditioned estimator (exact average over the final drop burst)"
+                if len(n) else "closed forms only")
+        if omitted:
+            note += f"; {omitted} Monte Carlo point(s) with relative s.e. ≥ {RELIABLE_REL_SE:.0%} not drawn"
+        footnote(fig, note)
         return fig
 
 
@@ -452,18 +477,27 @@ class FadingReceivers(AnalysisModel):
 
 
 class FadingCorrelation(AnalysisModel):
-    """``kind: fading_correlation`` — Fig. 7: correlated (Jakes) vs i.i.d. channel, scenario 2, SISO.
+    """``kind: fading_correlation`` — Fig. 7: correlated (Jakes) vs i.i.d. channel, ‖E P[k]‖ at k = horizon vs Υ_T.
 
-    ‖E P[k]‖ at k = horizon vs Υ_T. The correlated channel has no exact mean; its naive Monte
-    Carlo mean is shown with its standard error and the reliability flag, next to the same
-    estimator on the i.i.d. channel (whose exact value, eq. 14, shows how far the naive mean can be off).
-    Also records the sample autocorrelation of the generated gain against J₀ (eq. 65).
+    Scenario 2 with an invertible C forgets everything at a kept packet, so E P[k] is a sum over the
+    length of the final drop burst; the burst probabilities of the correlated channel are estimated
+    by sequential Monte Carlo (:class:`~netkf_cli.estimators.fading_receivers.BurstSMCKernel`,
+    unbiased, finite variance), the same estimator on the i.i.d. channel is checked against the
+    exact eq. (14). Main table: ``jakes_smc``, ``iid_smc``, ``iid_exact``; ``bursts``: Pr[kept, then
+    L drops] per channel; ``path_mean``: the plain sample means (diagnostic only: heavy-tailed, never
+    plotted); ``autocorr``: the generated gain against J₀ (eq. 65).
     """
 
     kind: Literal["fading_correlation"]
-    thresholds: Grid
+    thresholds: Grid = Field(description="the drop thresholds Υ_T (eq. 5) with their unit")
     receiver: Literal[2, 3] = Field(2, description="receiver scenario (2: no cross-layer path, 3: cross-layer path)")
-    max_lag: PositiveInt = 8
+    max_lag: PositiveInt = Field(8, description="largest lag of the autocorrelation check against J₀ (eq. 65)")
+    smc_runs: PositiveInt = Field(12, description="independent particle clouds per threshold (the Monte Carlo runs of the SMC)")
+    particles: PositiveInt = Field(32, description="particles K per cloud (sequential Monte Carlo of the drop bursts)")
+    smc_chunk: PositiveInt = Field(4, description="clouds per Monte Carlo chunk")
+    burst_panel: list[FiniteFloat] = Field([12.0, 20.0], description="Υ_T values (same unit as thresholds) "
+                                                                      "whose burst probabilities are drawn")
+    backend: fr.BackendKind = Field("auto", description="backend of the path-mean diagnostic: numpy | numba | auto")
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         ch = _fading(scenario)
@@ -477,93 +511,156 @@ class FadingCorrelation(AnalysisModel):
         H = scenario.montecarlo.horizon
         N = ctx.mc_runs(scenario)
         rm = _receiver_model(scenario, self.receiver, s)
-        iid = ch.model_copy(update={"correlation": type(ch).model_fields["correlation"].default})
+        rm = fr.ReceiverModel(rm.scenario, rm.A, rm.C, rm.Q, rm.R, fr.NoiseFn.of(ch.noise))
         lags = np.arange(self.max_lag + 1)
-
-        def kernel(rng, n):
-            out = {}
-            for lab, c in (("jakes", ch), ("iid", iid)):
-                h = sample_gain(rng, n, H, c.correlation)
-                snr = Ya * (h.real**2 + h.imag**2)
-                Pk = fr.covariance_paths(rm, np.tile(snr, (1, G)), np.repeat(T, n), P0, record=[H])[0]
-                for k, v in _stats(Pk, G, n).items():
-                    out[f"{lab}_{k}"] = v
-                d = snr[None, :, :] < T[:, None, None]  # (G, H, n) drops
-                out[f"{lab}_d1"] = (d[:, 1:-1] & d[:, :-2]).sum((1, 2)).astype(float)
-                out[f"{lab}_d2"] = (d[:, 2:] & d[:, 1:-1] & d[:, :-2]).sum((1, 2)).astype(float)
-                out[f"{lab}_d0"] = d[:, :-2].sum((1, 2)).astype(float)
-                if lab == "jakes":
-                    t0 = H - 1
-                    prod = (h[t0][None, :] * np.conj(h[t0 - lags][:, :])).real
-                    out["ac"] = prod.sum(1)
-                    out["ac2"] = (prod**2).sum(1)
-                    p = snr[t0][None, :] * snr[t0 - lags]
-                    out["pc"] = p.sum(1)
-                    out["pc2"] = (p**2).sum(1)
-            return out
-
-        tot = run_chunked(kernel, N, scenario.montecarlo.chunk, scenario.montecarlo.seed, progress=ctx.progress)
-        frames = []
         rho = fa.rho_max(s.A)
+        backend = fr.resolve_backend(self.backend)
+        # ---- plain sample means (diagnostic), burst statistics, autocorrelation: stream 0
+        tot = run_chunked(fr.CorrelatedPathKernel(ch, rm, T, P0, H, self.max_lag, backend=backend), N,
+                          scenario.montecarlo.chunk, scenario.montecarlo.seed, stream=0, progress=ctx.progress,
+                          label="fading_correlation_paths")
+        paths = []
         for lab in ("jakes", "iid"):
             with np.errstate(invalid="ignore", divide="ignore"):
                 p1 = tot[f"{lab}_d1"] / tot[f"{lab}_d0"]          # Pr[drop | 1 drop before]
                 p2 = tot[f"{lab}_d2"] / tot[f"{lab}_d1"]          # Pr[drop | 2 drops before]
             pc = np.fmax(np.nan_to_num(p1), np.nan_to_num(p2))
-            df = _summ({k: tot[f"{lab}_{k}"] for k in ("sum", "sumsq", "tr", "tr2", "inf")}, N, f"{lab}_naive",
-                       pc * rho**4 < 1)
+            df = _summ({k: tot[f"{lab}_{k}"] for k in fr.STAT_KEYS}, N, f"{lab}_path_mean", pc * rho**4 < 1)
             df.insert(0, "drop_continuation", pc)
             for k, v in _thr_cols(T).items():
                 df.insert(0, k, v)
             df.insert(0, "channel", lab)
-            frames.append(df)
+            paths.append(df)
+        frames, bursts = [], []
+        smc_ok = self.receiver == 2 and s.m == s.n and abs(np.linalg.det(s.C)) > 1e-12 and ch.noise.model == "ber"
+        meta_smc = "not applicable (needs receiver 2, an invertible C and the ber noise model)"
+        if smc_ok:
+            coeffs = fr.memoryless_coefficients(s.A, s.C, s.Q, s.R, P0, H)
+            L = jakes_factor(H, ch.correlation)
+            # --quick keeps the number of independent clouds (the degrees of freedom of the standard
+            # error the golden comparison relies on) and uses fewer particles per cloud (still unbiased)
+            R = self.smc_runs
+            K = self.particles if not ctx.quick else max(8, self.particles // 4)
+            for stream, lab, factor in ((1, "jakes", L), (2, "iid", None)):
+                kern = fr.BurstSMCKernel(factor, T, Ya, rm.noise, coeffs, H, particles=K)
+                st = run_chunked(kern, R, self.smc_chunk, scenario.montecarlo.seed, stream=stream,
+                                 progress=None, label=f"fading_correlation_smc_{lab}")
+                df = _summ({k: st[k] for k in fr.STAT_KEYS}, R, f"{lab}_smc", np.ones(G, bool))
+                df.insert(0, "min_ess_frac", st["ess"] / R / K)
+                for k, v in _thr_cols(T).items():
+                    df.insert(0, k, v)
+                df.insert(0, "channel", lab)
+                frames.append(df)
+                for j, Lb in enumerate(kern.burst_lags):
+                    m_ = st["w"][:, j] / R
+                    se_ = np.sqrt(np.maximum(st["w2"][:, j] / R - m_**2, 0) / max(R - 1, 1))
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        rel = (se_ / m_ < RELIABLE_REL_SE) & (m_ > 0)
+                    bursts.append(pd.DataFrame({"channel": lab, **_thr_cols(T), "L": Lb, "series": f"{lab}_smc",
+                                                "value": m_, "stderr": se_, "n": R, "reliable": rel.astype(int)}))
+                    if lab == "iid":
+                        mu = fa.mu_ave(T, Ya)
+                        bursts.append(pd.DataFrame({"channel": "iid", **_thr_cols(T), "L": Lb, "series": "iid_exact",
+                                                    "value": (1 - mu) * mu**Lb, "stderr": 0.0, "n": np.nan, "reliable": 1}))
+            meta_smc = (f"sequential Monte Carlo of the drop bursts: {R} independent clouds x "
+                        f"{K} particles per threshold, resampling at ESS < K/2")
         if ch.noise.model == "ber" and s.m == s.n and self.receiver == 2:
             a, d = ch.noise.params
             v = [fa.spectral_norm(fa.ep_recursion(s.A, s.C, s.Q, float(fa.mu_ave(t_, Ya)), float(fa.sigma2_n_ave(t_, Ya, a, d)), P0, H, s.R)[-1]) for t_ in T]
-            frames.append(pd.DataFrame({"channel": "iid", **_thr_cols(T), "series": "iid_exact", "value": v, "stderr": 0.0,
-                                        "n": np.nan, "ess_frac": np.nan, "finite_variance": 1, "reliable": 1,
-                                        "overflowed": 0.0, "drop_continuation": fa.mu_ave(T, Ya)}))
-        table = pd.concat(frames, ignore_index=True)
+            frames.append(pd.DataFrame({"channel": "iid", **_thr_cols(T), "min_ess_frac": np.nan, "series": "iid_exact",
+                                        "value": v, "stderr": 0.0, "n": np.nan, "ess_frac": np.nan, "finite_variance": 1,
+                                        "reliable": 1, "overflowed": 0.0}))
+        table = pd.concat(frames, ignore_index=True) if frames else paths[0].iloc[:0]
+        opt = []
+        for lab in table.series.unique() if len(table) else []:
+            g = table[(table.series == lab) & (table.reliable == 1)].reset_index(drop=True)
+            if not len(g):
+                continue
+            i = int(np.nanargmin(g.value.to_numpy()))
+            near = g[(g.value - g.value[i]) <= 2 * np.hypot(g.stderr, g.stderr[i])]
+            last_rel = bool(i == len(g) - 1 and len(g) < int((table.series == lab).sum()))
+            opt.append({"series": lab, "threshold": g.threshold[i], "value": g.value[i], "stderr": g.stderr[i],
+                        "threshold_low": near.threshold.min(), "threshold_high": near.threshold.max(),
+                        "at_edge_of_reliable_range": int(last_rel)})
         ac = tot["ac"] / N
         ac_se = np.sqrt(np.maximum(tot["ac2"] / N - ac**2, 0) / (N - 1))
-        pc = tot["pc"] / N / Ya**2 - 1.0  # corr of |h|²: E[Υ_t Υ_{t−k}]/Υ_ave² − 1 = J0²
+        pcm = tot["pc"] / N / Ya**2 - 1.0  # corr of |h|²: E[Υ_t Υ_{t−k}]/Υ_ave² − 1 = J0²
         pc_se = np.sqrt(np.maximum(tot["pc2"] / N - (tot["pc"] / N) ** 2, 0) / (N - 1)) / Ya**2
         J = ch.correlation.autocorr(lags)
         actab = pd.DataFrame({"lag": lags, "lag_s": lags * ch.correlation.interval_s, "J0": J, "gain_autocorr": ac,
-                              "gain_autocorr_stderr": ac_se, "power_autocorr": pc, "power_autocorr_stderr": pc_se,
+                              "gain_autocorr_stderr": ac_se, "power_autocorr": pcm, "power_autocorr_stderr": pc_se,
                               "J0_squared": J**2})
-        return Artefact(table, extra_tables={"autocorr": actab},
-                        meta={"doppler_hz": ch.correlation.doppler, "horizon": H, "runs": N,
+        extra = {"autocorr": actab, "path_mean": pd.concat(paths, ignore_index=True), "optima": pd.DataFrame(opt)}
+        if bursts:
+            extra["bursts"] = pd.concat(bursts, ignore_index=True)
+        return Artefact(table, extra_tables=extra,
+                        meta={"doppler_hz": ch.correlation.doppler, "horizon": H, "runs_path_mean": N,
+                              "smc": meta_smc, "nugget": ch.correlation.nugget,
+                              "stability_limit_iid_eq19": fa.max_stable_threshold(Ya, rho),
                               "first_zero_of_J0_s": 2.404825557695773 / (2 * np.pi * ch.correlation.doppler),
-                              "reliable_rule": f"stderr/value < {RELIABLE_REL_SE}, finite variance (drop continuation * rho_max^4 < 1), no overflow"})
+                              "reliable_rule": f"stderr/value < {RELIABLE_REL_SE}, no overflow",
+                              "path_mean": "plain sample means: diagnostic only (heavy-tailed), never plotted"})
 
     def plot(self, tables, scenario):
         t, ac = tables["main"], tables["autocorr"]
-        fig, (ax, ax2) = new_figure(ncols=2, width=5.6)
-        for lab, c, mk in (("jakes_naive", "C3", "o"), ("iid_naive", "C0", "s")):
+        bursts = tables.get("bursts")
+        fig, axs = new_figure(ncols=3, width=4.6, height=4.4)
+        ax, axb, ax2 = axs
+        H = scenario.montecarlo.horizon
+        omitted = 0
+        styles = {"iid_exact": (PALETTE[0], "-", None, r"uncorrelated, exact (eq. 14)"),
+                  "iid_smc": (PALETTE[0], "none", "s", r"uncorrelated, SMC $\pm$2 s.e."),
+                  "jakes_smc": (PALETTE[1], "--", "o", r"correlated (Jakes), SMC $\pm$2 s.e.")}
+        for lab in ("iid_exact", "iid_smc", "jakes_smc"):
             g = t[t.series == lab]
-            rel, bad = g[g.reliable == 1], g[g.reliable == 0]
-            name = "correlated (Jakes)" if lab.startswith("jakes") else "uncorrelated"
-            ax.errorbar(rel.threshold, rel.value, yerr=2 * rel.stderr, marker=mk, ms=4, color=c, ls="-", label=f"{name}, MC ±2 s.e.")
-            ax.plot(bad.threshold, bad.value, marker=mk, ms=7, ls="none", mfc="none", mec="r")
-        ex = t[t.series == "iid_exact"]
-        if len(ex):
-            ax.plot(ex.threshold, ex.value, "k--", label="uncorrelated, exact (eq. 14)")
-        ax.plot([], [], marker="o", ls="none", mfc="none", mec="r", label="flagged unreliable MC mean")
+            if not len(g):
+                continue
+            c, ls, mk, name = styles[lab]
+            omitted += int((g.reliable == 0).sum())
+            if lab == "iid_exact":
+                ax.plot(g.threshold, g.value, color=c, ls=ls, label=name)
+            else:  # unreliable points are not drawn (NaN breaks the line there)
+                y = g.value.where(g.reliable == 1)
+                ax.errorbar(g.threshold, y, yerr=2 * g.stderr.where(g.reliable == 1), color=c, ls=ls, marker=mk, ms=5,
+                            mfc="none" if lab == "iid_smc" else c, label=name)
         ax.set_yscale("log")
-        ax.set_xlabel("drop threshold Υ_T (linear)")
-        ax.set_ylabel(f"‖E P[k]‖, k = {scenario.montecarlo.horizon}")
-        ax.set_title(f"Fig. 7 — channel correlation, scenario {self.receiver}")
-        ax.legend(fontsize=7)
-        ax2.errorbar(ac.lag, ac.gain_autocorr, yerr=5 * ac.gain_autocorr_stderr, fmt="o", color="C3", label="sample E h_t h*_{t−k} ±5 s.e.")
-        ax2.plot(ac.lag, ac.J0, "k-", label="J₀(2π f_D k T)")
-        ax2.errorbar(ac.lag, ac.power_autocorr, yerr=5 * ac.power_autocorr_stderr, fmt="s", color="C0", mfc="none", label="sample corr of Υ ±5 s.e.")
-        ax2.plot(ac.lag, ac.J0_squared, "k:", label="J₀²")
-        ax2.set_xlabel("lag k (transmissions)")
+        ax.set_xlabel(r"drop threshold $\Upsilon_T$ (linear power ratio)")
+        ax.set_ylabel(rf"$\|E\,P[{H}]\|$")
+        ax.set_title(r"(a) performance vs $\Upsilon_T$")
+        ax.legend(loc="upper right")
+        if bursts is not None:
+            axb.axhline(1.0, color=PALETTE[0], ls="-", label="uncorrelated (exact ratio 1)")
+            for i, T0 in enumerate(self.burst_panel):
+                T0l = float(fa.db_to_linear(T0)) if self.thresholds.unit == "dB" else float(T0)
+                ex = bursts[(bursts.series == "iid_exact") & np.isclose(bursts.threshold, T0l)].set_index("L")
+                g = bursts[(bursts.series == "jakes_smc") & np.isclose(bursts.threshold, T0l) & (bursts.reliable == 1)]
+                if not len(g) or not len(ex):
+                    continue
+                base = ex.value.reindex(g.L).to_numpy()
+                st = series_style(i + 1)
+                axb.errorbar(g.L, g.value / base, yerr=2 * g.stderr / base, color=st["color"], ls=st["linestyle"],
+                             marker=st["marker"], ms=4, label=rf"Jakes / uncorrelated, $\Upsilon_T$ = {T0:g}, $\pm$2 s.e.")
+            axb.set_xlabel(r"burst length $L$ (transmissions)")
+            axb.set_ylabel(r"Pr[kept, then $L$ drops]: Jakes / i.i.d.")
+            axb.set_title("(b) drop bursts: correlated / uncorrelated")
+            axb.legend(loc="upper left", fontsize=9)
+        ax2.errorbar(ac.lag, ac.gain_autocorr, yerr=5 * ac.gain_autocorr_stderr, fmt="o", color=PALETTE[1],
+                     label=r"sample $E\,h_t h^*_{t-k}$ $\pm$5 s.e.")
+        ax2.plot(ac.lag, ac.J0, color="k", ls="-", label=r"$J_0(2\pi f_D k T)$ (eq. 65)")
+        ax2.errorbar(ac.lag, ac.power_autocorr, yerr=5 * ac.power_autocorr_stderr, fmt="s", color=PALETTE[0],
+                     mfc="none", label=r"sample corr. of $\Upsilon$ $\pm$5 s.e.")
+        ax2.plot(ac.lag, ac.J0_squared, color="k", ls=":", label=r"$J_0^2$")
+        ax2.set_xlabel(r"lag $k$ (transmissions, $T$ = 10 ms)")
         ax2.set_ylabel("autocorrelation")
-        ax2.set_title("generated Jakes channel vs eq. (65)")
-        ax2.legend(fontsize=7)
-        footnote(fig, f"{int(t.n.dropna().iloc[0])} runs per channel; red circles: MC mean flagged unreliable (heavy drop-burst tail)")
+        ax2.set_title("(c) generated channel vs eq. (65)")
+        ax2.legend(loc="upper right", fontsize=9)
+        ch = scenario.channel
+        fig.suptitle(paper_title("fading", 7, rf"correlated vs uncorrelated channel, scenario {self.receiver}, "
+                                              rf"$\Upsilon_{{ave}}$ = {ch.snr_avg.value:g} {ch.snr_avg.unit}"))
+        note = "SMC: sequential Monte Carlo of the drop bursts (unbiased); plain sample means are heavy-tailed and not drawn"
+        if omitted:
+            note += f"; {omitted} SMC point(s) with relative s.e. ≥ {RELIABLE_REL_SE:.0%} not drawn"
+        footnote(fig, note)
         return fig
 
 
@@ -580,7 +677,7 @@ class FadingTheorem4(AnalysisModel):
     kind: Literal["fading_theorem4"]
     a: PositiveFloat = Field(description="A = a > 1")
     P0: PositiveFloat = Field(description="P[0]")
-    k_max: PositiveInt = 30
+    k_max: PositiveInt = Field(30, description="last time step k of E P[k]")
 
     @model_validator(mode="after")
     def _a(self):
@@ -593,21 +690,10 @@ class FadingTheorem4(AnalysisModel):
         if ch.noise.model != "inverse_snr":
             raise ConfigError.at("channel.noise.model", "Theorem 4 needs model inverse_snr (σ_n² = β/Υ, eq. 50)")
         a, beta, Ya, P0, K = self.a, float(ch.noise.beta), ch.mean_snr, self.P0, self.k_max
-        w = 1.0 / Ya
         N = ctx.mc_runs(scenario)
 
-        def kernel(rng, n):
-            P = np.full(n, P0)
-            s, s2, r, r2 = (np.zeros(K + 1) for _ in range(4))
-            s[0], s2[0], r[0], r2[0] = P0 * n, P0 * P0 * n, P0 * n, P0 * P0 * n
-            for k in range(K):
-                cond = a * a * w * beta * fa.scaled_exp1(w * beta / P)  # E[P[k+1] | P[k]] (Lemma 7)
-                P = fa.theorem4_step(P, rng.exponential(Ya, n), a, beta)
-                s[k + 1], s2[k + 1] = P.sum(), (P * P).sum()
-                r[k + 1], r2[k + 1] = cond.sum(), (cond * cond).sum()
-            return {"s": s, "s2": s2, "r": r, "r2": r2}
-
-        tot = run_chunked(kernel, N, scenario.montecarlo.chunk, scenario.montecarlo.seed, progress=ctx.progress)
+        tot = run_chunked(fr.Theorem4Kernel(a, beta, Ya, P0, K), N, scenario.montecarlo.chunk, scenario.montecarlo.seed,
+                          stream=0, progress=ctx.progress, label="fading_theorem4")
         k = np.arange(K + 1)
         rows = [pd.DataFrame({"k": k, "series": "eq56", "value": fa.theorem4_mean(a, beta, Ya, P0, K), "stderr": 0.0, "n": np.nan})]
         for key, lab in (("s", "mc_naive"), ("r", "mc_conditioned")):
@@ -622,19 +708,23 @@ class FadingTheorem4(AnalysisModel):
 
     def plot(self, tables, scenario):
         t = tables["main"]
-        fig, ax = new_figure()
+        fig, ax = new_figure(width=7.2)
         e = t[t.series == "eq56"]
         ax.plot(e.k, e.value, "k-", label="Theorem 4, eq. (56)")
-        for lab, c, mk in (("mc_naive", "C0", "o"), ("mc_conditioned", "C1", "s")):
+        for i, (lab, name) in enumerate((("mc_naive", "plain mean"), ("mc_conditioned", "last step conditioned (Lemma 7)"))):
             g = t[t.series == lab]
-            ax.errorbar(g.k + (0.15 if lab == "mc_conditioned" else 0), g.value, yerr=5 * g.stderr, fmt=mk, ms=3,
-                        color=c, mfc="none", label=f"Monte Carlo ({lab[3:]}) ±5 s.e.")
+            ax.errorbar(g.k + (0.15 if i else 0), g.value, yerr=5 * g.stderr, fmt=MARKERS_[i], ms=4, color=PALETTE[i],
+                        mfc="none", label=rf"Monte Carlo, {name}, $\pm$5 s.e.")
         q = t[t.series == "quadrature"]
-        ax.plot(q.k, q.value, "x", color="C3", ms=9, label="nested quadrature (k = 1, 2)")
+        ax.plot(q.k, q.value, "x", color=PALETTE[2], ms=10, mew=1.5, ls="none", label="nested quadrature (k = 1, 2)")
         ax.set_yscale("log")
-        ax.set_xlabel("time step k")
-        ax.set_ylabel("E P[k]")
-        ax.set_title(f"Theorem 4 — a = {self.a:g}, β = {scenario.channel.noise.beta:g}, "
-                     f"Υ_ave = {scenario.channel.snr_avg.value:g} {scenario.channel.snr_avg.unit}, P[0] = {self.P0:g}")
-        ax.legend(fontsize=8)
+        ax.set_xlabel(r"time step $k$")
+        ax.set_ylabel(r"$E\,P[k]$")
+        ch = scenario.channel
+        fig.suptitle(paper_title("fading", "Theorem 4", rf"$E\,P[k]$, a = {self.a:g}, $\beta$ = {ch.noise.beta:g}, "
+                                                        rf"$\Upsilon_{{ave}}$ = {ch.snr_avg.value:g} {ch.snr_avg.unit}, $P[0]$ = {self.P0:g}"))
+        ax.legend(loc="upper right")  # the upper right is empty: E P[k] settles within a few steps
         return fig
+
+
+MARKERS_ = ("o", "s")

@@ -33,8 +33,10 @@ def test_config_matches_golden(stem, tmp_path):
         assert len(new) == len(old), c.name
         for col in new.columns:
             if new[col].dtype.kind in "fi":
-                # identical seed ⇒ deterministic; CSVs are written with 10 significant digits
-                np.testing.assert_allclose(new[col].to_numpy(float), old[col].to_numpy(float), rtol=1e-8, atol=1e-300,
+                # identical seed ⇒ deterministic; CSVs are written with 10 significant digits. 1e-6: the goldens
+                # come from backend auto (numba when installed); the numpy path agrees to ≤ 1e-7 relative on
+                # the means (tests/fading/test_engine.py), so the same goldens hold without numba
+                np.testing.assert_allclose(new[col].to_numpy(float), old[col].to_numpy(float), rtol=1e-6, atol=1e-300,
                                            equal_nan=True, err_msg=f"{c.name}:{col}")
             else:
                 assert (new[col].astype(str) == old[col].astype(str)).all(), f"{c.name}:{col}"

@@ -1,0 +1,51 @@
+"""Benchmark cases of the Mostofi & Murray fading receivers for ``benchmarks/bench_estimators.py``.
+
+``CASES``: dicts ``{"estimator": "receiver1" | "receiver2" | "receiver3", "system": "scalar" | "3-state",
+"backend": "numpy" | "numba", "threads": None, "make": callable() -> (kernel, runs, horizon)}``.
+
+The kernel is the one the artefacts use (:class:`netkf_cli.estimators.fading_receivers.ReceiverMeanKernel`,
+one scenario, one threshold Υ_T = 10 at Υ_ave = 20 dB, i.i.d. channel): per run and step it draws
+the keep decision and the SNR of a kept packet, advances the path P[k] AND the burst-conditioned
+estimate U[k] (so a run-step is one kept update and two drop updates), and reduces E P[H], E U[H]
+to additive statistics. Receiver 2 is Rao–Blackwellized over σ_n² (no exponential draw).
+
+Systems: scalar — Fig. 7's A = 2, C = 1, q = 1e-3, R = 1e-8; 3-state — Fig. 5/6's A with C = 2 I,
+Q = 1e-3 I, R = 1e-8 I (the information-form receivers 1/3 invert two 3×3 matrices per run-step).
+The numpy and numba paths use the same uniforms (statistics equal to rounding, tests/fading/test_engine.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from netkf_cli.analysis import fading as fa
+from netkf_cli.estimators import fading_receivers as fr
+
+HORIZON = 100
+RUNS = {"numpy": 4_000, "numba": 20_000}
+A5 = np.array([[2, 0.3, 0.45], [0.4, 0.2, 0.5], [1.5, 0.6, 0.34]])
+
+
+def systems() -> dict:
+    """name → (A, C, Q, R, P0)."""
+    return {"scalar": (np.array([[2.0]]), np.array([[1.0]]), np.array([[1e-3]]), np.array([[1e-8]]), np.eye(1)),
+            "3-state": (A5, 2 * np.eye(3), 1e-3 * np.eye(3), 1e-8 * np.eye(3), np.eye(3))}
+
+
+class _Make:
+    """Picklable ``make()``."""
+
+    def __init__(self, scenario: int, system: str, backend: str):
+        self.scenario, self.system, self.backend = scenario, system, backend
+
+    def __call__(self):
+        A, C, Q, R, P0 = systems()[self.system]
+        noise = fr.NoiseFn("ber", *fa.noise_params_from_bits(10, 40 / 2**10))
+        rm = fr.ReceiverModel(self.scenario, A, C, Q, R, noise)
+        kernel = fr.ReceiverMeanKernel({self.scenario: rm}, np.array([10.0]), 100.0, P0, HORIZON, backend=self.backend)
+        return kernel, RUNS[self.backend], HORIZON
+
+
+_BACKENDS = ("numpy", "numba") if fr.numba_available() else ("numpy",)
+CASES = [{"estimator": f"receiver{sc}", "system": name, "backend": be, "threads": None, "make": _Make(sc, name, be)}
+         for sc in (1, 2, 3) for name in ("scalar", "3-state") for be in _BACKENDS]

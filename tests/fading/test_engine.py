@@ -1,0 +1,335 @@
+"""Fading engine (issues 12, 13, 15): compiled = numpy, picklable kernels on worker processes,
+the estimator/channel contract, the variance-reduced estimators against exact values."""
+
+import math
+import os
+import pickle
+
+import numpy as np
+import pytest
+
+from netkf_cli.analysis import fading as fa
+from netkf_cli.channels.fading import FadingChannel, jakes_factor
+from netkf_cli.estimators import fading_receivers as fr
+from netkf_cli.montecarlo import execution, mean_and_stderr, run_chunked
+from netkf_cli.system import LinearSystem
+
+A5 = np.array([[2, 0.3, 0.45], [0.4, 0.2, 0.5], [1.5, 0.6, 0.34]])
+Q5 = 1e-3 * np.eye(3)
+AL, DE = fa.noise_params_from_bits(10, 40 / 2**10)
+NZ = fr.NoiseFn("ber", AL, DE)
+CASES = {  # (scenario, C, R)
+    "s1": (1, 2 * np.eye(3), 1e-8 * np.eye(3)),
+    "s2_square": (2, 2 * np.eye(3), 1e-8 * np.eye(3)),
+    "s3_square": (3, 2 * np.eye(3), 1e-8 * np.eye(3)),
+    "s2_general": (2, np.array([[1.0, 2, 3]]), np.array([[1e-8]])),
+    "s3_general": (3, np.array([[1.0, 2, 3]]), np.array([[1e-8]])),
+    "s3_m2": (3, np.array([[1.0, 0, 1], [0, 1, 0]]), np.diag([1e-4, 2e-4])),
+}
+needs_numba = pytest.mark.skipif(not fr.numba_available(), reason="numba not installed")
+
+
+def rm(key):
+    sc, C, R = CASES[key]
+    return fr.ReceiverModel(sc, A5, C, Q5, R, NZ)
+
+
+def chan(**kw):
+    base = {"kind": "fading", "snr_avg": {"value": 20, "unit": "dB"}, "noise": {"model": "ber", "N_p": 10, "Delta": 0.0390625}}
+    base.update(kw)
+    return FadingChannel.model_validate(base)
+
+
+# ------------------------------------------------------------------ compiled backend = numpy reference
+
+
+@needs_numba
+@pytest.mark.parametrize("key", sorted(CASES))
+def test_numba_equals_numpy_on_the_same_uniforms(key):
+    """Same uniforms ⇒ same recursion. The compiled loop sums matrix products in index order and numpy
+    (einsum/BLAS) may not, so per-run values agree to rounding, amplified by the information-form
+    inversions of near-singular matrices after drop bursts (≤ 1e-6 relative per run, seen for m < n);
+    the MEANS over runs agree to 1e-7 relative (1e-12 for the well-conditioned cases) — far below any
+    Monte Carlo standard error (≥ 1e-4 relative at the artefacts' sizes)."""
+    th = np.repeat(np.array([0.0, 6.0, 12.0, 17.0]), 200)
+    mu = fa.mu_ave(th, 100.0)
+    out = {}
+    for be in ("numpy", "numba"):
+        out[be] = fr.burst_conditioned_paths(rm(key), np.random.default_rng(3), th, mu, 100.0, np.eye(3), 40, [10, 40],
+                                             backend=be, final_strata=4)
+    for x, y in zip(out["numpy"], out["numba"]):
+        assert np.array_equal(np.isfinite(x), np.isfinite(y))
+        f = np.isfinite(x)
+        np.testing.assert_allclose(y[f], x[f], rtol=1e-6, atol=1e-300)
+        np.testing.assert_allclose(y.mean(-1), x.mean(-1), rtol=1e-7)
+
+
+@needs_numba
+def test_numba_kernel_statistics_equal_numpy():
+    kw = dict(thresholds=np.array([4.0, 14.0]), snr_avg=100.0, P0=np.eye(3), horizon=30)
+    a = fr.ReceiverMeanKernel({3: rm("s3_square"), 2: rm("s2_general")}, backend="numpy", **kw)(np.random.default_rng(1), 50)
+    b = fr.ReceiverMeanKernel({3: rm("s3_square"), 2: rm("s2_general")}, backend="numba", **kw)(np.random.default_rng(1), 50)
+    assert sorted(a) == sorted(b)
+    for k in a:
+        np.testing.assert_allclose(b[k], a[k], rtol=1e-7, err_msg=k)  # see the test above
+
+
+def test_backend_auto_picks_numba_when_importable_and_numpy_when_hidden(monkeypatch):
+    import sys
+
+    if fr.numba_available():
+        assert fr.resolve_backend("auto") == "numba"
+    monkeypatch.setitem(sys.modules, "numba", None)  # import numba now raises ImportError
+    assert fr.resolve_backend("auto") == "numpy"
+    from netkf_cli.errors import ConfigError
+
+    with pytest.raises(ConfigError) as e:
+        fr.resolve_backend("numba")
+    assert "estimator.backend" in str(e.value)
+
+
+# ------------------------------------------------------------------ kernels are picklable and really run on workers
+
+
+class PidKernel(fr.FadingAveragesKernel):
+    """The Fig. 4 kernel plus the id of the process that ran the chunk (one-hot over a small pid range)."""
+
+    def __call__(self, rng, runs):
+        out = super().__call__(rng, runs)
+        out["pid_is_parent"] = np.array([float(os.getpid() == self.parent)])
+        return out
+
+
+@pytest.mark.parametrize("make", ["averages", "receivers", "paths", "smc", "thm4"])
+def test_kernels_pickle_and_process_pool_equals_serial(make):
+    ch = chan()
+    T = np.array([2.0, 14.0])
+    if make == "averages":
+        k = fr.FadingAveragesKernel(ch, T)
+    elif make == "receivers":
+        k = fr.ReceiverMeanKernel({3: rm("s3_square")}, T, 100.0, np.eye(3), 12, backend="numpy")
+    elif make == "paths":
+        jch = chan(correlation={"model": "jakes", "carrier_hz": 1e9, "speed": {"value": 25, "unit": "mph"}, "interval_s": 0.01})
+        k = fr.CorrelatedPathKernel(jch, fr.ReceiverModel(2, np.array([[2.0]]), np.array([[1.0]]), np.array([[1e-3]]),
+                                                          np.array([[1e-8]]), NZ), T, np.eye(1), 12, 3, backend="numpy")
+    elif make == "smc":
+        k = fr.BurstSMCKernel(None, T, 100.0, NZ, fr.memoryless_coefficients(2.0, 1.0, 1e-3, 1e-8, 1.0, 12), 12, particles=4)
+    else:
+        k = fr.Theorem4Kernel(1.5, 1.0, 10.0, 1.0, 5)
+    pickle.loads(pickle.dumps(k))
+    serial = run_chunked(k, 40, 10, 5, stream=3)
+    with execution("process", jobs=2):
+        par = run_chunked(k, 40, 10, 5, stream=3)
+    assert sorted(serial) == sorted(par)
+    for key in serial:
+        assert np.array_equal(serial[key], par[key]), key
+
+
+def test_work_happens_in_worker_processes():
+    k = PidKernel(chan(), np.array([1.0, 5.0]))
+    k.parent = os.getpid()
+    with execution("process", jobs=2):
+        tot = run_chunked(k, 40, 10, 0, stream=0)
+    assert tot["pid_is_parent"][0] == 0.0  # no chunk ran in the parent process
+
+
+@pytest.mark.parametrize("stem,extra", [("fig6", {}), ("fig7", {"analysis": {"smc_chunk": 2, "smc_runs": 4}})])
+def test_jobs2_csv_equals_serial_byte_for_byte(tmp_path, stem, extra):
+    """Worker processes give the same bytes as the parent (no BLAS product whose rounding depends on the
+    thread count: the Jakes generator and the SMC's conditional means use einsum)."""
+    from pathlib import Path
+
+    from netkf_cli.runner import run_scenario_file
+
+    cfg = Path(__file__).resolve().parents[2] / "configs" / "fading" / f"{stem}.yaml"
+    ov = {"montecarlo": {"horizon": 20, "chunk": 10}, **extra}
+    a = run_scenario_file(cfg, out_dir=tmp_path / "serial", runs=40, force=True, overrides=ov)
+    with execution("process", jobs=2):
+        b = run_scenario_file(cfg, out_dir=tmp_path / "jobs2", runs=40, force=True, overrides=ov)
+    names = sorted(p.name for p in a.glob("*.csv"))
+    assert names
+    for name in names:
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+
+
+# ------------------------------------------------------------------ contracts (issue 12)
+
+
+def test_channel_trace_contract():
+    ch = chan()
+    assert ch.trace_kinds == frozenset({"snr"})
+    tr = ch.sample_trace(np.random.default_rng(0), 7, 5)
+    assert tr.snr.shape == (5, 7) and tr.kinds == frozenset({"snr"})
+    np.testing.assert_array_equal(tr.snr, ch.sample(np.random.default_rng(0), 7, 5).snr)
+    law = ch.snr_law()
+    assert law["distribution"] == "exponential" and law["mean"] == pytest.approx(100.0)
+    assert float(law["mu_ave"](14.0)) == pytest.approx(1 - math.exp(-0.14))
+    pickle.dumps(tr.meta["noise"])
+
+
+@pytest.mark.parametrize("sc", [1, 2, 3])
+def test_estimator_covariances_equal_the_reference_recursion(sc):
+    from netkf_cli.estimators.fading_receivers import ReceiverEstimator
+
+    s = LinearSystem.create(A5, 2 * np.eye(3), Q5, 1e-8 * np.eye(3), np.eye(3))
+    est = ReceiverEstimator.model_validate({"kind": "receiver", "scenario": sc, "threshold": {"value": 10, "unit": "linear"},
+                                            "backend": "numpy"})
+    ch = chan()
+    est.check(s, ch)
+    assert "snr" in est.accepts and est.quantity == "P_{k+1|k}"
+    tr = ch.sample_trace(np.random.default_rng(2), 30, 25)
+    got = dict(est.covariances(s, tr, [1, 7, 25]))
+    # system.P0 is P_{0|0}: the prior of y_1 is A P0 Aᵀ + Q; after y_k the estimator reports P_{k+1|k}
+    ref = fr.covariance_paths(fr.ReceiverModel(sc, A5, 2 * np.eye(3), Q5, 1e-8 * np.eye(3), NZ), tr.snr, 10.0,
+                              A5 @ A5.T + Q5, record=[1, 7, 25])
+    for i, k in enumerate([1, 7, 25]):
+        assert got[k].shape == (3, 3, 30)
+        np.testing.assert_allclose(got[k], ref[i], rtol=1e-12)
+
+
+def test_estimator_check_refuses_bad_pairs():
+    from netkf_cli.errors import ConfigError
+    from netkf_cli.estimators.fading_receivers import ReceiverEstimator
+
+    s = LinearSystem.create(A5, 2 * np.eye(3), Q5, 1e-8 * np.eye(3), np.eye(3))
+    est = ReceiverEstimator.model_validate({"kind": "receiver", "scenario": 2})
+    with pytest.raises(ConfigError) as e:
+        est.check(s, chan())
+    assert "estimator.threshold" in str(e.value)
+
+    class NoSnr:
+        trace_kinds = frozenset({"arrival"})
+
+    est = ReceiverEstimator.model_validate({"kind": "receiver", "scenario": 2, "threshold": {"value": 3, "unit": "dB"}})
+    with pytest.raises(ConfigError) as e:
+        est.check(s, NoSnr())
+    assert "snr" in str(e.value)
+    est.check(s.with_P0(None), chan())  # P0 left out = P̄ (the one meaning of P0 in netkf)
+
+
+def test_degenerate_run_is_nonfinite_not_an_exception():
+    """P0 = 0 with scenario 2 and m < n: the filter's C P_f Cᵀ is 0 at the first packet (0/0 gain). Both
+    backends give non-finite values for those runs instead of raising (numpy error model when compiled)."""
+    r = fr.ReceiverModel(2, np.array([[1.7, -0.8], [1.0, 0.0]]), np.array([[0.03, 0.026]]), np.array([[1.0, 0], [0, 0]]),
+                         np.array([[0.04]]), NZ)
+    snr = np.full((5, 4), 50.0)
+    for be in ("numpy",) + (("numba",) if fr.numba_available() else ()):
+        P = fr.covariance_paths(r, snr, 2.0, np.zeros((2, 2)), record=[5], backend=be)
+        assert not np.all(np.isfinite(P)), be
+
+
+# ------------------------------------------------------------------ variance-reduced estimators vs exact values
+
+
+def test_rao_blackwellized_scenario2_is_eq14_per_run():
+    """Scenario 2, invertible C: with σ_n² replaced by E[σ_n² | kept] the conditioned estimate is the exact
+    mean eq. (14) in every run (the randomness of the drops is averaged out by the burst conditioning)."""
+    Ts = np.array([4.0, 14.0, 17.0])
+    th = np.repeat(Ts, 50)
+    mu = fa.mu_ave(th, 100.0)
+    _, U = fr.burst_conditioned_paths(rm("s2_square"), np.random.default_rng(0), th, mu, 100.0, np.eye(3), 60, [60],
+                                      s2_given_kept=NZ.mean_given_kept(th, 100.0))
+    for i, T in enumerate(Ts):
+        ex = fa.ep_recursion(A5, 2 * np.eye(3), Q5, float(fa.mu_ave(T, 100.0)), float(fa.sigma2_n_ave(T, 100.0, AL, DE)),
+                             np.eye(3), 60, R=1e-8 * np.eye(3))[-1]
+        np.testing.assert_allclose(U[0][:, :, i * 50:(i + 1) * 50], np.repeat(ex[:, :, None], 50, 2), rtol=1e-10)
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=needs_numba)])
+def test_final_strata_keeps_the_conditioned_estimator_unbiased(backend):
+    # scenario 2 (square C) with SAMPLED σ_n² and the stratified last step: mean within 5 s.e. of eq. (14)
+    Ts, N, H = np.array([1.0, 8.0, 16.0]), 3000, 40
+    th = np.repeat(Ts, N)
+    mu = fa.mu_ave(th, 100.0)
+    _, U = fr.burst_conditioned_paths(rm("s2_square"), np.random.default_rng(4), th, mu, 100.0, np.eye(3), H, [H],
+                                      backend=backend, final_strata=8)
+    U = U[0].reshape(3, 3, len(Ts), N)
+    for i, T in enumerate(Ts):
+        ex = fa.ep_recursion(A5, 2 * np.eye(3), Q5, float(fa.mu_ave(T, 100.0)), float(fa.sigma2_n_ave(T, 100.0, AL, DE)),
+                             np.eye(3), H, R=1e-8 * np.eye(3))[-1]
+        m, se = U[:, :, i].mean(-1), U[:, :, i].std(-1) / math.sqrt(N)
+        assert np.all(np.abs(m - ex) < 5 * se + 1e-12 * np.abs(ex)), T
+
+
+def test_memoryless_coefficients_reproduce_eq14_for_iid_bursts():
+    """Σ_L (1−μ)μᴸ (s̄ M1[L] + M2[L]) + μᴴ D = eq. (14) — the decomposition the SMC estimator uses."""
+    H, Ya = 50, 100.0
+    M1, M2, D = fr.memoryless_coefficients(2.0, 1.0, 1e-3, 1e-8, 1.0, H)
+    for T in (3.0, 20.0, 28.0):
+        mu = float(fa.mu_ave(T, Ya))
+        sbar = float(NZ.mean_given_kept(T, Ya))
+        L = np.arange(H)
+        v = np.sum((1 - mu) * mu**L * (sbar * M1[:, 0, 0] + M2[:, 0, 0])) + mu**H * D[0, 0]
+        ex = fa.ep_recursion(2.0, 1.0, 1e-3, mu, float(fa.sigma2_n_ave(T, Ya, AL, DE)), 1.0, H, 1e-8)[-1][0, 0]
+        assert v == pytest.approx(ex, rel=1e-10)
+
+
+def test_smc_iid_matches_eq14():
+    # independent gains: the SMC weights are exactly (1−μ)μᴸ; only σ_n²(Υ_0) is sampled. 5 s.e. (over clouds)
+    H, Ya, T, R = 60, 100.0, np.array([2.0, 10.0, 20.0, 28.0]), 40
+    k = fr.BurstSMCKernel(None, T, Ya, NZ, fr.memoryless_coefficients(2.0, 1.0, 1e-3, 1e-8, 1.0, H), H, particles=8)
+    st = k(np.random.default_rng(0), R)
+    m, se = mean_and_stderr(st["sum"][0, 0], st["sumsq"][0, 0], R)
+    ex = np.array([fa.ep_recursion(2.0, 1.0, 1e-3, float(fa.mu_ave(t, Ya)), float(fa.sigma2_n_ave(t, Ya, AL, DE)), 1.0, H,
+                                   1e-8)[-1][0, 0] for t in T])
+    assert np.all(np.abs(m - ex) < 5 * se + 1e-12 * ex)
+    mu = fa.mu_ave(T, Ya)
+    for j, L in enumerate(k.burst_lags):
+        np.testing.assert_allclose(st["w"][:, j] / R, (1 - mu) * mu**L, rtol=1e-10)
+
+
+def test_smc_jakes_agrees_with_plain_monte_carlo_where_that_is_reliable():
+    """Short horizon and a low threshold: the plain sample mean of P[H] has a small, finite variance there.
+    The SMC estimate on the same Jakes channel must agree within 5 combined standard errors."""
+    H, Ya, T = 25, 100.0, np.array([4.0, 8.0])
+    jch = chan(correlation={"model": "jakes", "carrier_hz": 1e9, "speed": {"value": 25, "unit": "mph"}, "interval_s": 0.01})
+    r2 = fr.ReceiverModel(2, np.array([[2.0]]), np.array([[1.0]]), np.array([[1e-3]]), np.array([[1e-8]]), NZ)
+    N = 20000
+    plain = fr.CorrelatedPathKernel(jch, r2, T, np.eye(1), H, 2, backend="numpy")(np.random.default_rng(1), N)
+    pm, pse = mean_and_stderr(plain["jakes_sum"][0, 0], plain["jakes_sumsq"][0, 0], N)
+    R = 30
+    smc = fr.BurstSMCKernel(jakes_factor(H, jch.correlation), T, Ya, NZ,
+                            fr.memoryless_coefficients(2.0, 1.0, 1e-3, 1e-8, 1.0, H), H, particles=16)(np.random.default_rng(2), R)
+    sm, sse = mean_and_stderr(smc["sum"][0, 0], smc["sumsq"][0, 0], R)
+    assert np.all(np.abs(sm - pm) < 5 * np.hypot(sse, pse)), (sm, sse, pm, pse)
+
+
+@needs_numba
+@pytest.mark.parametrize("sc", [1, 2, 3])
+def test_generic_compiled_step_for_four_states_equals_numpy(sc):
+    """n = 4 has no straight-line kernel: the generic compiled loop (Gauss–Jordan inverse) against numpy."""
+    A = 0.95 * np.array([[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1.0]]) * 1.3
+    C = np.hstack([np.eye(2), np.zeros((2, 2))]) if sc != 2 else np.eye(4) + 0.1
+    R = 1e-3 * np.eye(C.shape[0])
+    r4 = fr.ReceiverModel(sc, A, C, 1e-2 * np.eye(4), R, NZ)
+    th = np.repeat(np.array([0.0, 10.0, 16.0]), 100)
+    mu = fa.mu_ave(th, 100.0)
+    a = fr.burst_conditioned_paths(r4, np.random.default_rng(5), th, mu, 100.0, np.eye(4), 30, [30], backend="numpy")
+    b = fr.burst_conditioned_paths(r4, np.random.default_rng(5), th, mu, 100.0, np.eye(4), 30, [30], backend="numba")
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(y.mean(-1), x.mean(-1), rtol=1e-7)
+
+
+@needs_numba
+def test_straight_line_kernel_equals_generic_compiled_step():
+    from netkf_cli.estimators import _fading_numba as fnb
+
+    for key in ("s1", "s2_square", "s3_general", "s2_general", "s3_m2"):
+        r = rm(key)
+        mode, G, rr, M1, M2 = fr._constants(r)
+        spec = fnb.specialized_step(mode, r.n, r.C.shape[0])
+        rng = np.random.default_rng(0)
+        B = 64
+        P = np.repeat(np.eye(3)[None] * rng.uniform(0.5, 50, B)[:, None, None], 1, 0)
+        args = [np.ascontiguousarray(rng.random(B) > 0.3), rng.uniform(1e-4, 5, B), np.full(B, 0.2), True,
+                r.A, r.Q, np.ascontiguousarray(r.C), np.ascontiguousarray(r.R), G, rr, M1, M2]
+        out = []
+        for f in ("generic", "spec"):
+            Pf, Pt, U = P.copy(), (P * 1.5).copy(), (P * 2.0).copy()
+            if f == "generic":
+                fnb.step(mode, Pf, Pt, U, *args)
+            else:
+                spec(Pf, Pt, U, *args)
+            out.append((Pf, Pt, U))
+        for x, y in zip(*out):
+            np.testing.assert_allclose(y, x, rtol=1e-9, err_msg=key)
