@@ -1,26 +1,140 @@
-"""Shared figure style. Recipes draw with matplotlib (Agg) from their CSV tables only."""
+"""Shared figure style. Recipes draw with matplotlib (Agg) from their CSV tables only.
+
+What every netkf figure uses (issue 13):
+
+* ``new_figure(...)`` — a figure in the project's style (fonts ≥ 9 pt at the saved size: font
+  sizes are in points and figures are saved at their own size, never rescaled);
+* ``paper_title(topic, figure, what)`` — ``"Shi, Xie & Murray 2009 — Fig. 5: …"``;
+* mathtext for symbols: ``r"$\\Upsilon_T$"``, ``r"$P_{k|k-1}$"``, ``r"$L_f^{LB}$"``, rendered
+  with the STIX sans fonts (DejaVu Sans, the text font, draws a plain-Unicode Υ exactly like a
+  Latin "Y": write ``$\\Upsilon$``; ≤ and θ are fine either way);
+* ``PALETTE`` (Okabe–Ito, colour-blind safe), ``LINESTYLES``, ``MARKERS`` and
+  ``series_style(i)`` for the i-th series: colour, line style and marker all differ;
+* ``legend_outside(ax)`` — the legend to the right of the axes, never over the data;
+* ``footnote(fig, text)`` — a provenance line under the axes (wrapped, 9 pt);
+* ``save(fig, path, formats=("png",), dpi=...)`` — lays the figure out so that no text leaves
+  the canvas, then writes every requested format of the same figure.
+
+``lint(fig)`` lists what a referee would object to (no title, unlabelled axes, a legend entry
+without a series or a series without a legend entry, a legend over data points, text outside
+the canvas, fonts < 9 pt);
+when the environment variable ``NETKF_FIGURE_LINT`` names a folder, ``save`` writes the
+findings there as ``<figure stem>.json`` (the figure-lint test reads them).
+"""
 
 from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterable
+from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from cycler import cycler  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
+
+#: Okabe & Ito (2008) colour-blind-safe palette; yellow last (weak on white).
+PALETTE: tuple[str, ...] = (
+    "#0072B2",  # blue
+    "#D55E00",  # vermillion
+    "#009E73",  # bluish green
+    "#CC79A7",  # reddish purple
+    "#E69F00",  # orange
+    "#56B4E9",  # sky blue
+    "#000000",  # black
+    "#F0E442",  # yellow
+)
+LINESTYLES: tuple = ("-", "--", "-.", ":", (0, (5, 1.5)), (0, (3, 1, 1, 1, 1, 1)), (0, (1, 1)), (0, (8, 2, 2, 2)))
+MARKERS: tuple[str, ...] = ("o", "s", "^", "D", "v", "P", "X", "*")
+MIN_FONT_PT = 9.0
+
+PAPERS: dict[str, str] = {
+    "shi2009": "Shi, Xie & Murray 2009",
+    "fading": "Mostofi & Murray 2009",
+    "smoothing": "Leong, Dey & Evans 2008",
+    "fusion": "Chiuso & Schenato 2009",
+    "markov": "Moayedi, Soh & Foo 2009",
+    "critical": "Sinopoli et al. 2004",
+}
 
 STYLE = {
     "figure.dpi": 100,
+    "savefig.dpi": 150,
     "axes.grid": True,
     "grid.alpha": 0.3,
     "axes.spines.top": False,
     "axes.spines.right": False,
+    "axes.prop_cycle": cycler(color=list(PALETTE)) + cycler(linestyle=list(LINESTYLES)),
     "legend.frameon": False,
+    "font.family": "DejaVu Sans",
+    # STIX sans: upright sans like DejaVu, but a Υ with curved arms (DejaVu's Υ looks like "Y")
+    "mathtext.fontset": "stixsans",
     "font.size": 10,
+    "axes.titlesize": 11,
+    "axes.labelsize": 10,
+    "xtick.labelsize": 9,
+    "ytick.labelsize": 9,
+    "legend.fontsize": 9,
+    "legend.title_fontsize": 9,
+    "figure.titlesize": 11,
+    "lines.linewidth": 1.5,
+    "lines.markersize": 5,
+    "errorbar.capsize": 2,
+    "svg.fonttype": "path",
+    "svg.hashsalt": "netkf",  # deterministic element ids: the same figure gives the same SVG
+    "pdf.fonttype": 42,
 }
+# The style is the process-wide default for netkf figures: titles, labels and legends created
+# after ``new_figure`` returns get these sizes too (an rc_context would only cover creation).
+matplotlib.rcParams.update(STYLE)
+
+
+def series_style(i: int) -> dict:
+    """Colour, line style and marker of the i-th series (all three differ between neighbours).
+
+    Use as ``ax.plot(x, y, **series_style(i), label=...)``; for a curve on a dense grid drop the
+    marker (``markevery`` or ``{**series_style(i), "marker": None}``).
+    """
+    return {"color": PALETTE[i % len(PALETTE)], "linestyle": LINESTYLES[i % len(LINESTYLES)],
+            "marker": MARKERS[i % len(MARKERS)]}
+
+
+def paper_title(topic: str | None, figure: str | int | None, what: str) -> str:
+    """``"<paper> — <figure>: <what>"``; ``topic=None`` (a user's scenario) gives ``what`` alone.
+
+    ``figure`` may be ``5`` (→ "Fig. 5"), a string such as ``"Table I"``, ``"Sec. 4.2"``, or None.
+    """
+    if topic is None:
+        return what
+    if topic not in PAPERS:
+        raise ValueError(f"unknown topic {topic!r}; known: {sorted(PAPERS)}")
+    paper = PAPERS[topic]
+    if figure is None or figure == "":
+        return f"{paper} — {what}"
+    fig = f"Fig. {figure}" if isinstance(figure, int) else str(figure)
+    return f"{paper} — {fig}: {what}"
+
+
+def legend_outside(ax, *, loc: str = "right", **kw):
+    """A legend outside the axes (``loc="right"``: to the right, top-aligned; ``"below"``: under
+    the x-axis label). ``save`` shrinks the axes so that it stays on the canvas."""
+    if loc == "right":
+        kw = {"loc": "upper left", "bbox_to_anchor": (1.02, 1.0), "borderaxespad": 0.0, **kw}
+    elif loc == "below":
+        kw = {"loc": "upper center", "bbox_to_anchor": (0.5, -0.16), "borderaxespad": 0.0,
+              "ncol": kw.pop("ncol", 2), **kw}
+    else:
+        raise ValueError("loc must be 'right' or 'below'")
+    return ax.legend(**kw)
 
 
 def new_figure(ncols: int = 1, nrows: int = 1, width: float = 6.4, height: float = 4.4, **kw) -> tuple[Figure, object]:
-    """A figure with the project's style; returns (fig, axes)."""
+    """A figure with the project's style; returns (fig, axes).
+
+    ``width`` is per column when ``ncols > 1``, ``height`` per row (as before)."""
     with plt.rc_context(STYLE):
         fig, ax = plt.subplots(nrows, ncols, figsize=(width * ncols if ncols > 1 else width, height * nrows), **kw)
     for a in (ax.flat if hasattr(ax, "flat") else [ax]):
@@ -31,11 +145,259 @@ def new_figure(ncols: int = 1, nrows: int = 1, width: float = 6.4, height: float
 
 
 def footnote(fig: Figure, text: str) -> None:
-    """A small provenance line under the axes (convention, sample counts …)."""
-    fig.text(0.01, 0.005, text, fontsize=7, color="0.35", ha="left", va="bottom")
+    """A provenance line under the axes (convention, sample counts …); wrapped to the width."""
+    t = fig.text(0.01, 0.005, text, fontsize=MIN_FONT_PT, color="0.3", ha="left", va="bottom", wrap=True)
+    fig._netkf_footnotes = [*getattr(fig, "_netkf_footnotes", []), t]
 
 
-def save(fig: Figure, path, dpi: int = 150) -> None:
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+def _wrap(text: str, width: int) -> str:
+    """textwrap that never breaks inside a $…$ mathtext span."""
+    import re
+    import textwrap
+
+    protected = re.sub(r"\$[^$]*\$", lambda m: m.group(0).replace(" ", "\x00"), text)
+    out = "\n".join(textwrap.fill(line, max(width, 10), break_long_words=False, break_on_hyphens=False)
+                    for line in protected.split("\n"))
+    return out.replace("\x00", " ")
+
+
+def _fit_titles(fig: Figure) -> None:
+    """Wrap a title wider than the canvas (a long paper_title) onto two or more lines."""
+    texts = [fig._suptitle] if getattr(fig, "_suptitle", None) is not None else []
+    for ax in fig.axes:
+        texts += [ax.title, ax._left_title, ax._right_title]
+    texts = [t for t in texts if t is not None and t.get_visible() and t.get_text().strip()]
+    if not texts:
+        return
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    W = fig.bbox.width * 0.96
+    for t in texts:
+        w = t.get_window_extent(r).width
+        if w > W:
+            longest = max(len(line) for line in t.get_text().split("\n"))
+            t.set_text(_wrap(t.get_text().replace(" — ", " —\n", 1) if " — " in t.get_text() and w < 2 * W
+                             else t.get_text(), int(longest * W / w * 0.95)))
+            if t.get_window_extent(r).width > W:  # the first split was not enough: wrap everything
+                t.set_text(_wrap(t.get_text().replace("\n", " "), int(longest * W / w * 0.9)))
+
+
+def _layout(fig: Figure) -> None:
+    """tight_layout with room at the bottom for the (wrapped) footnotes; long titles wrapped."""
+    _fit_titles(fig)
+    notes = getattr(fig, "_netkf_footnotes", [])
+    bottom = 0.0
+    if notes:
+        fig.canvas.draw()
+        r = fig.canvas.get_renderer()
+        h = fig.bbox.height
+        y = 0.005 * h
+        for t in notes:  # stack them upwards, bottom line first
+            t.set_y(y / h)
+            y += t.get_window_extent(r).height + 2
+        bottom = min(0.4, (y + 4) / h)
+    import warnings
+
+    try:
+        with warnings.catch_warnings():  # a layout that cannot fit is reported by lint(), not as a warning
+            warnings.filterwarnings("ignore", message="Tight layout not applied")
+            fig.tight_layout(rect=(0, bottom, 1, 1))
+    except (ValueError, RuntimeError):  # pragma: no cover - degenerate layouts
+        pass
+
+
+KNOWN_FORMATS = ("png", "pdf", "svg")
+
+
+def save(fig: Figure, path, dpi: int | None = None, formats: Iterable[str] | None = None) -> list[Path]:
+    """Lay out and write ``fig``; returns the files written.
+
+    ``save(fig, "out/fig5.png", dpi=150)`` writes that PNG (the old call); with ``formats``
+    (e.g. ``("png", "pdf", "svg")``) every format is written next to ``path`` with the same stem
+    (a known suffix on ``path`` is replaced). PDF and SVG carry no creation date, so they are
+    reproducible byte for byte.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower().lstrip(".")
+    if formats is None:
+        formats = (suffix,) if suffix in KNOWN_FORMATS else ("png",)
+    formats = tuple(dict.fromkeys(str(f).lower().lstrip(".") for f in formats))
+    bad = [f for f in formats if f not in KNOWN_FORMATS]
+    if bad or not formats:
+        plt.close(fig)
+        raise ValueError(f"unknown figure format(s) {bad or formats}; choose from {KNOWN_FORMATS}")
+    stem = path.with_suffix("") if suffix in KNOWN_FORMATS else path
+    _layout(fig)
+    lint_dir = os.environ.get("NETKF_FIGURE_LINT")
+    if lint_dir:
+        try:
+            problems = lint(fig)
+        except Exception as exc:  # the lint must never stop a figure from being written
+            problems = [f"lint crashed: {type(exc).__name__}: {exc}"]
+        report = {"figure": stem.name, "problems": problems, "titles": titles(fig)}
+        Path(lint_dir).mkdir(parents=True, exist_ok=True)
+        (Path(lint_dir) / f"{stem.name}.json").write_text(json.dumps(report, indent=1, ensure_ascii=False), encoding="utf-8")
+    written = []
+    meta = {"png": None, "pdf": {"CreationDate": None}, "svg": {"Date": None}}
+    try:
+        for f in formats:
+            out = stem.with_name(stem.name + "." + f)
+            fig.savefig(out, dpi=dpi or STYLE["savefig.dpi"], format=f, metadata=meta[f])
+            written.append(out)
+    finally:
+        plt.close(fig)
+    return written
+
+
+# ---------------------------------------------------------------------------- figure lint
+def titles(fig: Figure) -> list[str]:
+    """Every non-empty title of the figure: the suptitle first, then the axes titles."""
+    out = []
+    if getattr(fig, "_suptitle", None) is not None and fig._suptitle.get_text().strip():
+        out.append(fig._suptitle.get_text())
+    for ax in fig.axes:
+        for loc in ("center", "left", "right"):
+            s = ax.get_title(loc=loc)
+            if s.strip():
+                out.append(s)
+    return out
+
+
+def _is_reference_line(ax, line) -> bool:
+    """axhline/axvline and friends: drawn in a blended (axes-fraction) transform."""
+    return line.get_transform() != ax.transData and not line.get_transform().contains_branch(ax.transData)
+
+
+def _series(ax) -> tuple[list[str], int]:
+    """(labels of labelled series, number of unlabelled data series) drawn in ``ax``."""
+    handles, labels = ax.get_legend_handles_labels()
+    in_container = set()
+    for c in ax.containers:
+        for child in c.get_children() if hasattr(c, "get_children") else c:
+            if child is not None:
+                in_container.add(id(child))
+    unlabelled = 0
+    for line in ax.get_lines():
+        if not line.get_visible() or id(line) in in_container or _is_reference_line(ax, line):
+            continue
+        lab = line.get_label() or ""
+        if lab.startswith("_child") or lab == "":
+            unlabelled += 1
+    for coll in ax.collections:
+        lab = coll.get_label() or ""
+        if type(coll).__name__ == "PathCollection" and id(coll) not in in_container and coll.get_visible() \
+                and (lab.startswith("_child") or lab == ""):
+            unlabelled += 1  # a scatter without a label
+    return labels, unlabelled
+
+
+def lint(fig: Figure) -> list[str]:
+    """What a referee would object to, as readable lines (empty = clean). Call after layout."""
+    problems: list[str] = []
+    if not titles(fig):
+        problems.append("no title (use plotting.paper_title)")
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    axes = [a for a in fig.axes if a.get_visible() and a.axison]
+    fig_legend_labels = [t.get_text() for lg in fig.legends for t in lg.get_texts()]
+    all_series: list[str] = []
+    for i, ax in enumerate(axes):
+        name = f"axes {i}" + (f" ({ax.get_title()!r})" if ax.get_title() else "")
+        has_data = bool(ax.get_lines() or ax.collections or ax.patches or ax.images or ax.containers)
+        if not has_data:
+            continue
+        for which, get, shared in (("x", ax.get_xlabel, ax.get_shared_x_axes()), ("y", ax.get_ylabel, ax.get_shared_y_axes())):
+            if get().strip():
+                continue
+            sib = [s for s in shared.get_siblings(ax) if s is not ax]
+            if not any((s.get_xlabel() if which == "x" else s.get_ylabel()).strip() for s in sib):
+                problems.append(f"{name}: no {which}-axis label")
+        labels, unlabelled = _series(ax)
+        all_series += labels
+        lg = ax.get_legend()
+        legend_labels = [t.get_text() for t in lg.get_texts()] if lg is not None else []
+        for lab in legend_labels:
+            if lab not in labels:
+                problems.append(f"{name}: legend entry {lab!r} has no drawn series")
+        for lab in labels:
+            if lab not in legend_labels and lab not in fig_legend_labels:
+                problems.append(f"{name}: series {lab!r} has no legend entry")
+        if unlabelled and (legend_labels or labels or unlabelled > 1):
+            problems.append(f"{name}: {unlabelled} drawn series without a label (no legend entry)")
+    for i, ax in enumerate(axes):
+        n = _points_under_legend(ax, r)
+        if n:
+            problems.append(f"axes {i}: the legend covers {n} data point(s) (use legend_outside or an empty region)")
+    for lab in fig_legend_labels:
+        if lab not in all_series:
+            problems.append(f"figure legend entry {lab!r} has no drawn series")
+    W, H = fig.bbox.width, fig.bbox.height
+    from matplotlib.text import Text
+
+    every_tick, drawn_tick = _tick_labels(fig)
+    seen = set()
+    for t in fig.findobj(Text):
+        if id(t) in seen or not t.get_visible() or not t.get_text().strip():
+            continue
+        seen.add(id(t))
+        if id(t) in every_tick and id(t) not in drawn_tick:
+            continue
+        if t.get_fontsize() < MIN_FONT_PT - 1e-6:
+            problems.append(f"text {t.get_text()[:40]!r}: {t.get_fontsize():.1f} pt < {MIN_FONT_PT:g} pt")
+        try:
+            bb = t.get_window_extent(r)
+        except (RuntimeError, ValueError):
+            continue
+        if bb.x0 < -1 or bb.y0 < -1 or bb.x1 > W + 1 or bb.y1 > H + 1:
+            problems.append(f"text {t.get_text()[:40]!r} lies outside the canvas")
+    return problems
+
+
+def _points_under_legend(ax, renderer) -> int:
+    """How many drawn data vertices (lines, markers, scatter points) lie under the axes' legend."""
+    import numpy as np
+
+    lg = ax.get_legend()
+    if lg is None or not lg.get_visible():
+        return 0
+    bb = lg.get_window_extent(renderer).padded(-2)
+    if bb.width <= 0 or bb.height <= 0 or not bb.overlaps(ax.get_window_extent(renderer)):
+        return 0
+    pts = []
+    for line in ax.get_lines():
+        if line.get_visible() and not _is_reference_line(ax, line):
+            xy = np.column_stack([np.asarray(line.get_xdata(), float), np.asarray(line.get_ydata(), float)])
+            if len(xy):
+                pts.append(line.get_transform().transform(xy))
+    for coll in ax.collections:
+        if coll.get_visible() and type(coll).__name__ == "PathCollection":
+            off = coll.get_offsets()
+            if len(off):
+                pts.append(coll.get_offset_transform().transform(np.asarray(off, float)))
+    if not pts:
+        return 0
+    xy = np.vstack(pts)
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    axbb = ax.get_window_extent(renderer)
+    inside_axes = (xy[:, 0] >= axbb.x0) & (xy[:, 0] <= axbb.x1) & (xy[:, 1] >= axbb.y0) & (xy[:, 1] <= axbb.y1)
+    under = (xy[:, 0] > bb.x0) & (xy[:, 0] < bb.x1) & (xy[:, 1] > bb.y0) & (xy[:, 1] < bb.y1)
+    return int((under & inside_axes).sum())
+
+
+def _tick_labels(fig) -> tuple[set[int], set[int]]:
+    """(ids of every tick label, ids of the tick labels actually drawn)."""
+    every, drawn = set(), set()
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            for tk in axis.get_major_ticks() + axis.get_minor_ticks():
+                every.update((id(tk.label1), id(tk.label2)))
+            try:
+                shown = axis._update_ticks()  # the ticks inside the view (what draw() draws)
+            except Exception:  # pragma: no cover - private API moved: check every label
+                shown = axis.get_major_ticks() + axis.get_minor_ticks()
+            for tk in shown:
+                if tk.label1.get_visible():
+                    drawn.add(id(tk.label1))
+                if tk.label2.get_visible():
+                    drawn.add(id(tk.label2))
+    return every, drawn

@@ -1,28 +1,46 @@
-"""``netkf reproduce``: every paper artefact regenerated, checked against the print, reported.
+"""``netkf reproduce``: every paper artefact regenerated, checked against the paper, reported.
 
 A topic is a folder of ``configs/`` (top-level configs belong to ``shi2009``) with notes in
-``experiments/<topic>/README.md`` and printed numbers in ``experiments/<topic>/published.yaml``::
+``experiments/<topic>/README.md`` and, in ``experiments/<topic>/published.yaml``, what the
+paper says, in two kinds of entries, plus how the topic's golden CSVs are compared::
 
-    checks:
+    citation: "L. Shi, L. Xie, R. M. Murray, … Automatica 45 (2009) 2134–2140"
+    printed:                         # numbers that appear in the paper, where they appear
       - id: ex310_theta_7_6          # unique within the topic
         artefact: fig3               # the config's `name`
         csv: fig3                    # file stem in the result folder (default: the artefact name)
-        where: {M: 50, D: 6, series: theta_k1}   # column == value filters selecting ONE row
+        select: {M: 50, D: 6, series: theta_k1}   # column == value filters selecting ONE row
         column: value                # default: value
         quantity: "θ(7, 6) at M = 50"
+        where: "Example 3.10 (Sec. 3.4)"          # page / figure / table / equation / section
         printed: 0.0313
-        tol_abs: 5.0e-5              # or tol_rel
+        tol_abs: 5.0e-5              # or tol_rel (printed to 4 decimals: half a unit of the last digit)
+        interval: [threshold_low, threshold_high] # optional: an argmin's near-optimal interval
         expect: reproduce            # or: differs (then `reason` is required)
-        reason: ""
+    claims:                          # what the paper claims in words, and the number that decides it
+      - id: fig5_mc_between_bounds
+        artefact: fig5
+        csv: fig5_summary
+        select: {quantity: mc_within_bounds_5se_fraction}
+        claim: "Pr[P_k ≤ M] lies between the bounds of Thm 3.8"
+        where: "Fig. 5, Thm 3.8"
+        check: "fraction of the M grid where lower − 5σ ≤ Monte Carlo ≤ upper + 5σ"
+        holds_if: {min: 1.0}         # and/or max
+        expect: holds                # or: fails (then `reason` is required)
+    golden:                          # per CSV stem: netkf_cli.golden rules (closed / mc / optimizer …)
+      fading_fig5_optima:
+        - {columns: [threshold], kind: optimizer, rtol: 1.0e-6, why: "…"}
 
-Adding a paper means adding configs and these two files; no code here changes.
-Under ``--quick`` each Monte Carlo uses ``montecarlo.quick_size()`` runs and every tolerance
-is widened to at least 5 standard errors of the row it reads (its ``stderr`` column).
+Adding a paper means adding configs and these two files; no code here changes. Under
+``--quick`` each Monte Carlo uses ``montecarlo.quick_size()`` runs and every tolerance (and every
+claim's threshold) is widened by 5 standard errors of the row it reads (its ``stderr`` column).
 """
 
 from __future__ import annotations
 
+import json
 import math
+import subprocess
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -34,27 +52,35 @@ import pandas as pd
 import yaml
 from pydantic import Field, ValidationError, model_validator
 
+from netkf_cli import golden as golden_mod
 from netkf_cli.errors import ConfigError, Problem
 from netkf_cli.spec import StrictModel
 
 TOP_LEVEL_TOPIC = "shi2009"
-STAT_COLUMNS = {"value", "stderr", "n", "n_runs", "runs", "ci_low", "ci_high", "p_value", "reliable", "wall_time_s"}
 SIGMAS = 5.0
 
 
-class Check(StrictModel):
-    id: str
-    artefact: str
-    csv: str | None = None
-    where: dict[str, Any] = Field(default_factory=dict)
-    column: str = "value"
-    quantity: str = ""
-    printed: float
-    tol_abs: float | None = Field(None, ge=0)
-    tol_rel: float | None = Field(None, ge=0)
-    expect: Literal["reproduce", "differs"] = "reproduce"
-    reason: str = ""
-    source: str = ""
+class _Entry(StrictModel):
+    id: str = Field(..., description="unique within the topic")
+    artefact: str = Field(..., description="the config's `name`")
+    csv: str | None = Field(None, description="CSV stem in the result folder (default: the artefact name)")
+    select: dict[str, Any] = Field(default_factory=dict, description="column == value filters selecting ONE row")
+    column: str = Field("value", description="the column holding our number")
+    where: str = Field(..., min_length=1, description="where in the paper: page, figure, table, equation or section")
+    reason: str = Field("", description="why we differ, or how the paper's words were read")
+
+
+class Printed(_Entry):
+    """A number that appears in the paper."""
+
+    quantity: str = Field(..., min_length=1, description="what the number is, with the paper's symbols")
+    printed: float = Field(..., description="the value as printed (linear units)")
+    printed_text: str = Field("", description="as typeset, when it is not a plain number (e.g. '12 + ε, −1 < ε < 1')")
+    tol_abs: float | None = Field(None, ge=0, description="absolute tolerance (e.g. half a unit of the last printed digit)")
+    tol_rel: float | None = Field(None, ge=0, description="relative tolerance")
+    interval: list[str] | None = Field(None, min_length=2, max_length=2,
+                                       description="columns [low, high] of our near-optimal interval (argmins of flat objectives)")
+    expect: Literal["reproduce", "differs"] = Field("reproduce", description="reproduce, or differs (with a reason)")
 
     @model_validator(mode="after")
     def _tolerance_and_reason(self):
@@ -65,9 +91,58 @@ class Check(StrictModel):
         return self
 
 
+class Bounds(StrictModel):
+    min: float | None = Field(None, description="the claim holds when our number is ≥ min")
+    max: float | None = Field(None, description="the claim holds when our number is ≤ max")
+
+    @model_validator(mode="after")
+    def _one(self):
+        if self.min is None and self.max is None:
+            raise ValueError("give min and/or max")
+        return self
+
+    def text(self, column: str) -> str:
+        if self.min is not None and self.max is not None:
+            return f"{_fmt(self.min)} ≤ {column} ≤ {_fmt(self.max)}"
+        return f"{column} ≥ {_fmt(self.min)}" if self.min is not None else f"{column} ≤ {_fmt(self.max)}"
+
+
+class Claim(_Entry):
+    """A claim of the paper in words, and the number of ours that decides it."""
+
+    claim: str = Field(..., min_length=1, description="the paper's claim, in words")
+    check: str = Field(..., min_length=1, description="how our CSV decides it, in words")
+    holds_if: Bounds = Field(..., description="the claim holds when our number lies within these bounds")
+    expect: Literal["holds", "fails"] = Field("holds", description="holds, or fails (with a reason)")
+    evidence: list[str] = Field(default_factory=list, description="columns of the same row (or of evidence_csv) shown as evidence")
+    evidence_csv: str | None = Field(None, description="CSV stem holding the evidence columns (same `select`)")
+    every_row: bool = Field(False, description="`select` may match several rows; the claim must hold on each")
+
+    @model_validator(mode="after")
+    def _reason(self):
+        if self.expect == "fails" and not self.reason.strip():
+            raise ValueError("expect: fails needs a `reason`")
+        return self
+
+
 class Published(StrictModel):
-    citation: str = ""
-    checks: list[Check] = Field(default_factory=list)
+    citation: str = Field("", description="the paper, as cited")
+    printed: list[Printed] = Field(default_factory=list, description="numbers that appear in the paper")
+    claims: list[Claim] = Field(default_factory=list, description="claims in words, decided by our numbers")
+    golden: dict[str, list[golden_mod.GoldenRule]] = Field(default_factory=dict,
+                                                           description="per CSV stem: how golden CSVs are compared")
+
+
+def _fmt(x) -> str:
+    if x is None:
+        return "—"
+    x = float(x)
+    if x == 0:
+        return "0"
+    if not math.isfinite(x):
+        return str(x)
+    a = abs(x)
+    return f"{x:.4g}" if 1e-3 <= a < 1e5 else f"{x:.3e}"
 
 
 @dataclass
@@ -79,12 +154,15 @@ class Artefact:
 
 @dataclass
 class CheckResult:
-    check: Check
+    """A printed number against ours."""
+
+    check: Printed
     ours: float | None
     stderr: float | None
     tol: float
     ok: bool
     note: str = ""
+    interval: tuple[float, float] | None = None
 
     @property
     def diff(self) -> float | None:
@@ -98,8 +176,36 @@ class CheckResult:
         if self.ours is None:
             return f"✗ {self.note}"
         if self.check.expect == "differs":
-            return ("≈ agrees (expected to differ)" if self.ok else "differs, as expected") + f": {self.check.reason}"
+            return "≈ agrees (expected to differ)" if self.ok else "differs, as expected"
         return "✓ reproduces" if self.ok else "✗ does not reproduce"
+
+
+@dataclass
+class ClaimResult:
+    """A claim of the paper, decided by one number of ours."""
+
+    claim: Claim
+    ours: float | None
+    stderr: float | None
+    holds: bool | None
+    evidence: dict[str, Any] = field(default_factory=dict)
+    note: str = ""
+    n_rows: int = 1
+
+    @property
+    def ok(self) -> bool:
+        return self.holds is not None and self.holds == (self.claim.expect == "holds")
+
+    @property
+    def failed(self) -> bool:
+        return self.claim.expect == "holds" and not self.holds
+
+    def verdict(self) -> str:
+        if self.holds is None:
+            return f"✗ {self.note}"
+        if self.claim.expect == "fails":
+            return "holds (expected not to)" if self.holds else "does not hold, as expected"
+        return "✓ holds" if self.holds else "✗ does not hold"
 
 
 @dataclass
@@ -109,12 +215,14 @@ class ArtefactOutcome:
     wall_time: float
     error: str | None = None
     checks: list[CheckResult] = field(default_factory=list)
+    claims: list[ClaimResult] = field(default_factory=list)
     golden: list[str] = field(default_factory=list)  # golden mismatches
     golden_checked: bool = False
 
     @property
     def failed(self) -> bool:
-        return self.error is not None or any(c.failed for c in self.checks) or bool(self.golden)
+        return (self.error is not None or any(c.failed for c in self.checks) or any(c.failed for c in self.claims)
+                or bool(self.golden))
 
 
 def topic_of(config: Path, configs_root: Path) -> str:
@@ -170,12 +278,13 @@ def discover(root: Path, topics: list[str]) -> tuple[list[Artefact], dict[str, P
             problems.extend(validation_problems(exc, yaml.safe_load(text), line_index(text), str(f)))
             continue
         ids = set()
-        for i, c in enumerate(published[t].checks):
-            if c.id in ids:
-                problems.append(Problem(f"checks[{i}].id", f"duplicate id {c.id!r}", str(f)))
-            ids.add(c.id)
-            if c.artefact not in names or topic_of(names[c.artefact], configs_root) != t:
-                problems.append(Problem(f"checks[{i}].artefact", f"no config of topic {t!r} is named {c.artefact!r}", str(f)))
+        for key, entries in (("printed", published[t].printed), ("claims", published[t].claims)):
+            for i, c in enumerate(entries):
+                if c.id in ids:
+                    problems.append(Problem(f"{key}[{i}].id", f"duplicate id {c.id!r}", str(f)))
+                ids.add(c.id)
+                if c.artefact not in names or topic_of(names[c.artefact], configs_root) != t:
+                    problems.append(Problem(f"{key}[{i}].artefact", f"no config of topic {t!r} is named {c.artefact!r}", str(f)))
     if problems:
         raise ConfigError(problems)
     return arts, published
@@ -194,97 +303,97 @@ def _select(df: pd.DataFrame, where: dict[str, Any]) -> pd.DataFrame:
     return df[mask]
 
 
-def evaluate(check: Check, folder: Path, quick: bool) -> CheckResult:
-    path = folder / f"{check.csv or check.artefact}.csv"
-    tol = check.tol_abs if check.tol_abs is not None else check.tol_rel * abs(check.printed)
+def _rows(entry: _Entry, folder: Path, many: bool = False) -> tuple[pd.DataFrame | None, str]:
+    """The CSV row(s) an entry reads (exactly one unless ``many``), or (None, why not)."""
+    path = folder / f"{entry.csv or entry.artefact}.csv"
     if not path.exists():
-        return CheckResult(check, None, None, tol, False, f"{path.name} not written")
+        return None, f"{path.name} not written"
     df = pd.read_csv(path)
     try:
-        rows = _select(df, check.where)
+        rows = _select(df, entry.select)
     except KeyError as exc:
-        return CheckResult(check, None, None, tol, False, str(exc).strip('"'))
-    if len(rows) != 1:
-        return CheckResult(check, None, None, tol, False, f"`where` {check.where} selects {len(rows)} rows of {path.name}, expected 1")
-    row = rows.iloc[0]
+        return None, str(exc).strip('"')
+    if len(rows) == 0 or (len(rows) != 1 and not many):
+        return None, f"`select` {entry.select} selects {len(rows)} rows of {path.name}, expected {'≥ 1' if many else 1}"
+    if entry.column not in rows.columns:
+        return None, f"column {entry.column!r} not in {path.name}"
+    return rows, ""
+
+
+def _row(entry: _Entry, folder: Path) -> tuple[pd.Series | None, str]:
+    """The one CSV row an entry reads, or (None, why not)."""
+    rows, note = _rows(entry, folder)
+    return (None, note) if rows is None else (rows.iloc[0], "")
+
+
+def _stderr(row: pd.Series) -> float | None:
+    se = row.get("stderr") if "stderr" in row.index else None
+    try:
+        se = float(se) if se is not None and pd.notna(se) else None
+    except (TypeError, ValueError):
+        se = None
+    return se if se is not None and se > 0 else None
+
+
+def evaluate(check: Printed, folder: Path, quick: bool) -> CheckResult:
+    """A printed number against our CSV cell (for an argmin: against our near-optimal interval)."""
+    tol = check.tol_abs if check.tol_abs is not None else check.tol_rel * abs(check.printed)
+    row, note = _row(check, folder)
+    if row is None:
+        return CheckResult(check, None, None, tol, False, note)
     ours = float(row[check.column])
-    se = float(row["stderr"]) if "stderr" in row.index and pd.notna(row["stderr"]) else None
+    se = _stderr(row)
     if quick and se is not None:
         tol = max(tol, SIGMAS * se)
     ok = bool(np.isfinite(ours) and abs(ours - check.printed) <= tol * (1 + 1e-12))
-    return CheckResult(check, ours, se, tol, ok)
+    interval = None
+    if check.interval:
+        try:
+            lo, hi = (float(row[c]) for c in check.interval)
+        except (KeyError, TypeError, ValueError):
+            return CheckResult(check, ours, se, tol, False, f"interval columns {check.interval} not in the row")
+        interval = (lo, hi)
+        # the printed argmin is consistent with ours when [printed ± tol] meets the near-optimal set
+        ok = bool(np.isfinite(lo) and np.isfinite(hi) and check.printed + tol >= lo and check.printed - tol <= hi)
+    return CheckResult(check, ours, se, tol, ok, interval=interval)
 
 
-DIAGNOSTIC_COLUMNS = STAT_COLUMNS | {
-    "ess_frac", "finite_variance", "overflowed", "statistic", "statistic_stderr", "printed",
-    "threshold_low", "threshold_high", "err",
-}
+def evaluate_claim(claim: Claim, folder: Path, quick: bool) -> ClaimResult:
+    """Does the claim hold in our numbers (on every selected row when ``every_row``)? Under
+    --quick the bounds widen by 5 s.e. of the row. ``ours`` is the row furthest from holding."""
+    rows, note = _rows(claim, folder, many=claim.every_row)
+    if rows is None:
+        return ClaimResult(claim, None, None, None, note=note)
+    b = claim.holds_if
+    results = []
+    for _, row in rows.iterrows():
+        ours = float(row[claim.column])
+        se = _stderr(row)
+        slack = SIGMAS * se if (quick and se is not None) else 0.0
+        lo_ok = b.min is None or ours >= b.min - slack - 1e-12 * max(1.0, abs(b.min))
+        hi_ok = b.max is None or ours <= b.max + slack + 1e-12 * max(1.0, abs(b.max))
+        margin = min(ours - b.min if b.min is not None else math.inf, b.max - ours if b.max is not None else math.inf)
+        results.append((bool(np.isfinite(ours) and lo_ok and hi_ok), margin if np.isfinite(ours) else -math.inf, ours, se, row))
+    holds = all(r[0] for r in results)
+    worst = min(results, key=lambda r: r[1])
+    _, _, ours, se, row = worst
+    evidence = {c: row[c] for c in claim.evidence if c in row.index}
+    if claim.evidence_csv:
+        ev_row, _ = _row(claim.model_copy(update={"csv": claim.evidence_csv, "column": claim.evidence[0] if claim.evidence else "value",
+                                                  "select": {**claim.select, **({k: row[k] for k in claim.select if k in row.index})}}), folder)
+        if ev_row is not None:
+            evidence = {c: ev_row[c] for c in claim.evidence if c in ev_row.index}
+    res = ClaimResult(claim, ours, se, holds, evidence)
+    res.n_rows = len(results)
+    return res
 
 
-def compare_golden(fresh: Path, golden: Path, name: str) -> list[str]:
-    """The fresh (quick) main table ``<name>.csv`` against the committed full-size one.
-
-    Rows are aligned by position (a table's layout depends on the scenario only) and must agree
-    on every descriptive column. Then, per row:
-
-    * Monte Carlo (finite ``stderr``): |Δ| ≤ 5·√(se_g² + se_q²), where the quick run's standard
-      error is at least the golden's scaled by √(n_golden / n_quick) (an empirical proportion of
-      0 or 1 in a small run reports se = 0);
-    * closed form (no ``stderr`` and no ``n``): |Δ| ≤ 1e-6 relative;
-    * run-dependent diagnostics (no ``stderr`` but a sample size ``n``; ``reliable = 0``; or a
-      grid that itself comes from the sample, e.g. an ECDF's x) are not compared.
-    Returns one line per mismatch naming the artefact, the row and the deviation.
-    """
-    out: list[str] = []
-    g, f = golden / f"{name}.csv", fresh / f"{name}.csv"
-    if not g.exists():
-        return out
-    if not f.exists():
-        return [f"{name}: {g.name} is committed but the fresh run did not write it"]
-    a, b = pd.read_csv(f), pd.read_csv(g)
-    if "value" not in b.columns:
-        return out
-    if list(a.columns) != list(b.columns):
-        return [f"{name}: {g.name} columns changed: {list(b.columns)} → {list(a.columns)}"]
-    if len(a) != len(b):
-        return [f"{name}: {g.name} has {len(a)} rows, the golden has {len(b)}"]
-    desc = [c for c in b.columns if c not in DIAGNOSTIC_COLUMNS]
-    text = [c for c in desc if not pd.api.types.is_numeric_dtype(b[c])]
-    num = [c for c in desc if c not in text]
-    for c in text:
-        bad = a[c].astype(str).to_numpy() != b[c].astype(str).to_numpy()
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            return [f"{name}: {g.name} row {i}: {c} is {a[c].iloc[i]!r}, golden {b[c].iloc[i]!r} (layout changed)"]
-    same_grid = np.ones(len(b), dtype=bool)
-    for c in num:
-        x, y = a[c].to_numpy(float), b[c].to_numpy(float)
-        same_grid &= np.isclose(x, y, rtol=1e-9, atol=1e-12, equal_nan=True)
-    vg, vf = b["value"].to_numpy(float), a["value"].to_numpy(float)
-    sg = b["stderr"].to_numpy(float) if "stderr" in b.columns else np.full(len(b), np.nan)
-    sf = a["stderr"].to_numpy(float) if "stderr" in a.columns else np.full(len(a), np.nan)
-    ng = b["n"].to_numpy(float) if "n" in b.columns else np.full(len(b), np.nan)
-    nf = a["n"].to_numpy(float) if "n" in a.columns else np.full(len(a), np.nan)
-    mc = np.isfinite(sg) | np.isfinite(sf)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        scaled = np.where(np.isfinite(ng) & np.isfinite(nf) & (nf > 0), np.nan_to_num(sg) * np.sqrt(ng / nf), 0.0)
-    sf_eff = np.maximum(np.nan_to_num(sf), np.nan_to_num(scaled))
-    tol = np.where(mc, SIGMAS * np.sqrt(np.nan_to_num(sg) ** 2 + sf_eff**2) + 1e-12,
-                   1e-6 * np.maximum(np.abs(vg), 1e-12))
-    compare = same_grid & (mc | ~np.isfinite(ng))
-    if "reliable" in b.columns:
-        compare &= (b["reliable"].to_numpy(float) != 0) & (a["reliable"].to_numpy(float) != 0)
-    with np.errstate(invalid="ignore"):
-        agree = (np.isnan(vg) & np.isnan(vf)) | (np.isinf(vg) & (vg == vf)) | (np.abs(vf - vg) <= tol)
-    bad = compare & ~agree
-    for i in np.flatnonzero(bad)[:5]:
-        where = ", ".join(f"{k}={b[k].iloc[i]}" for k in desc if pd.notna(b[k].iloc[i]))
-        dev = abs(vf[i] - vg[i])
-        kind = f"{dev / (tol[i] / SIGMAS):.1f} σ" if mc[i] else f"rel {dev / max(abs(vg[i]), 1e-300):.2e}"
-        out.append(f"{name}: {g.name} [{where}] value {vf[i]:.6g} vs golden {vg[i]:.6g} ({kind})")
-    if bad.sum() > 5:
-        out.append(f"{name}: {g.name}: {int(bad.sum()) - 5} more rows differ")
-    return out
+def compare_golden(fresh: Path, golden: Path, name: str, rules=None) -> list[str]:
+    """The fresh (quick) main table ``<name>.csv`` against the committed full-size one
+    (:mod:`netkf_cli.golden`, ``quick=True``); one line per mismatch naming the artefact, the
+    row and the deviation. A committed result folder without its main CSV is a mismatch."""
+    res = golden_mod.compare_files(fresh / f"{name}.csv", golden / f"{name}.csv", rules or (), quick=True)
+    return [f"{name}: {p}" for p in res.problems]
 
 
 def _run_one(args) -> tuple[str, str | None, float, str | None]:
@@ -321,9 +430,26 @@ def run_all(arts: list[Artefact], out_root: Path, quick: bool, jobs: int, on_don
     return results
 
 
+def dirty_tree(root: Path) -> list[str] | None:
+    """Modified tracked files of the git work tree at ``root`` outside ``results/`` (what makes
+    a manifest's commit ``+dirty``); None when ``root`` is not a git work tree or git is missing."""
+    try:
+        r = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)results"],
+                           cwd=root, capture_output=True, text=True, timeout=20)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if r.returncode != 0:
+        return None
+    return [ln[3:] for ln in r.stdout.splitlines() if ln.strip()]
+
+
 def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: bool, jobs: int, write_report: bool,
-              console, quiet: bool = False, root: Path | None = None) -> bool:
-    """Run, check, summarize and (optionally) write the report. Returns True when nothing failed."""
+              console, quiet: bool = False, root: Path | None = None, allow_dirty: bool = False) -> bool:
+    """Run, check, summarize and (optionally) write the report. Returns True when nothing failed.
+
+    Writing into the repository's own ``results/`` (the committed goldens and REPORT.md) needs
+    a clean git tree, so that what is committed says which code made it; ``allow_dirty``
+    (``--allow-dirty``) overrides this."""
     root = Path(root or Path.cwd())
     golden_root = root / "results"
     if out_root is None:
@@ -332,6 +458,13 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
     if quick and out_root.resolve() == golden_root.resolve():
         raise ConfigError.at("--out", "a --quick run must not overwrite the committed full-size results/; choose another --out")
     all_arts, published = discover(root, topics)
+    if out_root.resolve() == golden_root.resolve() and not allow_dirty:
+        dirty = dirty_tree(root)
+        if dirty:
+            shown = ", ".join(dirty[:5]) + (f" and {len(dirty) - 5} more" if len(dirty) > 5 else "")
+            raise ConfigError.at("--out", f"the git tree has uncommitted changes ({shown}): results/ and REPORT.md "
+                                          "are committed outputs and must come from a clean commit. Commit first, "
+                                          "write elsewhere with --out DIR, or pass --allow-dirty")
     arts = [a for a in all_arts if not topics or a.topic in topics]
     if not quiet:
         console.print(f"reproducing {len(arts)} artefacts ({'quick' if quick else 'full size'}) into {out_root}/ with {jobs} job(s)")
@@ -341,18 +474,25 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
             mark = "✓" if r[3] is None else "✗"
             console.print(f"  {mark} {a.topic}/{a.name}  {r[2]:.1f} s" + (f"  — {r[3]}" if r[3] else ""), highlight=False, markup=False)
 
+    def judge(o: ArtefactOutcome, folder: Path) -> None:
+        pub = published[o.artefact.topic]
+        o.checks = [evaluate(c, folder, quick) for c in pub.printed if c.artefact == o.artefact.name]
+        o.claims = [evaluate_claim(c, folder, quick) for c in pub.claims if c.artefact == o.artefact.name]
+
     raw = run_all(arts, out_root, quick, jobs, done)
     outcomes = []
     for a in arts:
         name, folder, wall, error = raw[a.name]
         o = ArtefactOutcome(a, Path(folder) if folder else None, wall, error)
         if folder:
-            for c in published[a.topic].checks:
-                if c.artefact == a.name:
-                    o.checks.append(evaluate(c, Path(folder), quick))
+            judge(o, Path(folder))
             g = golden_root / a.name
-            if check and quick and g.is_dir():
-                o.golden = compare_golden(Path(folder), g, a.name)
+            if check and quick:
+                if g.is_dir():
+                    o.golden = compare_golden(Path(folder), g, a.name, published[a.topic].golden.get(a.name))
+                else:
+                    o.golden = [f"{a.name}: no committed result results/{a.name}/ to compare with "
+                                f"(run `netkf reproduce {a.topic}` at full size and commit it)"]
                 o.golden_checked = True
         outcomes.append(o)
     summarize(outcomes, console, quick)
@@ -367,11 +507,9 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
         if not (folder / "manifest.json").exists():
             report_outcomes.append(ArtefactOutcome(a, None, 0.0, "not run yet: netkf reproduce " + a.topic))
             continue
-        import json
-
         wall = json.loads((folder / "manifest.json").read_text()).get("wall_time_s", 0.0)
         o = ArtefactOutcome(a, folder, wall)
-        o.checks = [evaluate(c, folder, quick) for c in published[a.topic].checks if c.artefact == a.name]
+        judge(o, folder)
         report_outcomes.append(o)
     if write_report:
         from netkf_cli.report import write_report as _write
@@ -388,7 +526,11 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
             for c in o.checks:
                 if c.failed:
                     d = "n/a" if c.ours is None else f"ours {c.ours:.6g} vs printed {c.check.printed:.6g} (|Δ| {abs(c.diff):.3g} > tol {c.tol:.3g})"
-                    console.print(f"  {o.artefact.name}: check {c.check.id} ({c.check.quantity or c.check.where}): {c.note or d}", markup=False, highlight=False)
+                    console.print(f"  {o.artefact.name}: check {c.check.id} ({c.check.quantity}): {c.note or d}", markup=False, highlight=False)
+            for c in o.claims:
+                if c.failed:
+                    d = c.note or f"{c.claim.column} = {c.ours:.6g}, needs {c.claim.holds_if.text(c.claim.column)}"
+                    console.print(f"  {o.artefact.name}: claim {c.claim.id} ({c.claim.claim}): {d}", markup=False, highlight=False)
             for gm in o.golden:
                 console.print(f"  golden: {gm}", markup=False, highlight=False)
     return not failed
@@ -398,14 +540,15 @@ def summarize(outcomes: list[ArtefactOutcome], console, quick: bool) -> None:
     from rich.table import Table
 
     t = Table(title=f"netkf reproduce ({'quick' if quick else 'full size'})")
-    for col in ("artefact", "checks passed", "failed", "largest deviation", "golden", "wall time"):
+    for col in ("artefact", "printed ✓", "claims ✓", "failed", "largest deviation", "golden", "wall time"):
         t.add_column(col)
     for o in outcomes:
         n_ok = sum(1 for c in o.checks if c.ok or c.check.expect == "differs")
-        n_bad = sum(1 for c in o.checks if c.failed)
-        worst = None  # the check closest to (or furthest past) its tolerance
+        n_claims = sum(1 for c in o.claims if not c.failed and c.holds is not None)
+        n_bad = sum(1 for c in o.checks if c.failed) + sum(1 for c in o.claims if c.failed)
+        worst = None  # the printed number closest to (or furthest past) its tolerance
         for c in o.checks:
-            if c.ours is None or c.check.expect == "differs":
+            if c.ours is None or c.check.expect == "differs" or c.interval is not None:
                 continue
             ratio = abs(c.diff) / c.tol if c.tol > 0 else (0.0 if c.diff == 0 else math.inf)
             if worst is None or ratio > worst[0]:
@@ -417,5 +560,6 @@ def summarize(outcomes: list[ArtefactOutcome], console, quick: bool) -> None:
             rel = abs(c.diff) / abs(c.check.printed) if c.check.printed else abs(c.diff)
             wtxt = f"{100 * rel:.2g} % rel" + (f" ({abs(c.diff) / c.stderr:.1f} σ)" if c.stderr else "")
         gold = "run failed" if o.error else (f"{len(o.golden)} moved" if o.golden else ("ok" if o.golden_checked else "—"))
-        t.add_row(f"{o.artefact.topic}/{o.artefact.name}", str(n_ok), str(n_bad), wtxt, gold, f"{o.wall_time:.1f} s")
+        t.add_row(f"{o.artefact.topic}/{o.artefact.name}", f"{n_ok}/{len(o.checks)}", f"{n_claims}/{len(o.claims)}",
+                  str(n_bad), wtxt, gold, f"{o.wall_time:.1f} s")
     console.print(t)

@@ -1,0 +1,123 @@
+"""The shared figure style (netkf_cli/plotting.py): titles, palette, formats and the lint itself."""
+
+import numpy as np
+import pytest
+
+from netkf_cli import plotting as P
+
+
+def test_paper_titles():
+    assert P.paper_title("shi2009", 5, "Pr[P_k ≤ M], D = 10, d = 5") == \
+        "Shi, Xie & Murray 2009 — Fig. 5: Pr[P_k ≤ M], D = 10, d = 5"
+    assert P.paper_title("smoothing", "Table I", "arrival rates") == "Leong, Dey & Evans 2008 — Table I: arrival rates"
+    assert P.paper_title("fusion", None, "x") == "Chiuso & Schenato 2009 — x"
+    assert P.paper_title(None, 3, "my scenario") == "my scenario"
+    with pytest.raises(ValueError):
+        P.paper_title("nope", 1, "x")
+
+
+def test_series_styles_differ_in_colour_linestyle_and_marker():
+    styles = [P.series_style(i) for i in range(len(P.PALETTE))]
+    for key in ("color", "linestyle", "marker"):
+        vals = [repr(s[key]) for s in styles[:6]]
+        assert len(set(vals)) == 6, key
+    assert len(set(P.PALETTE)) == len(P.PALETTE) == 8
+
+
+def _clean_figure():
+    fig, ax = P.new_figure()
+    x = np.linspace(0, 10, 30)
+    for i in range(2):
+        ax.plot(x, np.sin(x + i), **{**P.series_style(i), "marker": None}, label=rf"$\Upsilon_T$ = {i} dB")
+    ax.errorbar([1, 2], [0.1, 0.2], yerr=[0.05, 0.05], fmt="o", label="Monte Carlo ± 1 s.e.")
+    ax.set_title(P.paper_title("fading", 5, r"$\|E\,P_\infty\|$ vs $\Upsilon_T$"))
+    ax.set_xlabel(r"$\Upsilon_T$ (dB)")
+    ax.set_ylabel(r"$P_{k|k-1}$")
+    P.legend_outside(ax)
+    P.footnote(fig, "provenance " * 40)
+    return fig
+
+
+def test_clean_figure_passes_lint_and_every_format_is_written(tmp_path):
+    fig = _clean_figure()
+    P._layout(fig)
+    assert P.lint(fig) == []
+    files = P.save(fig, tmp_path / "f.png", formats=["png", "pdf", "svg"], dpi=80)
+    assert [f.name for f in files] == ["f.png", "f.pdf", "f.svg"]
+    assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "f.pdf").read_bytes()[:5] == b"%PDF-"
+    assert b"<svg" in (tmp_path / "f.svg").read_bytes()[:2000]
+
+
+def test_old_call_still_writes_the_given_path(tmp_path):
+    fig = _clean_figure()
+    assert P.save(fig, tmp_path / "old.png", dpi=50) == [tmp_path / "old.png"]
+    assert (tmp_path / "old.png").exists() and not (tmp_path / "old.pdf").exists()
+
+
+def test_pdf_and_svg_are_reproducible_byte_for_byte(tmp_path):
+    P.save(_clean_figure(), tmp_path / "a", formats=["pdf", "svg"])
+    P.save(_clean_figure(), tmp_path / "b", formats=["pdf", "svg"])
+    for ext in ("pdf", "svg"):
+        assert (tmp_path / f"a.{ext}").read_bytes() == (tmp_path / f"b.{ext}").read_bytes(), ext
+
+
+def test_unknown_format_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="unknown figure format"):
+        P.save(_clean_figure(), tmp_path / "x", formats=["bmp"])
+
+
+def test_lint_finds_each_kind_of_problem():
+    fig, ax = P.new_figure()
+    ax.plot([1, 2], [3, 4], label="drawn, not in legend")
+    ax.plot([1, 2], [4, 3], "o")  # unlabelled markers
+    ax.legend(handles=[ax.plot([], [], label="x")[0]], labels=["ghost entry"], fontsize=7)
+    ax.text(30, 30, "far away")
+    P._layout(fig)
+    problems = "\n".join(P.lint(fig))
+    for needle in ("no title", "no x-axis label", "no y-axis label", "'ghost entry' has no drawn series",
+                   "'drawn, not in legend' has no legend entry", "without a label", "lies outside the canvas",
+                   "< 9 pt"):
+        assert needle in problems, (needle, problems)
+
+
+def test_upsilon_uses_a_font_with_a_distinct_glyph():
+    """DejaVu Sans draws U+03A5 like a Latin Y; the mathtext font set must not be DejaVu's."""
+    import matplotlib
+
+    assert matplotlib.rcParams["mathtext.fontset"] not in ("dejavusans", "dejavuserif")
+    fig, ax = P.new_figure()
+    t = ax.text(0.5, 0.5, r"$\Upsilon_T \leq \theta$")
+    fig.canvas.draw()
+    assert t.get_window_extent().width > 0
+
+
+def test_a_title_wider_than_the_canvas_is_wrapped_not_cut(tmp_path):
+    fig, ax = P.new_figure(width=5.0)
+    ax.plot([1, 2], [1, 2])
+    ax.set_xlabel("x (1)")
+    ax.set_ylabel("y (1)")
+    ax.set_title(P.paper_title("smoothing", "Table I (extension)",
+                               r"Table I under Gilbert–Elliott loss, each column at its eq. (8) rate, $\Pr[P_{k|k+N} \leq M]$"))
+    P._layout(fig)
+    assert P.lint(fig) == []
+    assert "\n" in ax.get_title() and r"$\Pr[P_{k|k+N} \leq M]$" in ax.get_title().replace("\n", " ")
+
+
+def test_lint_sees_a_legend_over_the_data():
+    import numpy as np
+
+    fig, ax = P.new_figure()
+    x = np.linspace(0, 1, 50)
+    ax.plot(x, np.ones_like(x) * 0.9, label="near the top")
+    ax.plot(x, x * 0.1, label="near the bottom")
+    ax.set_xlabel("x (1)")
+    ax.set_ylabel("y (1)")
+    ax.set_title(P.paper_title(None, None, "legend test"))
+    ax.set_ylim(0, 1)
+    ax.legend(loc="upper right")
+    P._layout(fig)
+    assert any("legend covers" in p for p in P.lint(fig))
+    ax.legend(loc="center")  # an empty region
+    P._layout(fig)
+    assert P.lint(fig) == []
