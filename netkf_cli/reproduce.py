@@ -422,7 +422,9 @@ def run_all(arts: list[Artefact], out_root: Path, quick: bool, jobs: int, on_don
             if on_done:
                 on_done(a, results[a.name])
     else:
-        with ProcessPoolExecutor(max_workers=jobs) as ex:
+        from netkf_cli.workers import pool_kwargs  # workers ignore Ctrl-C and die with this process
+
+        with ProcessPoolExecutor(max_workers=jobs, **pool_kwargs()) as ex:
             for a, r in zip(arts, ex.map(_run_one, tasks)):
                 results[a.name] = r
                 if on_done:
