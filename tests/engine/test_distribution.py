@@ -44,8 +44,8 @@ def _check(tables: dict[str, pd.DataFrame], scenario) -> None:
         pts = _jumps(riccati.pbar(s), s, M.min(), M.max())
         if est.kind == "buffered":
             pts += _jumps(riccati.mbar(s), s, M.min(), M.max())
-        for p in pts:
-            assert np.min(np.abs(grid - p)) <= 1e-12 * max(1.0, p), (lab, p)
+        for p in pts:  # CSVs keep 10 significant digits (io.write_csv): half a unit of the 10th digit
+            assert np.min(np.abs(grid - p)) <= 5e-10 * max(1.0, p), (lab, p)
         # 2. every drawn series is evaluated on the same grid, and the exact curve is inside the bounds there
         piv = c.pivot_table(index="M", columns="series", values="value")
         if {"lower_bound", "upper_bound", "exact"} <= set(piv.columns):
