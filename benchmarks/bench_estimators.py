@@ -63,7 +63,7 @@ def one_core(kernel, runs: int, repeat: int) -> float:
 
 
 def two_cores(kernel, runs: int, repeat: int) -> float:
-    with montecarlo.execution("process", jobs=2) as ex:
+    with montecarlo.execution("process", jobs=2):
         montecarlo.run_chunked(kernel, 2 * runs, runs, seed=1)  # warm the pool (and per-worker compile)
         return timed(lambda: montecarlo.run_chunked(kernel, 2 * runs, runs, seed=1), repeat) / 2
 
@@ -159,7 +159,8 @@ def main() -> None:
         kind = "numpy" if c["backend"] == "numpy" else "compiled"
         best = max(r1, r2 if np.isfinite(r2) else 0)
         ok = "ok" if best >= TARGET[kind] else f"MISSED ({TARGET[kind]:.0e}: {c.get('bound', 'see case notes')})"
-        print(f"{topic:10s} {c['estimator']:22s} {c['system']:8s} {c['backend']:13s} {first:6.2f}s {r1:10.3e} {r2:10.3e} "
+        est = c["estimator"] + ("/engine" if c.get("path") == "engine" else "")
+        print(f"{topic:10s} {est:22s} {c['system']:8s} {c['backend']:13s} {first:6.2f}s {r1:10.3e} {r2:10.3e} "
               f"{(best / fp if fp else float('nan')):9.0f}  {ok}")
     for name, b in base_cache.items():
         print("baseline", name, ", ".join(f"{k}: {v:.3e}" for k, v in b.items()))
