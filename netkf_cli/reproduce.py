@@ -372,8 +372,11 @@ def evaluate_claim(claim: Claim, folder: Path, quick: bool) -> ClaimResult:
         slack = SIGMAS * se if (quick and se is not None) else 0.0
         lo_ok = b.min is None or ours >= b.min - slack - 1e-12 * max(1.0, abs(b.min))
         hi_ok = b.max is None or ours <= b.max + slack + 1e-12 * max(1.0, abs(b.max))
-        margin = min(ours - b.min if b.min is not None else math.inf, b.max - ours if b.max is not None else math.inf)
-        results.append((bool(np.isfinite(ours) and lo_ok and hi_ok), margin if np.isfinite(ours) else -math.inf, ours, se, row))
+        # ±∞ is a value (a diverged E[P] is +∞): it holds against a one-sided bound it satisfies; NaN never
+        valid = bool(np.isfinite(ours) or (ours == math.inf and b.max is None) or (ours == -math.inf and b.min is None))
+        with np.errstate(invalid="ignore"):
+            margin = min(ours - b.min if b.min is not None else math.inf, b.max - ours if b.max is not None else math.inf)
+        results.append((valid and lo_ok and hi_ok, margin if valid else -math.inf, ours, se, row))
     holds = all(r[0] for r in results)
     worst = min(results, key=lambda r: r[1])
     _, _, ours, se, row = worst
