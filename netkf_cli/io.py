@@ -50,14 +50,17 @@ def versions() -> dict[str, str]:
 
 
 def git_commit(where: Path | None = None) -> str | None:
-    """The commit of the source tree (``+dirty`` if modified), or None outside git."""
+    """The commit of the source tree (``+dirty`` if a tracked file outside results/ is modified), or None."""
     cwd = where or Path(__file__).resolve().parent
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=5)
         if sha.returncode != 0:
             return None
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=cwd,
-                               capture_output=True, text=True, timeout=5)
+        # the *source* tree: results/ (being rewritten by this very run) does not make it dirty
+        top = subprocess.run(["git", "rev-parse", "--show-toplevel"], cwd=cwd, capture_output=True, text=True,
+                             timeout=5).stdout.strip() or str(cwd)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                                ":(exclude)results"], cwd=top, capture_output=True, text=True, timeout=5)
         return sha.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
         return None
