@@ -22,10 +22,11 @@ from netkf_cli import batched
 from netkf_cli.compat import check_pair
 from netkf_cli.montecarlo import run_chunked
 
-HEAVY_TAIL_RSE = 0.25
+HEAVY_TAIL_RSE = 0.5
 """A mean is flagged heavy-tailed when the relative standard error of its sample variance,
-√((m₄ − s⁴)/n)/s², exceeds this (its own standard error is then not trustworthy), or when any
-run is non-finite."""
+√((m₄ − s⁴)/n)/s², exceeds this — the standard error itself is then uncertain by more than
+about 25 % (half the variance's relative error) — or when any run is non-finite. Light tails
+pass at modest n (exponential data: 0.28 at n = 200); an infinite fourth moment never does."""
 
 
 class DistributionReducer:

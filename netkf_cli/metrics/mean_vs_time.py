@@ -21,6 +21,7 @@ from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, PositiveInt
 
+ONE = {"trace": r"$\mathrm{tr}\,P_k$", "lambda_max": r"$\lambda_{\max}(P_k)$", "entries": r"$P_k$ entries"}
 COLUMNS = ["k", "estimator", "series", "value", "stderr", "n", "nonfinite", "heavy_tail"]
 WHAT = {"trace": r"$\mathrm{E}[\mathrm{tr}\,P_k]$", "lambda_max": r"$\mathrm{E}[\lambda_{\max}(P_k)]$",
         "entries": r"$\mathrm{E}[P_k]$ entries"}
@@ -87,6 +88,7 @@ class MeanVsTime(AnalysisModel):
     def plot(self, tables, scenario):
         t = tables["main"]
         fig, ax = new_figure(width=7.4, height=4.6)
+        one = len(t) > 0 and int(t.n.max()) == 1  # one run (e.g. a replayed recording): the sequence itself
         left_out = 0
         for i, ((lab, ser), g) in enumerate(t.groupby(["estimator", "series"], sort=False)):
             g = g.sort_values("k")
@@ -97,14 +99,16 @@ class MeanVsTime(AnalysisModel):
             name = lab if self.of != "entries" else f"{lab}: {ser}"
             if len(ok):
                 ax.plot(ok.k, ok.value, color=sty["color"], ls=sty["linestyle"], lw=1.3,
-                        label=f"{name} (band: ±1.96 s.e.)")
-                ax.fill_between(ok.k, ok.value - 1.96 * ok.stderr, ok.value + 1.96 * ok.stderr, color=sty["color"],
-                                alpha=0.2, lw=0)
+                        label=name if one else f"{name} (band: ±1.96 s.e.)")
+                if not one:
+                        ax.fill_between(ok.k, ok.value - 1.96 * ok.stderr, ok.value + 1.96 * ok.stderr,
+                                    color=sty["color"], alpha=0.2, lw=0)
         if self.log_y:
             ax.set_yscale("log")
         ax.set_xlabel(r"time step $k$")
-        ax.set_ylabel(WHAT[self.of])
-        what = self.title or f"{WHAT[self.of]} against $k$"
+        label = ONE[self.of] if one else WHAT[self.of]
+        ax.set_ylabel(label)
+        what = self.title or f"{label} against $k$" + (" (one run)" if one else "")
         ax.set_title(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
         if ax.get_legend_handles_labels()[0]:
             legend_outside(ax, loc="below", ncol=1)
@@ -112,6 +116,6 @@ class MeanVsTime(AnalysisModel):
             ax.text(0.5, 0.5, "no reliable mean to draw:\nevery step is heavy-tailed at this sample size (see the CSV)",
                     transform=ax.transAxes, ha="center", va="center", fontsize=10)
         n = int(t.n.max()) if len(t) else 0
-        footnote(fig, f"n = {n:,} runs per step" + (f"; {left_out} heavy-tailed step means not drawn (see CSV column "
+        footnote(fig, ("one run: the covariance sequence itself" if one else f"n = {n:,} runs per step") + (f"; {left_out} heavy-tailed step means not drawn (see CSV column "
                                                       f"heavy_tail)" if left_out else ""))
         return fig
