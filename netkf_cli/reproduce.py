@@ -253,7 +253,10 @@ def discover(root: Path, topics: list[str]) -> tuple[list[Artefact], dict[str, P
         names[a.name] = a.config
     all_topics = sorted({a.topic for a in arts})
     exp_root = root / "experiments"
-    exp_topics = sorted(p.name for p in exp_root.iterdir() if p.is_dir()) if exp_root.is_dir() else []
+    # a paper topic's folder has published.yaml; other folders (experiments/engine: worked examples of the
+    # generic metrics, not a paper) are not report sections
+    exp_topics = sorted(p.name for p in exp_root.iterdir() if p.is_dir() and (p / "published.yaml").exists()) \
+        if exp_root.is_dir() else []
     for t in all_topics:
         if not (exp_root / t / "README.md").exists():
             problems.append(Problem("", f"topic {t!r} has configs but no experiments/{t}/README.md (its report section)", str(exp_root / t)))
