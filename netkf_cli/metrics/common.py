@@ -8,7 +8,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from netkf_cli.errors import ConfigError
-from netkf_cli.spec import PositiveFloat, PositiveInt, StrictModel
+from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt, StrictModel
 
 
 class MGrid(StrictModel):
@@ -81,3 +81,24 @@ def step_of(at, horizon: int, path: str = "analysis.at") -> int:
     if at > horizon:
         raise ConfigError.at(path, f"must be ≤ montecarlo.horizon = {horizon}, got {at}")
     return int(at)
+
+
+class GenericMetric(AnalysisModel):
+    """What distribution, mean_vs_time and compare share: validation and the engine call."""
+
+    def check(self, scenario) -> None:
+        needs(scenario, "channel"), needs(scenario, "estimators")
+        if hasattr(self, "at"):
+            step_of(self.at, scenario.montecarlo.horizon)
+
+    def simulate(self, scenario, ctx, reducer, steps, horizon: int):
+        """Run the scenario's estimators on its channel's traces (stream 0): (system, estimators, statistics)."""
+        from netkf_cli import engine
+
+        s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")
+        mc = scenario.montecarlo
+        runs = ctx.mc_runs(scenario)
+        ctx.total(runs)
+        st = engine.simulate(s, ch, ests, reducer, steps=steps, runs=runs, horizon=horizon, seed=mc.seed,
+                             chunk=mc.chunk, stream=0, progress=ctx.progress, label=self.kind)
+        return s, ests, st

@@ -17,11 +17,11 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine
-from netkf_cli.metrics.common import PaperRef, labels, needs, step_of
+from netkf_cli.metrics.common import GenericMetric, PaperRef, labels, step_of
 from netkf_cli.montecarlo import proportion_stderr, wilson_interval
 from netkf_cli.plotting import footnote, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
-from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt
+from netkf_cli.spec import PositiveFloat, PositiveInt
 
 COLUMNS = ["estimator", "quantity", "M", "value", "stderr", "ci_low", "ci_high", "n", "heavy_tail", "k"]
 
@@ -39,7 +39,7 @@ class BothReducer:
             self.dist.update(stats, j, k, P)
 
 
-class Compare(AnalysisModel):
+class Compare(GenericMetric):
     """``kind: compare`` — estimators side by side on common random numbers (mean tr P, Pr[P ≤ M], differences)."""
 
     kind: Literal["compare"]
@@ -48,19 +48,10 @@ class Compare(AnalysisModel):
     paper: PaperRef | None = Field(None, description="the paper figure this reproduces (title only)")
     title: str = Field("", description="what the figure shows")
 
-    def check(self, scenario) -> None:
-        needs(scenario, "channel"), needs(scenario, "estimators")
-        step_of(self.at, scenario.montecarlo.horizon)
-
     def compute(self, scenario, ctx: RunContext) -> Artefact:
-        s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")
-        mc = scenario.montecarlo
-        k = step_of(self.at, mc.horizon)
+        k = step_of(self.at, scenario.montecarlo.horizon)
         M = np.asarray(self.M, dtype=float)
-        runs = ctx.mc_runs(scenario)
-        ctx.total(runs)
-        st = engine.simulate(s, ch, ests, BothReducer(M, [k]), steps=[k], runs=runs, horizon=k, seed=mc.seed,
-                             chunk=mc.chunk, stream=0, progress=ctx.progress, label="compare")
+        s, ests, st = self.simulate(scenario, ctx, BothReducer(M, [k]), [k], k)
         n = int(st["n"])
         labs = labels(ests)
         rows = []

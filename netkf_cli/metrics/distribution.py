@@ -29,11 +29,11 @@ from pydantic import Field, model_validator
 
 from netkf_cli import engine, riccati
 from netkf_cli.errors import ConfigError
-from netkf_cli.metrics.common import MGrid, PaperRef, labels, m_values, needs, step_of
+from netkf_cli.metrics.common import GenericMetric, MGrid, PaperRef, labels, m_values, needs, step_of
 from netkf_cli.montecarlo import proportion_stderr, wilson_interval
 from netkf_cli.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.recipes.base import Artefact, RunContext
-from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt
+from netkf_cli.spec import PositiveFloat, PositiveInt
 
 COLUMNS = ["M", "estimator", "series", "value", "stderr", "ci_low", "ci_high", "n", "err", "k"]
 K_JUMPS = 2000
@@ -136,7 +136,7 @@ class ClosedForms:
         return pts
 
 
-class Distribution(AnalysisModel):
+class Distribution(GenericMetric):
     """``kind: distribution`` — Pr[P_k ≤ M] against M (Monte Carlo + closed forms where they hold)."""
 
     kind: Literal["distribution", "prob_vs_M"]  # prob_vs_M: the name before the generic engine (same analysis)
@@ -156,19 +156,11 @@ class Distribution(AnalysisModel):
             raise ValueError("M must list at least one value")
         return self
 
-    def check(self, scenario) -> None:
-        needs(scenario, "channel"), needs(scenario, "estimators")
-        step_of(self.at, scenario.montecarlo.horizon)
-
     def compute(self, scenario, ctx: RunContext) -> Artefact:
-        s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")
-        mc = scenario.montecarlo
-        k = step_of(self.at, mc.horizon)
+        ch = needs(scenario, "channel")
+        k = step_of(self.at, scenario.montecarlo.horizon)
         M = m_values(self.M)
-        runs = ctx.mc_runs(scenario)
-        ctx.total(runs)
-        st = engine.simulate(s, ch, ests, engine.DistributionReducer(M, [k]), steps=[k], runs=runs, horizon=k,
-                             seed=mc.seed, chunk=mc.chunk, stream=0, progress=ctx.progress, label="distribution")
+        s, ests, st = self.simulate(scenario, ctx, engine.DistributionReducer(M, [k]), [k], k)
         n = int(st["n"])
         labs = labels(ests)
         rows, curves, meta = [], [], {"at": k, "runs": n, "estimators": labs, "closed_forms": {},

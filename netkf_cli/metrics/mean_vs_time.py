@@ -16,10 +16,10 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine
-from netkf_cli.metrics.common import PaperRef, labels, needs
+from netkf_cli.metrics.common import GenericMetric, PaperRef, labels
 from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
-from netkf_cli.spec import AnalysisModel, PositiveInt
+from netkf_cli.spec import PositiveInt
 
 ONE = {"trace": r"$\mathrm{tr}\,P_k$", "lambda_max": r"$\lambda_{\max}(P_k)$", "entries": r"$P_k$ entries"}
 COLUMNS = ["k", "estimator", "series", "value", "stderr", "n", "nonfinite", "heavy_tail"]
@@ -27,7 +27,7 @@ WHAT = {"trace": r"$\mathrm{E}[\mathrm{tr}\,P_k]$", "lambda_max": r"$\mathrm{E}[
         "entries": r"$\mathrm{E}[P_k]$ entries"}
 
 
-class MeanVsTime(AnalysisModel):
+class MeanVsTime(GenericMetric):
     """``kind: mean_vs_time`` — E[P_k] against k with standard errors and heavy-tail flags."""
 
     kind: Literal["mean_vs_time"]
@@ -37,22 +37,14 @@ class MeanVsTime(AnalysisModel):
     paper: PaperRef | None = Field(None, description="the paper figure this reproduces (title only)")
     title: str = Field("", description="what the figure shows")
 
-    def check(self, scenario) -> None:
-        needs(scenario, "channel"), needs(scenario, "estimators")
-
     def steps(self, horizon: int) -> list[int]:
         every = self.every or max(1, -(-horizon // 200))
         ks = list(range(every, horizon + 1, every))
         return ks if ks and ks[-1] == horizon else ks + [horizon]
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
-        s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")
-        mc = scenario.montecarlo
-        ks = self.steps(mc.horizon)
-        runs = ctx.mc_runs(scenario)
-        ctx.total(runs)
-        st = engine.simulate(s, ch, ests, engine.MomentReducer(ks), steps=ks, runs=runs, horizon=mc.horizon,
-                             seed=mc.seed, chunk=mc.chunk, stream=0, progress=ctx.progress, label="mean_vs_time")
+        ks = self.steps(scenario.montecarlo.horizon)
+        s, ests, st = self.simulate(scenario, ctx, engine.MomentReducer(ks), ks, scenario.montecarlo.horizon)
         labs = labels(ests)
         rows, warnings_ = [], []
         for j, lab in enumerate(labs):
