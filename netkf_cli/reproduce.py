@@ -253,10 +253,12 @@ def discover(root: Path, topics: list[str]) -> tuple[list[Artefact], dict[str, P
         names[a.name] = a.config
     all_topics = sorted({a.topic for a in arts})
     exp_root = root / "experiments"
-    # a paper topic's folder has published.yaml; other folders (experiments/engine: worked examples of the
-    # generic metrics, not a paper) are not report sections
-    exp_topics = sorted(p.name for p in exp_root.iterdir() if p.is_dir() and (p / "published.yaml").exists()) \
-        if exp_root.is_dir() else []
+    # a folder of worked-example scenarios without published.yaml (experiments/engine: the generic metrics,
+    # not a paper) is not a report section; any other folder is, and must have configs
+    def _section(p: Path) -> bool:
+        return p.is_dir() and ((p / "published.yaml").exists() or not any(p.glob("*.yaml")))
+
+    exp_topics = sorted(p.name for p in exp_root.iterdir() if _section(p)) if exp_root.is_dir() else []
     for t in all_topics:
         if not (exp_root / t / "README.md").exists():
             problems.append(Problem("", f"topic {t!r} has configs but no experiments/{t}/README.md (its report section)", str(exp_root / t)))
