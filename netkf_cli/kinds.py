@@ -5,7 +5,7 @@ from __future__ import annotations
 from types import UnionType
 from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
-from pydantic_core import PydanticUndefined
+from pydantic.fields import PydanticUndefined
 
 GENERIC_METRICS = ("distribution", "mean_vs_time", "compare")
 

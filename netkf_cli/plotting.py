@@ -33,7 +33,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-from cycler import cycler  # noqa: E402
+from matplotlib import cycler  # noqa: E402  (matplotlib re-exports its cycler dependency)
 from matplotlib.figure import Figure  # noqa: E402
 
 #: Okabe & Ito (2008) colour-blind-safe palette; yellow last (weak on white).
