@@ -246,13 +246,10 @@ class Distribution(GenericMetric):
 def _channel_text(ch) -> str:
     if ch is None:
         return ""
-    if ch.kind == "delay":
-        d = ch.delay
-        desc = {"poisson": lambda: f"Poisson delay, mean {d.mean:g}", "geometric": lambda: f"geometric delay, p = {d.p:g}",
-                "pmf": lambda: "delay pmf"}[d.kind]()
-        return f"$D$ = {ch.buffer}, {desc}"
-    if ch.kind == "bernoulli":
-        return rf"i.i.d. arrivals, $\gamma$ = {ch.arrival:g}"
+    if ch.kind in ("delay", "bernoulli"):
+        from netkf_cli.recipes.shi2009_theta import delay_label
+
+        return (f"$D$ = {ch.buffer}, " if ch.kind == "delay" else "") + delay_label(ch, math=True)
     return f"{ch.kind} channel"
 
 

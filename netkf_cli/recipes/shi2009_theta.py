@@ -19,15 +19,20 @@ from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt
 
 
-def delay_label(channel) -> str:
-    """Short text for a delay channel: 'Poisson d = 5' etc."""
+def delay_label(channel, math: bool = False) -> str:
+    """Short text for a delay law: 'Poisson d = 5' (``math=True``: mathtext, 'Poisson $d = 5$')."""
+    def eq(name: str, value: str) -> str:
+        return f"${name} = {value}$" if math else f"{name} = {value}"
+
     if channel.kind == "bernoulli":
-        return f"Bernoulli γ = {channel.arrival:g}"
+        return "Bernoulli " + eq(r"\gamma" if math else "γ", f"{channel.arrival:g}")
     dist = channel.delay
     if dist.kind == "poisson":
-        return f"Poisson d = {dist.mean:g}"
+        return "Poisson " + eq("d", f"{dist.mean:g}")
     if dist.kind == "geometric":
-        return f"geometric p = {dist.p:g}"
+        return "geometric " + eq("p", f"{dist.p:g}")
+    if math:
+        return rf"pmf (loss ${dist.loss:.3g}$)"
     return f"pmf {list(dist.probs)} (loss {dist.loss:.3g})"
 
 
@@ -78,7 +83,7 @@ class ThetaVsBuffer(AnalysisModel):
                                 color=c, label=rf"$\theta(k_{i}, D)$, $M = {M:g}$, $k_{i} = {kt}$" + note)
         ax.set_xlabel(r"buffer length $D$ (time steps)")
         ax.set_ylabel(r"$\theta(k_i(M), D) = \Pr[N_k \geq k_i]$")
-        fig.suptitle(paper_title("shi2009", 3, rf"$\theta(k_i(M), D)$ vs buffer length $D$, {_math_delay(scenario.channel)}"))
+        fig.suptitle(paper_title("shi2009", 3, rf"$\theta(k_i(M), D)$ vs buffer length $D$, {delay_label(scenario.channel, math=True)}"))
         legend_outside(ax)
         conv = t.convention.iloc[0]
         footnote(fig, f"Convention {conv}: {CONVENTION_HELP[conv]}. "
@@ -86,14 +91,3 @@ class ThetaVsBuffer(AnalysisModel):
                       "1 − θ(k₁, D) ≤ Pr[P_k ≤ M] ≤ 1 − θ(k₂, D) (Thm 3.8).")
         return fig
 
-
-def _math_delay(channel) -> str:
-    """The delay law in mathtext: 'Poisson $d = 5$' etc."""
-    if channel.kind == "bernoulli":
-        return rf"Bernoulli $\gamma = {channel.arrival:g}$"
-    dist = channel.delay
-    if dist.kind == "poisson":
-        return rf"Poisson $d = {dist.mean:g}$"
-    if dist.kind == "geometric":
-        return rf"geometric $p = {dist.p:g}$"
-    return rf"pmf (loss ${dist.loss:.3g}$)"
