@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-PSD_TOL = 1e-9
-"""Relative tolerance of the PSD order: X ≤ M iff min eig(M − X) ≥ −PSD_TOL·max(1, |M|)."""
+from netkf_cli.tolerances import PSD_TOL
 
 
 def sym(P: np.ndarray) -> np.ndarray:
@@ -110,26 +109,6 @@ def solve_small(S: np.ndarray, B: np.ndarray) -> np.ndarray:
         return matmul(inv_small(S), B)
     X = np.linalg.solve(np.moveaxis(S, -1, 0), np.moveaxis(B, -1, 0))
     return np.moveaxis(X, 0, -1)
-
-
-def kf_update(P: np.ndarray, C: np.ndarray, R: np.ndarray, gamma: np.ndarray | None = None,
-              extra_R: np.ndarray | None = None) -> np.ndarray:
-    """Measurement update P − γ·P Cᵀ (C P Cᵀ + R)⁻¹ C P per run (Sinopoli 2004, eq. 9).
-
-    ``gamma`` (runs,) in {0, 1} (or any weight) multiplies the correction, so a lost packet
-    leaves P unchanged; ``extra_R`` (m, m, runs) is added to R per run (e.g. communication
-    noise). Non-finite runs stay non-finite.
-    """
-    PCt = right(P, C.T)  # (n, m, runs)
-    S = left(C, PCt) + R[:, :, None]
-    if extra_R is not None:
-        S = S + extra_R
-    with np.errstate(invalid="ignore", over="ignore"):
-        K = PCt.swapaxes(0, 1)  # (m, n, runs) = C P
-        corr = matmul(PCt, solve_small(S, K))
-        if gamma is not None:
-            corr = corr * np.asarray(gamma, dtype=float)[None, None, :]
-        return sym(P - corr)
 
 
 def psd_leq(P: np.ndarray, M: np.ndarray | float, tol: float = PSD_TOL) -> np.ndarray:

@@ -16,10 +16,10 @@ import weakref
 import numpy as np
 import scipy.linalg
 
+from netkf_cli import kalman
 from netkf_cli.errors import ConfigError
 from netkf_cli.system import LinearSystem
-
-PSD_TOL = 1e-9
+from netkf_cli.tolerances import PSD_TOL
 
 
 def sym(X: np.ndarray) -> np.ndarray:
@@ -32,10 +32,8 @@ def h(X: np.ndarray, s: LinearSystem) -> np.ndarray:
 
 
 def gtilde(X: np.ndarray, s: LinearSystem) -> np.ndarray:
-    """g̃(X) = X − X Cᵀ (C X Cᵀ + R)⁻¹ C X (Sec. 2.3)."""
-    S = s.C @ X @ s.C.T + s.R
-    XCt = X @ s.C.T
-    return sym(X - XCt @ np.linalg.solve(S, XCt.T))
+    """g̃(X) = X − X Cᵀ (C X Cᵀ + R)⁻¹ C X (Sec. 2.3): the Kalman core's update on one matrix."""
+    return kalman.one(kalman.update, X, s.C, s.R)
 
 
 def g(X: np.ndarray, s: LinearSystem) -> np.ndarray:
@@ -70,6 +68,12 @@ def _pstar(s: LinearSystem) -> np.ndarray:
             "(A, C) must be detectable and (A, √Q) stabilizable",
         ) from None
     return sym(P)
+
+
+def initial_covariance(s: LinearSystem) -> np.ndarray:
+    """P_{0|0}: ``system.P0``, or P̄ (the steady-state filtered covariance with every packet received)
+    when it is unset/steady — the one meaning of P0 in netkf, for every estimator."""
+    return pbar(s) if s.P0 is None else np.asarray(s.P0, dtype=float)
 
 
 def pbar(s: LinearSystem) -> np.ndarray:

@@ -14,7 +14,7 @@ import pkgutil
 from functools import lru_cache
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import Field, create_model
+from pydantic import Field, create_model, model_validator
 
 from netkf_cli import channels, estimators, metrics, recipes
 from netkf_cli.spec import (
@@ -75,16 +75,37 @@ def kinds(base: type) -> dict[str, type]:
     return out
 
 
+class SensorSpec(StrictModel):
+    """One sensor of ``system.sensors``: y_i = C_i x + v_i, v_i ~ N(0, R_i), independent of the other sensors."""
+
+    C: Matrix = Field(description="this sensor's output matrix C_i (m_i×n)")
+    R: Matrix = Field(description="this sensor's measurement-noise covariance R_i (m_i×m_i, symmetric PD)")
+
+
 class SystemSpec(StrictModel):
     """``system:`` x_{k+1} = A x_k + w_k, y_k = C x_k + v_k; w ~ N(0, Q), v ~ N(0, R), x_0 ~ N(0, P0)."""
 
     A: Matrix = Field(description="state matrix A (n×n): x_{k+1} = A x_k + w_k")
-    C: Matrix = Field(description="output matrix C (m×n): y_k = C x_k + v_k")
+    C: Matrix | None = Field(None, description="output matrix C (m×n): y_k = C x_k + v_k (with `sensors: N`: one "
+                                               "sensor's C; left out with a list of sensors)")
     Q: Matrix = Field(description="process-noise covariance Q (n×n, symmetric PSD)")
-    R: Matrix = Field(description="measurement-noise covariance R (m×m, symmetric PD)")
+    R: Matrix | None = Field(None, description="measurement-noise covariance R (m×m, symmetric PD; with `sensors: N`: "
+                                               "one sensor's R; left out with a list of sensors)")
+    sensors: Annotated[int, Field(ge=1, le=10_000)] | list[SensorSpec] | None = Field(
+        None, description="the sensors (one channel stream each): unset = one sensor per output row of C; N = N "
+                          "identical sensors each measuring C x with noise R (stacked: C ⊗ 1_N, R block-diagonal); "
+                          "a list of {C, R} = sensors with their own matrices")
     P0: Matrix | Literal["steady"] | None = Field(
         None, description="error covariance of the estimate at k = 0, P_{0|0} (n×n PSD); unset or 'steady' = P̄, "
         "the steady-state filtered covariance with every packet received")
+
+    @model_validator(mode="after")
+    def _sensors_or_C(self):
+        if self.sensors is None or isinstance(self.sensors, int):
+            missing = [k for k in ("C", "R") if getattr(self, k) is None]
+            if missing:
+                raise ValueError(f"{' and '.join(missing)} required (or a list of `sensors`, each with its C and R)")
+        return self
 
     def build(self) -> LinearSystem:
         return LinearSystem.from_spec(self)

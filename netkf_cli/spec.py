@@ -36,24 +36,40 @@ class ChannelModel(StrictModel):
 
 
 class EstimatorModel(StrictModel):
-    """Base of every estimator kind (``kind: buffered | smart_sensor | ...``).
+    """Base of every estimator kind (``kind: kf | buffered | smart_sensor | ...``).
 
-    Contract (issue 12): ``accepts`` names the trace fields it can work from (at least one
-    must be in the channel's ``trace_kinds``; ``netkf validate`` refuses other pairs);
-    ``check(system, channel)`` raises a ConfigError for a pair that cannot work (dimensions,
-    invertibility …); ``covariances(system, trace, steps)`` yields ``(k, P_k)`` for each k in
-    ``steps`` (ascending, 1 ≤ k ≤ horizon), ``P_k`` shaped ``(n, n, runs)``, the error
-    covariance this estimator reports (``quantity``, e.g. ``"P_{k|k}"``). Per-run overflow is
-    ``inf`` in P, never an exception.
+    Contract (the Kalman core issue): every estimator is written on :mod:`netkf_cli.kalman`.
+
+    * ``accepts`` names the trace fields it can work from (at least one must be in the channel's
+      ``trace_kinds``; ``netkf validate`` refuses other pairs);
+    * ``quantities`` names what it reports at step k — ``filtered`` P_{k|k}, ``predicted``
+      P_{k+1|k}, ``smoothed`` P_{k−N|k} (``kalman.SYMBOL``) — all from P0 = P_{0|0}
+      (``system.P0``; unset = P̄) on one time base: step k = 1 … horizon is the time of the
+      newest measurement y_k that could have been used;
+    * ``check(system, channel)`` raises a ConfigError for a pair that cannot work (dimensions,
+      a stream count that is not the system's sensors, invertibility …);
+    * ``covariances(system, trace, steps, quantities)`` yields ``(k, {quantity: P_k})`` for each k
+      in ``steps`` (ascending, ``first_step(q) ≤ k ≤ horizon``), ``P_k`` shaped ``(n, n, runs)``.
+      Per-run overflow is ``inf`` in P, never an exception;
+    * ``conventions(system, channel)`` the conventions its numbers depend on (labels for the CSV
+      and the figure: buffer convention, packet content …).
     """
 
     accepts: ClassVar[frozenset[str]] = frozenset()
-    quantity: ClassVar[str] = "P_{k|k}"
+    quantities: ClassVar[tuple[str, ...]] = ("filtered",)
 
     def check(self, system: Any, channel: Any) -> None:
         """Raise ConfigError if this estimator cannot run on ``system`` with ``channel``."""
 
-    def covariances(self, system: Any, trace: Any, steps: Any) -> Any:  # pragma: no cover - interface
+    def first_step(self, quantity: str) -> int:
+        """The first step k at which ``quantity`` is defined (a lag-N smoother: N)."""
+        return 1
+
+    def conventions(self, system: Any, channel: Any) -> dict[str, str]:
+        """Conventions its numbers depend on, as short ``{name: value}`` labels (default none)."""
+        return {}
+
+    def covariances(self, system: Any, trace: Any, steps: Any, quantities: Any = ("filtered",)) -> Any:  # pragma: no cover
         raise NotImplementedError(f"estimator kind {getattr(self, 'kind', '?')} has no covariances()")
 
 

@@ -1,0 +1,317 @@
+"""The one Kalman core: batched predict / update / rescue / smoothing primitives (run axis innermost).
+
+Every estimator of netkf is written on these functions, and no other module computes a Kalman
+gain. Covariances are ``(n, n, runs)`` arrays (design.md's fast layout); system matrices are
+constant ``(n, n)`` / ``(m, n)`` arrays. A single matrix is the case ``runs = 1``
+(:func:`one`). The equations, with γ ∈ {0, 1} the arrival of a measurement (Sinopoli et al. 2004,
+eqs. 8–9; Shi, Xie & Murray 2009, eqs. 5–6):
+
+    predict   P_{k|k−1} = A P_{k−1|k−1} Aᵀ + Q                                     (h)
+    innovation S = C P Cᵀ + R (+ per-run extra noise),   gain K = P Cᵀ S⁻¹
+    update    P_{k|k}   = P_{k|k−1} − γ K C P_{k|k−1}                               (g̃, optimal K)
+    Joseph    P_{k|k}   = (I − γKC) P (I − γKC)ᵀ + γ K R Kᵀ                         (any K)
+    rows      only the rows that arrived: C̃ = W C, R̃ = W R W + (I − W), W = diag(mask)
+    rescue    P_{k|k}   = (P_{k|k−1}⁻¹ + C̃ᵀ R̃⁻¹ C̃)⁻¹  for runs with tr P_{k|k−1} > RESCUE_RATIO·scale
+    smoothing P_{t|T}   = P_{t|t} + J (P_{t+1|T} − P_{t+1|t}) Jᵀ,  J = P_{t|t} Aᵀ P_{t+1|t}⁻¹   (RTS)
+
+Time base (every estimator, every metric): ``P0`` is P_{0|0} (``system.P0``; unset = P̄); step
+k = 1 … horizon is the time of the newest measurement y_k that could have been used; the named
+quantities at step k are ``filtered`` P_{k|k}, ``predicted`` P_{k+1|k} and ``smoothed``
+P_{k−N|k} (a lag-N smoother). A channel's arrival stream s carries sensor s of
+``system.sensors`` (:func:`stream_rows`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from netkf_cli import batched
+from netkf_cli.errors import ConfigError
+from netkf_cli.tolerances import RESCUE_RATIO
+
+QUANTITIES = ("filtered", "predicted", "smoothed")
+"""The named covariances an estimator can report at step k."""
+
+SYMBOL = {"filtered": "P_{k|k}", "predicted": "P_{k+1|k}", "smoothed": "P_{k-N|k}"}
+"""What each quantity is, for CSVs, figures and ``netkf list``."""
+
+MEANING = {"filtered": "filtered P_{k|k} (after the step-k update)",
+           "predicted": "predicted P_{k+1|k} (one step ahead of the step-k update)",
+           "smoothed": "smoothed P_{k−N|k} (lag N, from the measurements up to k)"}
+
+
+# ----------------------------------------------------------------------------------------------
+# one-step primitives
+# ----------------------------------------------------------------------------------------------
+
+def predict(P: np.ndarray, A: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """P_{k|k−1} = A P Aᵀ + Q per run (the time update h, Shi 2009 eq. 5)."""
+    return batched.riccati_h(P, A, Q)
+
+
+def innovation(P: np.ndarray, C: np.ndarray, R: np.ndarray, extra_R: np.ndarray | None = None):
+    """(P Cᵀ, S = C P Cᵀ + R [+ extra_R]) per run; ``extra_R`` (m, m, runs) is per-run added noise."""
+    PCt = batched.right(P, C.T)
+    S = batched.left(C, PCt) + R[:, :, None]
+    if extra_R is not None:
+        S = S + extra_R
+    return PCt, S
+
+
+def gain(P: np.ndarray, C: np.ndarray, R: np.ndarray, extra_R: np.ndarray | None = None) -> np.ndarray:
+    """The optimal gain K = P Cᵀ S⁻¹ per run, shaped (n, m, runs)."""
+    PCt, S = innovation(P, C, R, extra_R)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        return batched.solve_small(S, PCt.swapaxes(0, 1)).swapaxes(0, 1)
+
+
+def update(P: np.ndarray, C: np.ndarray, R: np.ndarray, gamma: np.ndarray | None = None,
+           extra_R: np.ndarray | None = None) -> np.ndarray:
+    """P − γ·P Cᵀ S⁻¹ C P per run (optimal gain; Sinopoli 2004 eq. 9). ``gamma`` (runs,) in {0, 1}
+    multiplies the correction, so a lost measurement leaves P bit-for-bit unchanged."""
+    PCt, S = innovation(P, C, R, extra_R)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        corr = batched.matmul(PCt, batched.solve_small(S, PCt.swapaxes(0, 1)))
+        if gamma is not None:
+            corr = corr * np.asarray(gamma, dtype=float)[None, None, :]
+        return batched.sym(P - corr)
+
+
+def update_rows(P: np.ndarray, C: np.ndarray, R: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The exact update with the output rows that arrived, per run: ``mask`` (m, runs) in {0, 1}.
+
+    C̃ = W C, R̃ = W R W + (I − W) (W = diag(mask)): S̃ is block-diagonal (observed block, identity on
+    the missing rows), so K̃ = P C̃ᵀ S̃⁻¹ is the gain of the observed subset for any (non-diagonal) R.
+    """
+    w = np.asarray(mask, dtype=float)
+    PCt, S = innovation(P, C, R)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        PCt = PCt * w[None, :, :]
+        m = C.shape[0]
+        S = S * (w[:, None, :] * w[None, :, :])
+        idx = np.arange(m)
+        S[idx, idx] += 1.0 - w
+        corr = batched.matmul(PCt, batched.solve_small(S, PCt.swapaxes(0, 1)))
+        return batched.sym(P - corr)
+
+
+def joseph(P: np.ndarray, K: np.ndarray, C: np.ndarray, R: np.ndarray, gamma: np.ndarray | None = None,
+           extra_R: np.ndarray | None = None) -> np.ndarray:
+    """(I − γKC) P (I − γKC)ᵀ + γ K (R [+ extra_R]) Kᵀ per run: the error covariance of ANY gain K
+    (n, m, runs) — a filter whose gain is not the optimal one for the true noise (Joseph form)."""
+    n = P.shape[0]
+    with np.errstate(invalid="ignore", over="ignore"):
+        Kg = K if gamma is None else K * np.asarray(gamma, dtype=float)[None, None, :]
+        KC = batched.right(Kg, C)  # (n, n, runs)
+        IKC = np.eye(n)[:, :, None] - KC
+        out = batched.matmul(batched.matmul(IKC, P), IKC.swapaxes(0, 1))
+        Rr = np.broadcast_to(R[:, :, None], R.shape + (P.shape[-1],)) if extra_R is None else R[:, :, None] + extra_R
+        out = out + batched.matmul(batched.matmul(Kg, Rr), Kg.swapaxes(0, 1))
+        return batched.sym(out)
+
+
+def information_update(Pm: np.ndarray, info: np.ndarray) -> np.ndarray:
+    """(P⁻⁻¹ + I)⁻¹ per run, ``info`` (n, n) or (n, n, runs) the measurement information C̃ᵀR̃⁻¹C̃
+    (the information form of the update; P⁻ = ∞ ⇒ P⁻⁻¹ = 0)."""
+    X = np.moveaxis(Pm, -1, 0)
+    info_r = np.moveaxis(info, -1, 0) if info.ndim == 3 else np.broadcast_to(info, X.shape)
+    finite = np.isfinite(X).all(axis=(1, 2))
+    Y = np.zeros_like(X)
+    if finite.any():
+        Y[finite] = np.linalg.inv(X[finite])
+    out = np.linalg.inv(Y + info_r)
+    return np.moveaxis(0.5 * (out + out.transpose(0, 2, 1)), 0, -1)
+
+
+def smooth_step(Ps_next: np.ndarray, Pf: np.ndarray, Pp_next: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """One Rauch–Tung–Striebel step: P_{t|T} = P_{t|t} + J (P_{t+1|T} − P_{t+1|t}) Jᵀ,
+    J = P_{t|t} Aᵀ P_{t+1|t}⁻¹ (batched; P_{t+1|t} = A P_{t|t} Aᵀ + Q)."""
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        APf = batched.left(A, Pf)  # A P_{t|t} = (P_{t|t} Aᵀ)ᵀ
+        Jt = batched.solve_small(Pp_next, APf)  # Jᵀ = P_{t+1|t}⁻¹ A P_{t|t}
+        J = Jt.swapaxes(0, 1)
+        return batched.sym(Pf + batched.matmul(batched.matmul(J, Ps_next - Pp_next), Jt))
+
+
+# ----------------------------------------------------------------------------------------------
+# the one rescue policy
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Rescue:
+    """The one overflow policy of netkf.
+
+    Before an update, a run whose prior has ``tr P⁻ > limit`` (or is non-finite) is flagged. After
+    the standard update, a flagged run with a finite prior and at least one arrived row is redone in
+    information form (exact where the standard form cancels every digit: A = diag(1e6, 0.5)); a run
+    that is non-finite after the step is set to ``inf`` everywhere (counted as diverged by the
+    metrics, never a silent NaN). ``limit = RESCUE_RATIO · tr((CᵀR⁻¹C)⁻¹)`` when C has full column
+    rank, else ``RESCUE_RATIO · 1e8 · tr R`` (:data:`netkf_cli.tolerances.RESCUE_RATIO`).
+    """
+
+    C: np.ndarray
+    R: np.ndarray
+    limit: float
+
+    @classmethod
+    def of(cls, C: np.ndarray, R: np.ndarray) -> "Rescue":
+        info = C.T @ np.linalg.solve(R, C)
+        if np.linalg.matrix_rank(info) == C.shape[1]:
+            scale = float(np.trace(np.linalg.inv(info)))
+        else:
+            scale = float(np.trace(R)) * 1e8
+        return cls(C, R, RESCUE_RATIO * scale)
+
+    def flag(self, Pm: np.ndarray) -> np.ndarray:
+        """(runs,) bool: the prior is nearly overflowed (or non-finite)."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            return ~(batched.trace(Pm) <= self.limit)
+
+    def apply(self, P: np.ndarray, Pm: np.ndarray, flagged: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Fix the flagged runs of the updated ``P`` (from prior ``Pm``); ``rows`` (m, runs) the arrived rows."""
+        idx = np.flatnonzero(flagged)
+        if idx.size == 0:
+            return P
+        P = P.copy()
+        w = np.asarray(rows, dtype=float)[:, idx]
+        prior = Pm[:, :, idx]
+        finite = np.isfinite(prior).all(axis=(0, 1))
+        redo = finite & (w.sum(axis=0) > 0)
+        if redo.any():
+            ww = w[:, redo]
+            m = self.C.shape[0]
+            Rt = self.R[:, :, None] * (ww[:, None, :] * ww[None, :, :])
+            Rt[np.arange(m), np.arange(m)] += 1.0 - ww
+            Ct = self.C[:, :, None] * ww[:, None, :]  # (m, n, k)
+            RiC = np.moveaxis(np.linalg.solve(np.moveaxis(Rt, -1, 0), np.moveaxis(Ct, -1, 0)), 0, -1)
+            info = np.einsum("min,mjn->ijn", Ct, RiC)
+            P[:, :, idx[redo]] = information_update(prior[:, :, redo], info)
+        bad = idx[~np.isfinite(P[:, :, idx]).all(axis=(0, 1))]
+        P[:, :, bad] = np.inf
+        return P
+
+
+# ----------------------------------------------------------------------------------------------
+# the sensor model and the filter recursion
+# ----------------------------------------------------------------------------------------------
+
+def stream_rows(system, streams: int, path: str = "channel") -> tuple[tuple[int, ...], ...]:
+    """Output rows each arrival stream carries: one stream = all of y_k (one packet); S streams =
+    the S sensors of ``system.sensors`` (default: one sensor per output row)."""
+    if streams == 1:
+        return (tuple(range(system.m)),)
+    groups = system.sensor_rows
+    if streams == len(groups):
+        return groups
+    raise ConfigError.at(path, f"the channel has {streams} arrival streams, but the system has {len(groups)} "
+                               f"sensor(s) ({'system.sensors' if system.sensors is not None else 'one per output row of C'}): "
+                               f"a stream carries one sensor's whole measurement, or one stream carries all of y_k; "
+                               f"set system.sensors: {streams} for {streams} identical sensors measuring C x")
+
+
+def row_mask(gamma_t: np.ndarray, groups: tuple[tuple[int, ...], ...], m: int) -> np.ndarray:
+    """(m, runs) row arrivals from stream arrivals ``gamma_t`` (S, runs)."""
+    out = np.empty((m, gamma_t.shape[-1]), dtype=bool)
+    for s, rows in enumerate(groups):
+        out[list(rows)] = gamma_t[s]
+    return out
+
+
+def _block_diagonal(R: np.ndarray, groups) -> bool:
+    mask = np.zeros(R.shape, dtype=bool)
+    for g in groups:
+        mask[np.ix_(g, g)] = True
+    return not np.any(R[~mask])
+
+
+@dataclass(frozen=True)
+class Filter:
+    """The Kalman filter with intermittent observations over sensor groups (Sinopoli 2004 eqs. 8–9).
+
+    ``groups``: output rows per arrival stream. With block-diagonal R across the groups (independent
+    sensors) the sensors are processed one after another, each with its own γ (exact, and with one
+    group it is the textbook update); otherwise one joint update of the arrived rows
+    (:func:`update_rows`). Every step goes through :class:`Rescue`.
+    """
+
+    A: np.ndarray
+    C: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    groups: tuple[tuple[int, ...], ...]
+    rescue: Rescue
+    sequential: bool
+
+    @classmethod
+    def of(cls, system, streams: int = 1, path: str = "channel") -> "Filter":
+        groups = stream_rows(system, streams, path)
+        A, C, Q, R = (np.ascontiguousarray(x, dtype=float) for x in (system.A, system.C, system.Q, system.R))
+        return cls(A, C, Q, R, groups, Rescue.of(C, R), _block_diagonal(R, groups))
+
+    def correct(self, Pm: np.ndarray, gamma_t: np.ndarray) -> np.ndarray:
+        """P_{k|k} from P_{k|k−1} and the stream arrivals ``gamma_t`` (S, runs) of step k."""
+        flagged = self.rescue.flag(Pm)
+        if len(self.groups) == 1:
+            P = update(Pm, self.C, self.R, gamma_t[0])
+        elif self.sequential:
+            P = Pm
+            for s, rows in enumerate(self.groups):
+                r = list(rows)
+                P = update(P, self.C[r], self.R[np.ix_(r, r)], gamma_t[s])
+        else:
+            P = update_rows(Pm, self.C, self.R, row_mask(gamma_t, self.groups, self.C.shape[0]))
+        if flagged.any():
+            P = self.rescue.apply(P, Pm, flagged, row_mask(gamma_t, self.groups, self.C.shape[0]))
+        return P
+
+    def step(self, P: np.ndarray, gamma_t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(P_{k|k−1}, P_{k|k}) from P_{k−1|k−1}."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            Pm = predict(P, self.A, self.Q)
+            return Pm, self.correct(Pm, gamma_t)
+
+    def run(self, P0: np.ndarray, gamma: np.ndarray, steps: Iterable[int],
+            quantities: Iterable[str] = ("filtered",)) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
+        """Yield (k, {quantity: P}) for k in ``steps``: ``gamma`` (S, horizon, runs), step k uses
+        gamma[:, k − 1]; ``filtered`` = P_{k|k}, ``predicted`` = P_{k+1|k} = A P_{k|k} Aᵀ + Q."""
+        qs = check_quantities(quantities, ("filtered", "predicted"))
+        want = sorted(set(int(k) for k in steps))
+        runs = gamma.shape[-1]
+        P = np.repeat(np.asarray(P0, dtype=float)[:, :, None], runs, axis=2) if P0.ndim == 2 else P0
+        t = 0
+        for k in want:
+            while t < k:
+                _, P = self.step(P, gamma[:, t])
+                t += 1
+            yield k, report(P, qs, self.A, self.Q)
+
+
+def report(P_filtered: np.ndarray, quantities: tuple[str, ...], A: np.ndarray, Q: np.ndarray) -> dict[str, np.ndarray]:
+    """{quantity: P} from P_{k|k}: ``predicted`` is A P_{k|k} Aᵀ + Q (P_{k+1|k})."""
+    out = {}
+    for q in quantities:
+        if q == "filtered":
+            out[q] = P_filtered
+        elif q == "predicted":
+            with np.errstate(over="ignore", invalid="ignore"):
+                out[q] = predict(P_filtered, A, Q)
+    return out
+
+
+def check_quantities(quantities: Iterable[str], offered: Iterable[str], who: str = "this estimator") -> tuple[str, ...]:
+    """The requested quantities as a tuple, or a ConfigError naming what ``who`` offers."""
+    qs = (quantities,) if isinstance(quantities, str) else tuple(quantities)
+    offered = tuple(offered)
+    bad = [q for q in qs if q not in offered]
+    if bad:
+        raise ConfigError.at("analysis.quantity", f"{who} does not report {', '.join(bad)}; it reports "
+                                                  f"{', '.join(offered)}")
+    return qs
+
+
+def one(fn, P: np.ndarray, *args, **kw) -> np.ndarray:
+    """Apply a batched primitive to a single (n, n) matrix (runs = 1)."""
+    return fn(np.asarray(P, dtype=float)[:, :, None], *args, **kw)[:, :, 0]

@@ -1,0 +1,40 @@
+"""Every numerical tolerance of netkf, in one place (core layer: imports nothing of netkf).
+
+Each constant says what it decides and why its value; modules import them from here instead of
+writing their own ``1e-9``.
+"""
+
+from __future__ import annotations
+
+PSD_TOL = 1e-9
+"""Relative tolerance of the PSD order: X ≤ M iff min eig(M − X) ≥ −PSD_TOL·max(1, ‖M‖).
+Riccati iterates converge to ~1e-12 relative; 1e-9 absorbs that without merging distinct jump points."""
+
+SYM_TOL = 1e-9
+"""Relative asymmetry ‖X − Xᵀ‖ / max(1, ‖X‖) above which an input matrix is refused as not symmetric."""
+
+PSD_INPUT_TOL = 1e-10
+"""Relative tolerance of min eig(Q) ≥ −tol·max(1, ‖Q‖) for user input Q (and P0): round-off of a
+hand-typed PSD matrix passes, a genuinely indefinite one does not."""
+
+RESCUE_RATIO = 1e8
+"""The information-form rescue (kalman.Rescue): a run whose prior covariance has
+tr P⁻ > RESCUE_RATIO · scale is updated in information form (P⁻⁻¹ + CᵀR⁻¹C)⁻¹. The standard form
+P − P Cᵀ S⁻¹ C P cancels every digit once ‖P‖/‖R‖ ≳ 1/ε ≈ 4.5e15; 1e8 leaves a margin of 1e7 and
+is far above any covariance a stable or moderately unstable filter reaches."""
+
+HEAVY_TAIL_RSE = 0.5
+"""A Monte Carlo mean is flagged heavy-tailed when the relative standard error of its sample
+variance, √((m₄ − s⁴)/n)/s², exceeds this (the standard error itself is then uncertain by more than
+about 25 %), or when any run is non-finite. Light tails pass at modest n (exponential data: 0.28 at
+n = 200); an infinite fourth moment never does."""
+
+RARE_EVENT_FRACTION = 0.5
+"""A mean is flagged rare-event dominated when more than this fraction of its sum comes from the
+single largest run (with n ≥ 2): the estimate then rests on one event of probability ~1/n."""
+
+SOLVER_TOL = 1e-8
+"""Feasibility/optimality tolerance of the semidefinite programs (cvxpy + Clarabel)."""
+
+DARE_RTOL = 1e-12
+"""Relative convergence tolerance of fixed-point Riccati iterations (P*, P̄, steady states)."""
