@@ -24,18 +24,24 @@ import numpy as np
 from netkf_cli import batched
 from netkf_cli.compat import check_pair
 from netkf_cli.montecarlo import run_chunked
-from netkf_cli.tolerances import HEAVY_TAIL_RSE
+from netkf_cli.stats import MeanSummary, central4, heavy_tail_flag, mean_se, rare_event_flag  # noqa: F401 (re-exported)
+from netkf_cli.tolerances import HEAVY_TAIL_RSE  # noqa: F401 (re-exported)
 
 
 def covariances(estimator, system, trace, steps, quantity: str = "filtered"):
-    """(k, P_k) of ``estimator``'s ``quantity`` at ``steps`` (the engine's one call into an estimator)."""
+    """(k, P_k, w) of ``estimator``'s ``quantity`` at ``steps`` (the engine's one call into an estimator).
+
+    ``w`` is ``None``, or the per-run importance weights (runs,) of a variance-reduced estimator
+    (E[w] = 1): every statistic is then a mean of w·x (unbiased), its standard error that of w·x.
+    """
     import inspect  # TRANSITION (removed when every estimator is on the core contract)
 
     if "quantities" not in inspect.signature(estimator.covariances).parameters:
-        yield from estimator.covariances(system, trace, steps)
+        for k, P in estimator.covariances(system, trace, steps):
+            yield k, P, None
         return
     for k, out in estimator.covariances(system, trace, steps, (quantity,)):
-        yield k, out[quantity]
+        yield k, out[quantity], out.get("weight")
 
 
 class DistributionReducer:
@@ -45,14 +51,19 @@ class DistributionReducer:
         self.M = np.asarray(M, dtype=float)
         self.steps = list(steps)
 
-    def update(self, stats: dict, j: int, k: int, P: np.ndarray) -> None:
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         i = self.steps.index(k)
         cnt = stats.setdefault(f"count_{j}", np.zeros((len(self.steps), len(self.M))))
         bad = stats.setdefault(f"nonfinite_{j}", np.zeros(len(self.steps)))
         lmax = batched.lambda_max(P)  # P ≤ M·I ⇔ λ_max(P) ≤ M (inf for non-finite runs)
         finite = np.isfinite(lmax)
         tol = batched.PSD_TOL * np.maximum(1.0, self.M)
-        cnt[i] += (lmax[None, :] <= (self.M + tol)[:, None]).sum(axis=1)
+        ok = lmax[None, :] <= (self.M + tol)[:, None]
+        if w is None:
+            cnt[i] += ok.sum(axis=1)
+        else:  # weighted: Σ w·1[P ≤ M] and Σ (w·1)² for the standard error (no Wilson interval)
+            cnt[i] += (ok * w[None, :]).sum(axis=1)
+            stats.setdefault(f"countsq_{j}", np.zeros((len(self.steps), len(self.M))))[i] += (ok * (w * w)[None, :]).sum(axis=1)
         bad[i] += (~finite).sum()
         stats["n"] = P.shape[-1]
 
@@ -63,12 +74,14 @@ class MomentReducer:
     def __init__(self, steps: list[int]):
         self.steps = list(steps)
 
-    def update(self, stats: dict, j: int, k: int, P: np.ndarray) -> None:
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         i, K, n = self.steps.index(k), len(self.steps), P.shape[0]
         tr = batched.trace(P)
         finite = np.isfinite(P).all(axis=(0, 1))
         lm = batched.lambda_max(P)
         trf, lmf, Pf = np.where(finite, tr, 0.0), np.where(finite, lm, 0.0), np.where(finite, P, 0.0)
+        if w is not None:  # a variance-reduced estimator: statistics of w·x (E[w] = 1)
+            trf, lmf, Pf = trf * w, lmf * w, Pf * w[None, None, :]
 
         def acc(key, shape, value):
             stats.setdefault(f"{key}_{j}", np.zeros(shape))[i] += value
@@ -95,10 +108,10 @@ class PairedReducer:
         self.steps = list(steps)
         self.inner = MomentReducer(steps)
 
-    def update(self, stats: dict, j: int, k: int, P: np.ndarray) -> None:
-        self.inner.update(stats, j, k, P)
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
+        self.inner.update(stats, j, k, P, w)
         i = self.steps.index(k)
-        tr = batched.trace(P)
+        tr = batched.trace(P) if w is None else batched.trace(P) * w
         if j == 0:
             stats.setdefault("_ref", {})[k] = tr
             return
@@ -127,8 +140,8 @@ class PairKernel:
         trace = self.channel.sample_trace(rng, runs, self.horizon)
         stats: dict = {}
         for j, est in enumerate(self.estimators):
-            for k, P in covariances(est, self.system, trace, self.steps, self.quantity):
-                self.reducer.update(stats, j, k, P)
+            for k, P, w in covariances(est, self.system, trace, self.steps, self.quantity):
+                self.reducer.update(stats, j, k, P, w)
         stats.pop("_ref", None)
         stats["n"] = np.asarray(runs)
         return stats
@@ -144,55 +157,23 @@ def simulate(system, channel, estimators, reducer, *, steps, runs: int, horizon:
     return run_chunked(kernel, runs, chunk, seed, stream=stream, progress=progress, label=label)
 
 
-@dataclass
-class MeanSummary:
-    """E[·] over runs with its standard error and reliability diagnostics."""
-
-    mean: np.ndarray
-    stderr: np.ndarray
-    n: int
-    nonfinite: np.ndarray
-    heavy_tail: np.ndarray
-
-
-def central4(s1, s2, s3, s4, n):
-    """Fourth central moment from raw sums Σx, Σx², Σx³, Σx⁴ over n samples."""
-    with np.errstate(invalid="ignore", over="ignore"):
-        mu = s1 / n
-        return s4 / n - 4 * mu * s3 / n + 6 * mu**2 * s2 / n - 3 * mu**4
-
-
-def heavy_tail_flag(s1, s2, s3, s4, n, nonfinite):
-    """(variance, relative s.e. of the variance, heavy?) — see :data:`HEAVY_TAIL_RSE`."""
-    n = np.maximum(n, 1)
-    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        mu = s1 / n
-        var = np.maximum(s2 / n - mu**2, 0.0)
-        rse = np.sqrt(np.maximum(central4(s1, s2, s3, s4, n) - var**2, 0.0) / n) / np.where(var > 0, var, np.nan)
-        rse = np.where(var > 0, rse, 0.0)
-        heavy = (np.asarray(nonfinite) > 0) | ~np.isfinite(rse) | (rse > HEAVY_TAIL_RSE)
-    return var, rse, heavy
-
-
 def mean_summary(stats: dict, j: int, key: str = "tr") -> MeanSummary:
     """Mean of tr P (``key='tr'``) or λ_max (``'lmax'``) per step over the finite runs, with flags."""
     n = int(stats["n"])
     bad = stats[f"nonfinite_{j}"]
     m_ok = np.maximum(n - bad, 1)
     s1, s2 = stats[f"sum_{key}_{j}"], stats[f"sumsq_{key}_{j}"]
-    mean = s1 / m_ok
-    var = np.maximum(s2 / m_ok - mean**2, 0.0) * m_ok / np.maximum(m_ok - 1, 1)
-    se = np.sqrt(var / m_ok)
-    if key == "tr":
-        _, _, heavy = heavy_tail_flag(s1, s2, stats[f"sum3_tr_{j}"], stats[f"sum4_tr_{j}"], m_ok, bad)
-    else:
-        heavy = bad > 0
-    return MeanSummary(np.where(bad > 0, np.inf, mean), se, n, bad, np.asarray(heavy, dtype=bool))
+    mean, se = mean_se(s1, s2, m_ok)
+    st1, st2 = stats[f"sum_tr_{j}"], stats[f"sumsq_tr_{j}"]
+    _, _, heavy = heavy_tail_flag(st1, st2, stats[f"sum3_tr_{j}"], stats[f"sum4_tr_{j}"], m_ok, bad)
+    rare = rare_event_flag(st1, stats[f"max_tr_{j}"], m_ok)
+    return MeanSummary(np.where(bad > 0, np.inf, mean), se, n, bad, np.asarray(heavy, dtype=bool),
+                       np.asarray(rare, dtype=bool))
 
 
 def mean_covariance(system, channel, estimator, *, runs: int, horizon: int, burn_in: int = 0, seed: int = 0,
-                    chunk: int = 20_000, stream: int = 0, progress=None) -> dict:
-    """Time-averaged E[tr P_k] over k in (burn_in, horizon] with its standard error and flags.
+                    chunk: int = 20_000, stream: int = 0, progress=None, quantity: str = "filtered") -> dict:
+    """Time-averaged E[tr P_k] (of ``quantity``) over k in (burn_in, horizon] with its standard error and flags.
 
     The per-run time average is one sample per run (runs are independent), so the standard
     error is exact for the time-averaged quantity. Keys: ``mean_trace``, ``stderr``, ``n``,
@@ -201,17 +182,17 @@ def mean_covariance(system, channel, estimator, *, runs: int, horizon: int, burn
     steps = list(range(burn_in + 1, horizon + 1))
     st = simulate(system, channel, [estimator], TimeAverageReducer(steps), steps=steps, runs=runs,
                   horizon=horizon, seed=seed, chunk=chunk, stream=stream, progress=progress,
-                  label="mean_covariance")
+                  label="mean_covariance", quantity=quantity)
     n = int(st["n"])
     bad = int(st["nonfinite_avg"])
     m_ok = max(n - bad, 1)
-    mean = st["sum_avg"] / m_ok
-    var = max(st["sumsq_avg"] / m_ok - mean**2, 0.0) * m_ok / max(m_ok - 1, 1)
-    se = float(np.sqrt(var / m_ok))
+    mean, se = (float(x) for x in mean_se(st["sum_avg"], st["sumsq_avg"], m_ok))
     _, rse, heavy = heavy_tail_flag(st["sum_avg"], st["sumsq_avg"], st["sum3_avg"], st["sum4_avg"], m_ok, bad)
+    rare = bool(rare_event_flag(st["sum_avg"], st["max_avg"], m_ok))
     rse, heavy = float(rse), bool(heavy)
     return {"mean_trace": float(mean) if bad == 0 else float("inf"), "stderr": se, "n": n,
-            "heavy_tail": bool(heavy), "nonfinite": bad, "rse_variance": rse}
+            "heavy_tail": bool(heavy), "rare_event": rare, "nonfinite": bad, "rse_variance": rse,
+            "quantity": quantity}
 
 
 class TimeAverageReducer:
@@ -220,12 +201,12 @@ class TimeAverageReducer:
     def __init__(self, steps: list[int]):
         self.steps = list(steps)
 
-    def update(self, stats: dict, j: int, k: int, P: np.ndarray) -> None:
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         acc = stats.get("_acc")
         if acc is None or k == self.steps[0]:
             acc = stats["_acc"] = np.zeros(P.shape[-1])
         with np.errstate(over="ignore", invalid="ignore"):
-            acc += batched.trace(P) / len(self.steps)
+            acc += (batched.trace(P) if w is None else batched.trace(P) * w) / len(self.steps)
         if k == self.steps[-1]:
             ok = np.isfinite(acc)
             a = np.where(ok, acc, 0.0)
@@ -234,5 +215,6 @@ class TimeAverageReducer:
                 stats["sumsq_avg"] = stats.get("sumsq_avg", 0.0) + (a * a).sum()
                 stats["sum3_avg"] = stats.get("sum3_avg", 0.0) + (a**3).sum()
                 stats["sum4_avg"] = stats.get("sum4_avg", 0.0) + (a**4).sum()
+                stats["max_avg"] = max(stats.get("max_avg", 0.0), float(a.max()) if a.size else 0.0)
             stats["nonfinite_avg"] = stats.get("nonfinite_avg", 0) + int((~ok).sum())
             del stats["_acc"]

@@ -7,8 +7,14 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
+from netkf_cli import kalman
 from netkf_cli.errors import ConfigError
 from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt, StrictModel
+
+Quantity = Literal["filtered", "predicted", "smoothed"]
+LABEL_COLUMNS = ["quantity", "P0", "conventions"]
+"""Columns every generic metric's CSV carries: what the number is (``filtered`` P_{k|k} …), the P0 it
+starts from, and the channel/estimator conventions it depends on."""
 
 
 class MGrid(StrictModel):
@@ -83,13 +89,64 @@ def step_of(at, horizon: int, path: str = "analysis.at") -> int:
     return int(at)
 
 
+def p0_label(system) -> str:
+    """What P0 = P_{0|0} is, in words."""
+    return "P0 = P̄ (steady state, every packet received)" if system.P0 is None else "P0 = system.P0"
+
+
+def channel_words(ch) -> str:
+    """A short description of a channel: its kind and its scalar parameters (``bernoulli (arrival = 0.7)``)."""
+    params = [f"{k} = {v:g}" if isinstance(v, float) else f"{k} = {v}" for k, v in ch.model_dump().items()
+              if k != "kind" and isinstance(v, (int, float, str)) and not isinstance(v, bool)]
+    return f"{ch.kind} channel" + (f" ({', '.join(params[:4])})" if params else "")
+
+
+def conventions_label(system, channel, est) -> str:
+    """The channel's and the estimator's conventions as one short text (``name: value; …``)."""
+    conv = {}
+    ch_conv = getattr(channel, "conventions", None)
+    if callable(ch_conv):
+        conv.update(ch_conv())
+    conv.update(est.conventions(system, channel))
+    return "; ".join([channel_words(channel)] + [f"{k}: {v}" for k, v in conv.items()])
+
+
+def describe(scenario, system, ests, quantity: str) -> list[dict]:
+    """Per estimator, the label columns (LABEL_COLUMNS) of its rows."""
+    ch = scenario.channel
+    return [dict(quantity=quantity, P0=p0_label(system), conventions=conventions_label(system, ch, e)) for e in ests]
+
+
+def quantity_text(quantity: str, what: str = "P_k") -> str:
+    """Mathtext for a quantity: ``filtered`` → P_{k|k}."""
+    sub = {"filtered": "k|k", "predicted": "k+1|k", "smoothed": "k-N|k"}[quantity]
+    return what.replace("P_k", f"P_{{{sub}}}")
+
+
 class GenericMetric(AnalysisModel):
-    """What distribution, mean_vs_time and compare share: validation and the engine call."""
+    """What distribution, mean_vs_time and compare share: the quantity, validation and the engine call."""
+
+    quantity: Quantity = Field("filtered", description="which covariance: filtered P_{k|k}, predicted P_{k+1|k} or "
+                                                       "smoothed P_{k-N|k} (a smoother's lag N); `netkf list` shows what "
+                                                       "each estimator reports")
 
     def check(self, scenario) -> None:
-        needs(scenario, "channel"), needs(scenario, "estimators")
+        needs(scenario, "channel")
+        ests = needs(scenario, "estimators")
+        many = bool(scenario.estimators)
+        for i, e in enumerate(ests):
+            offered = getattr(e, "quantities", ("filtered",))
+            if self.quantity not in offered:
+                raise ConfigError.at("analysis.quantity", f"{'estimators[%d]' % i if many else 'estimator'} "
+                                     f"({e.kind}) does not report {self.quantity} ({kalman.SYMBOL[self.quantity]}); "
+                                     f"it reports {', '.join(offered)}")
         if hasattr(self, "at"):
-            step_of(self.at, scenario.montecarlo.horizon)
+            k = step_of(self.at, scenario.montecarlo.horizon)
+            for e in ests:
+                first = e.first_step(self.quantity)
+                if k < first:
+                    raise ConfigError.at("analysis.at", f"{e.kind} defines {self.quantity} from step {first} on "
+                                                        f"({kalman.SYMBOL[self.quantity]}), got k = {k}")
 
     def simulate(self, scenario, ctx, reducer, steps, horizon: int):
         """Run the scenario's estimators on its channel's traces (stream 0): (system, estimators, statistics)."""
@@ -100,5 +157,5 @@ class GenericMetric(AnalysisModel):
         runs = ctx.mc_runs(scenario)
         ctx.total(runs)
         st = engine.simulate(s, ch, ests, reducer, steps=steps, runs=runs, horizon=horizon, seed=mc.seed,
-                             chunk=mc.chunk, stream=0, progress=ctx.progress, label=self.kind)
+                             chunk=mc.chunk, stream=0, progress=ctx.progress, label=self.kind, quantity=self.quantity)
         return s, ests, st

@@ -29,13 +29,14 @@ from pydantic import Field, model_validator
 
 from netkf_cli import engine, riccati
 from netkf_cli.errors import ConfigError
-from netkf_cli.metrics.common import GenericMetric, MGrid, PaperRef, labels, m_values, needs, step_of
-from netkf_cli.montecarlo import proportion_stderr, wilson_interval
+from netkf_cli.metrics.common import (LABEL_COLUMNS, GenericMetric, MGrid, PaperRef, describe, labels, m_values, needs,
+                                      quantity_text, step_of)
+from netkf_cli.stats import mean_se, proportion_stderr, wilson_interval
 from netkf_cli.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import PositiveFloat, PositiveInt
 
-COLUMNS = ["M", "estimator", "series", "value", "stderr", "ci_low", "ci_high", "n", "err", "k"]
+COLUMNS = ["M", "estimator", "series", "value", "stderr", "ci_low", "ci_high", "n", "err", "k"] + LABEL_COLUMNS
 K_JUMPS = 2000
 
 
@@ -69,9 +70,12 @@ def _delay_pair(channel, est) -> bool:
 class ClosedForms:
     """Shi 2009 closed forms for one (channel, estimator) pair, or none (``available`` False + why)."""
 
-    def __init__(self, s, channel, est, at_stationary: bool, exact: bool, exact_tol: float):
+    def __init__(self, s, channel, est, at_stationary: bool, exact: bool, exact_tol: float, quantity: str = "filtered"):
         self.s, self.ch, self.est, self.exact, self.tol = s, channel, est, exact, exact_tol
         self.available, self.why, self.jumps = False, "", []
+        if quantity != "filtered":
+            self.why = f"the closed forms (Shi 2009 Thm 3.8/4.1) are for the filtered P_{{k|k}}, not {quantity}"
+            return
         if not _delay_pair(channel, est):
             self.why = f"no closed form for {est.kind} on a {channel.kind} channel"
             return
@@ -163,21 +167,28 @@ class Distribution(GenericMetric):
         s, ests, st = self.simulate(scenario, ctx, engine.DistributionReducer(M, [k]), [k], k)
         n = int(st["n"])
         labs = labels(ests)
+        lab_cols = describe(scenario, s, ests, self.quantity)
         rows, curves, meta = [], [], {"at": k, "runs": n, "estimators": labs, "closed_forms": {},
+                                      "quantity": self.quantity, "labels": dict(zip(labs, lab_cols)),
                                       "M_means": "M·I_n (PSD order)", "warnings": []}
         for j, (est, lab) in enumerate(zip(ests, labs)):
             cnt = st[f"count_{j}"][0]
             p = cnt / n
-            lo, hi = wilson_interval(cnt, n)
+            if f"countsq_{j}" in st:  # importance-weighted: normal interval from the s.e. of w·1[P ≤ M]
+                p, se = mean_se(cnt, st[f"countsq_{j}"][0], n)
+                lo, hi = p - 1.96 * se, p + 1.96 * se
+            else:
+                se = proportion_stderr(p, n)
+                lo, hi = wilson_interval(cnt, n)
             bad = int(st[f"nonfinite_{j}"][0])
             if bad:
                 meta["warnings"].append(f"{lab}: {bad} of {n} runs overflowed (counted as P_k > M)")
             for i, m in enumerate(M):
-                rows.append(dict(M=m, estimator=lab, series="monte_carlo", value=p[i], stderr=proportion_stderr(p[i], n),
-                                 ci_low=lo[i], ci_high=hi[i], n=n, err=np.nan, k=k))
+                rows.append(dict(M=m, estimator=lab, series="monte_carlo", value=p[i], stderr=se[i],
+                                 ci_low=lo[i], ci_high=hi[i], n=n, err=np.nan, k=k, **lab_cols[j]))
             if not self.bounds:
                 continue
-            cf = ClosedForms(s, ch, est, self.at == "stationary", self.exact, self.exact_tol)
+            cf = ClosedForms(s, ch, est, self.at == "stationary", self.exact, self.exact_tol, self.quantity)
             meta["closed_forms"][lab] = "attached" if cf.available else cf.why
             if not cf.available:
                 continue
@@ -189,7 +200,7 @@ class Distribution(GenericMetric):
                 for i, m in enumerate(M):
                     if np.isfinite(v[i]):
                         rows.append(dict(M=m, estimator=lab, series=name, value=v[i], stderr=np.nan, ci_low=np.nan,
-                                         ci_high=np.nan, n=np.nan, err=err[i], k=k))
+                                         ci_high=np.nan, n=np.nan, err=err[i], k=k, **lab_cols[j]))
             grid = np.unique(np.concatenate([M, _dense(M, self.x_scale), cf.jump_points(M.min(), M.max())]))
             for name, v in cf.series(grid).items():
                 if name == "exact_err":
@@ -233,13 +244,17 @@ class Distribution(GenericMetric):
         if self.x_scale == "log":
             ax.set_xscale("log")
         ax.set_xlabel(r"$M$ (the bound is $M\,I_n$)")
-        ax.set_ylabel(r"$\Pr[P_k \leq M]$")
+        pk = quantity_text(self.quantity)
+        ax.set_ylabel(rf"$\Pr[{pk} \leq M]$")
         ax.set_ylim(-0.02, 1.02)
-        what = self.title or rf"$\Pr[P_k \leq M]$, {_channel_text(scenario.channel)}"
+        what = self.title or rf"$\Pr[{pk} \leq M]$, {_channel_text(scenario.channel)}"
         ax.set_title(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
         legend_outside(ax, loc="below", ncol=1)
         k = int(t.k.iloc[0])
-        footnote(fig, f"P_k at k = {k}" + (" (stationary: after the burn-in from P0)" if self.at == "stationary" else ""))
+        lab = t.iloc[0]
+        conv = "; ".join(dict.fromkeys(str(c) for c in t.conventions)) if "conventions" in t else ""
+        footnote(fig, f"{self.quantity} ${pk}$ at k = {k}" + (" (stationary: after the burn-in from P0)" if self.at == "stationary" else "")
+                 + (f"; {lab.P0}\n{conv}" if "P0" in t else ""))
         return fig
 
 
@@ -249,7 +264,10 @@ def _channel_text(ch) -> str:
     if ch.kind in ("delay", "bernoulli"):
         from netkf_cli.recipes.shi2009_theta import delay_label
 
-        return (f"$D$ = {ch.buffer}, " if ch.kind == "delay" else "") + delay_label(ch, math=True)
+        keep = {"delay_le_D": r"kept iff delay $\leq D$", "delay_lt_D": r"kept iff delay $< D$ (eq. 4)"}
+        conv = getattr(ch, "convention", None)
+        return ((f"$D$ = {ch.buffer} ({keep.get(conv, conv)}), " if ch.kind == "delay" else "")
+                + delay_label(ch, math=True))
     return f"{ch.kind} channel"
 
 

@@ -1,9 +1,12 @@
 """``kind: mean_vs_time`` — E[P_k] against k (trace, λ_max or entries) for any channel and estimator(s).
 
 Each step's mean is over independent runs, with its standard error; a step whose sample is
-heavy-tailed (relative s.e. of the sample variance above ``engine.HEAVY_TAIL_RSE``, or any run
-non-finite) is flagged in the CSV (``heavy_tail``) and NOT drawn as a result: the figure says
-how many were left out. Estimators in a list share the sampled traces.
+heavy-tailed (relative s.e. of the sample variance above ``tolerances.HEAVY_TAIL_RSE``, or any run
+non-finite) or rare-event dominated (one run carries more than ``tolerances.RARE_EVENT_FRACTION``
+of the sum) is flagged in the CSV (``heavy_tail``, ``rare_event``) and NOT drawn as a result (the
+line is broken there, never bridged): the figure says how many were left out. Estimators in a list
+share the sampled traces. ``quantity`` chooses P_{k|k}, P_{k+1|k} or P_{k−N|k}; the CSV says which,
+from which P0, under which conventions.
 """
 
 from __future__ import annotations
@@ -16,13 +19,13 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine
-from netkf_cli.metrics.common import GenericMetric, PaperRef, labels
+from netkf_cli.metrics.common import LABEL_COLUMNS, GenericMetric, PaperRef, describe, labels, quantity_text
 from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import PositiveInt
 
 ONE = {"trace": r"$\mathrm{tr}\,P_k$", "lambda_max": r"$\lambda_{\max}(P_k)$", "entries": r"$P_k$ entries"}
-COLUMNS = ["k", "estimator", "series", "value", "stderr", "n", "nonfinite", "heavy_tail"]
+COLUMNS = ["k", "estimator", "series", "value", "stderr", "n", "nonfinite", "heavy_tail", "rare_event"] + LABEL_COLUMNS
 WHAT = {"trace": r"$\mathrm{E}[\mathrm{tr}\,P_k]$", "lambda_max": r"$\mathrm{E}[\lambda_{\max}(P_k)]$",
         "entries": r"$\mathrm{E}[P_k]$ entries"}
 
@@ -37,29 +40,34 @@ class MeanVsTime(GenericMetric):
     paper: PaperRef | None = Field(None, description="the paper figure this reproduces (title only)")
     title: str = Field("", description="what the figure shows")
 
-    def steps(self, horizon: int) -> list[int]:
+    def steps(self, horizon: int, first: int = 1) -> list[int]:
         every = self.every or max(1, -(-horizon // 200))
-        ks = list(range(every, horizon + 1, every))
+        ks = [k for k in range(every, horizon + 1, every) if k >= first]
         return ks if ks and ks[-1] == horizon else ks + [horizon]
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
-        ks = self.steps(scenario.montecarlo.horizon)
+        first = max(e.first_step(self.quantity) for e in scenario.estimator_list())
+        ks = self.steps(scenario.montecarlo.horizon, first)
         s, ests, st = self.simulate(scenario, ctx, engine.MomentReducer(ks), ks, scenario.montecarlo.horizon)
         labs = labels(ests)
+        lab_cols = describe(scenario, s, ests, self.quantity)
         rows, warnings_ = [], []
         for j, lab in enumerate(labs):
             n = int(st["n"])
+            tr_summary = engine.mean_summary(st, j, "tr")
+            flags = dict(heavy=tr_summary.heavy_tail, rare=tr_summary.rare_event)
             bad = st[f"nonfinite_{j}"]
             if bad.any():
                 warnings_.append(f"{lab}: {int(bad.max())} of {n} runs non-finite at some step (excluded, step flagged)")
             if self.of in ("trace", "lambda_max"):
                 ms = engine.mean_summary(st, j, "tr" if self.of == "trace" else "lmax")
-                heavy = ms.heavy_tail if self.of == "trace" else engine.mean_summary(st, j, "tr").heavy_tail
+                heavy = flags["heavy"]
                 for i, k in enumerate(ks):
                     rows.append(dict(k=k, estimator=lab, series=self.of, value=ms.mean[i], stderr=ms.stderr[i], n=n,
-                                     nonfinite=int(bad[i]), heavy_tail=bool(heavy[i])))
+                                     nonfinite=int(bad[i]), heavy_tail=bool(heavy[i]), rare_event=bool(flags["rare"][i]),
+                                     **lab_cols[j]))
             else:
-                heavy = engine.mean_summary(st, j, "tr").heavy_tail
+                heavy = flags["heavy"]
                 m_ok = np.maximum(n - bad, 1)[:, None, None]
                 mean = st[f"sum_P_{j}"] / m_ok
                 var = np.maximum(st[f"sumsq_P_{j}"] / m_ok - mean**2, 0) * m_ok / np.maximum(m_ok - 1, 1)
@@ -69,13 +77,16 @@ class MeanVsTime(GenericMetric):
                     for a in range(nn):
                         for b in range(a, nn):
                             rows.append(dict(k=k, estimator=lab, series=f"P[{a + 1},{b + 1}]", value=mean[i, a, b],
-                                             stderr=se[i, a, b], n=n, nonfinite=int(bad[i]), heavy_tail=bool(heavy[i])))
+                                             stderr=se[i, a, b], n=n, nonfinite=int(bad[i]), heavy_tail=bool(heavy[i]),
+                                             rare_event=bool(flags["rare"][i]), **lab_cols[j]))
         for w in warnings_:  # one line on the terminal, and in the manifest
             warnings.warn(w, stacklevel=2)
         table = pd.DataFrame(rows, columns=COLUMNS)
         return Artefact(table, meta={"runs": int(st["n"]), "estimators": labs, "steps": f"{ks[0]}…{ks[-1]}",
+                                     "quantity": self.quantity, "labels": dict(zip(labs, lab_cols)),
                                      "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE} "
-                                                        f"or any non-finite run", "warnings": warnings_})
+                                                        f"or any non-finite run",
+                                     "rare_event_rule": "one run carries more than half of the sum", "warnings": warnings_})
 
     def plot(self, tables, scenario):
         t = tables["main"]
@@ -84,21 +95,22 @@ class MeanVsTime(GenericMetric):
         left_out = 0
         for i, ((lab, ser), g) in enumerate(t.groupby(["estimator", "series"], sort=False)):
             g = g.sort_values("k")
-            heavy = g.heavy_tail.astype(str).str.lower().isin(["true", "1"])
-            left_out += int(heavy.sum())
-            ok = g[~heavy & np.isfinite(g.value)]
+            bad = _flag(g.heavy_tail) | (_flag(g.rare_event) if "rare_event" in g else False) | ~np.isfinite(g.value)
+            left_out += int(bad.sum())
+            y = g.value.where(~bad)  # NaN at flagged steps: the line is broken there, never bridged
+            se = g.stderr.where(~bad)
             sty = series_style(i)
             name = lab if self.of != "entries" else f"{lab}: {ser}"
-            if len(ok):
-                ax.plot(ok.k, ok.value, color=sty["color"], ls=sty["linestyle"], lw=1.3,
+            if y.notna().any():
+                ax.plot(g.k, y, color=sty["color"], ls=sty["linestyle"], lw=1.3,
+                        marker="." if y.notna().sum() < 3 else None,
                         label=name if one else f"{name} (band: ±1.96 s.e.)")
                 if not one:
-                        ax.fill_between(ok.k, ok.value - 1.96 * ok.stderr, ok.value + 1.96 * ok.stderr,
-                                    color=sty["color"], alpha=0.2, lw=0)
+                    ax.fill_between(g.k, y - 1.96 * se, y + 1.96 * se, color=sty["color"], alpha=0.2, lw=0)
         if self.log_y:
             ax.set_yscale("log")
         ax.set_xlabel(r"time step $k$")
-        label = ONE[self.of] if one else WHAT[self.of]
+        label = quantity_text(self.quantity, ONE[self.of] if one else WHAT[self.of])
         ax.set_ylabel(label)
         what = self.title or f"{label} against $k$" + (" (one run)" if one else "")
         ax.set_title(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
@@ -108,6 +120,15 @@ class MeanVsTime(GenericMetric):
             ax.text(0.5, 0.5, "no reliable mean to draw:\nevery step is heavy-tailed at this sample size (see the CSV)",
                     transform=ax.transAxes, ha="center", va="center", fontsize=10)
         n = int(t.n.max()) if len(t) else 0
-        footnote(fig, ("one run: the covariance sequence itself" if one else f"n = {n:,} runs per step") + (f"; {left_out} heavy-tailed step means not drawn (see CSV column "
-                                                      f"heavy_tail)" if left_out else ""))
+        lab0 = t.iloc[0] if len(t) else None
+        labels_ = (f"{self.quantity} ${quantity_text(self.quantity)}$; {lab0.P0}; {lab0.conventions}"
+                   if lab0 is not None and "P0" in t else "")
+        footnote(fig, ("one run: the covariance sequence itself" if one else f"n = {n:,} runs per step")
+                 + (f"; {left_out} unreliable step means not drawn (heavy-tailed or rare-event dominated: CSV columns "
+                    f"heavy_tail, rare_event)" if left_out else "") + (f"\n{labels_}" if labels_ else ""))
         return fig
+
+
+def _flag(col) -> np.ndarray:
+    """A boolean CSV column read back (True/False, 1/0, 'true'/'false')."""
+    return col.astype(str).str.lower().isin(["true", "1", "1.0"]).to_numpy()

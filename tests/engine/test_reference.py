@@ -1,7 +1,8 @@
 """One reference test over every estimator with per-run covariances (Stone Soup's pattern):
 
-* a perfect channel (every packet, on time, at a huge SNR) gives the DARE steady state;
-* the batched recursion equals a loop over single runs on the same trace;
+* a perfect channel (every packet, on time, at a huge SNR) gives the DARE steady state: ``filtered``
+  P̄ and ``predicted`` P* for every estimator that reports them;
+* the batched recursion equals a loop over single runs on the same trace, every quantity;
 * the intermittent KF equals a textbook per-run loop on random systems (hypothesis);
 * the ``trace`` channel reproduces a hand-computed covariance sequence.
 """
@@ -88,6 +89,14 @@ def _estimator(kind: str):
     return _k(EstimatorModel)[kind].model_validate(sample_estimators()[kind])
 
 
+def _with_sensors(s: LinearSystem, streams: int) -> LinearSystem:
+    """The system with ``streams`` identical sensors (system.sensors: N) when the channel has several streams."""
+    if streams <= 1 or streams == s.n_sensors:
+        return s
+    groups = tuple(tuple(range(i * s.m, (i + 1) * s.m)) for i in range(streams))
+    return LinearSystem.create(s.A, np.vstack([s.C] * streams), s.Q, np.kron(np.eye(streams), s.R), s.P0, sensors=groups)
+
+
 @pytest.mark.parametrize("kind", _per_run_estimators())
 @pytest.mark.parametrize("sysname", sorted(SYSTEMS))
 def test_perfect_channel_gives_dare_steady_state(kind, sysname):
@@ -101,30 +110,27 @@ def test_perfect_channel_gives_dare_steady_state(kind, sysname):
         est = est.model_copy(update={"lag": 0})
     if kind == "fusion":  # measurement fusion is the centralized KF of the stacked sensors
         est = est.model_copy(update={"strategies": ["mf"]})
+    horizon = 400
+    tr = _perfect_trace(kind, 3, horizon)
+    s = _with_sensors(s, tr.sensors)
     try:
         est.check(s, _sample_channel(kind))
     except Exception as exc:  # noqa: BLE001 - a system the estimator refuses is not this test's business
         pytest.skip(f"{kind} refuses {sysname}: {exc}")
-    horizon = 400
-    tr = _perfect_trace(kind, 3, horizon)
-    (k, P), = list(est.covariances(s, tr, [horizon]))
-    if kind == "fusion":
-        S = tr.sensors
-        s = LinearSystem.create(s.A, np.vstack([s.C] * S), s.Q, np.kron(np.eye(S), s.R))
+    qs = [q for q in ("filtered", "predicted") if q in est.quantities]
+    assert qs, f"{kind} reports neither filtered nor predicted"
+    (k, out), = list(est.covariances(s, tr, [horizon], qs))
+    ref_sys = s
     if kind == "receiver":  # a perfect link still carries the noise model's floor σ_n²(Υ → ∞) (quantization)
         floor = float(_sample_channel(kind).noise.variance(np.array([1e12]))[0])
-        s = LinearSystem.create(s.A, s.C, s.Q, s.R + floor * np.eye(s.m))
-    Ppred, Pfilt = _dare(s)
-    q = getattr(est, "quantity", "P_{k|k}")
-    if getattr(est, "report", None) == "predicted" or q in ("P_{k+1|k}", "P_{k|k-1}"):
-        ref = Ppred
-    elif q in ("P_{k|k}", "P_{t|t}", "P_{k-L|k}"):
-        ref = Pfilt
-    else:
-        pytest.skip(f"{kind} reports {q}, which is not the filter's steady state")
-    # contraction of the Riccati map: after 400 steps the error is far below 1e-9 for these systems
-    np.testing.assert_allclose(P[:, :, 0], ref, rtol=1e-8, atol=1e-10)
-    assert np.array_equal(P[:, :, 0], P[:, :, 2])
+        ref_sys = LinearSystem.create(s.A, s.C, s.Q, s.R + floor * np.eye(s.m))
+    Ppred, Pfilt = _dare(ref_sys)
+    for q in qs:
+        P = out[q]
+        # contraction of the Riccati map: after 400 steps the error is far below 1e-9 for these systems
+        np.testing.assert_allclose(P[:, :, 0], Pfilt if q == "filtered" else Ppred, rtol=1e-8, atol=1e-10,
+                                   err_msg=f"{kind}: {q}")
+        assert np.array_equal(P[:, :, 0], P[:, :, 2])
 
 
 @pytest.mark.parametrize("kind", _per_run_estimators())
@@ -133,16 +139,19 @@ def test_batched_equals_single_runs_on_the_same_trace(kind):
     est = _estimator(kind)
     runs, horizon = 9, 40
     tr = _sampled_trace(kind, runs, horizon)
+    s = _with_sensors(s, tr.sensors)
     steps = [5, 17, 40]
-    batched = dict(est.covariances(s, tr, steps))
+    qs = [q for q in est.quantities if 5 >= est.first_step(q)]
+    batched = dict(est.covariances(s, tr, steps, qs))
     for r in range(runs):
         def cut(a, r=r):
             return None if a is None else a[..., r:r + 1].copy()
 
         one = Trace(1, horizon, arrival=cut(tr.arrival), delay=cut(tr.delay), snr=cut(tr.snr), mode=cut(tr.mode),
                     meta=tr.meta)
-        for k, P in est.covariances(s, one, steps):
-            np.testing.assert_allclose(batched[k][:, :, r], P[:, :, 0], rtol=1e-12, atol=1e-12)
+        for k, out in est.covariances(s, one, steps, qs):
+            for q in qs:
+                np.testing.assert_allclose(batched[k][q][:, :, r], out[q][:, :, 0], rtol=1e-12, atol=1e-12)
 
 
 def _textbook_kf(s: LinearSystem, gamma: np.ndarray, P0: np.ndarray) -> list[np.ndarray]:
@@ -152,7 +161,7 @@ def _textbook_kf(s: LinearSystem, gamma: np.ndarray, P0: np.ndarray) -> list[np.
         Pp = s.A @ P @ s.A.T + s.Q
         S = s.C @ Pp @ s.C.T + s.R
         P = Pp - g * Pp @ s.C.T @ np.linalg.solve(S, s.C @ Pp)
-        out.append(P)
+        out.append((P, s.A @ P @ s.A.T + s.Q))  # (P_{k|k}, P_{k+1|k})
     return out
 
 
@@ -170,18 +179,26 @@ def test_kf_equals_textbook_loop_on_random_systems(n, m, seed, lam):
     runs, horizon = 4, 30
     gam = rng.random((1, horizon, runs)) < lam
     tr = Trace(runs, horizon, arrival=gam)
-    got = dict(KalmanFilterEstimator(kind="kf").covariances(s, tr, range(1, horizon + 1)))
+    got_both = dict(KalmanFilterEstimator(kind="kf").covariances(s, tr, range(1, horizon + 1), ("filtered", "predicted")))
     for r in range(runs):
-        ref = _textbook_kf(s, gam[0, :, r].astype(float), np.eye(n))
-        for k in (1, 10, horizon):
-            # both are float64; the update P − PCᵀS⁻¹CP cancels digits on unstable, badly conditioned
-            # draws (‖P‖ up to 1e7 here), so the agreement is measured relative to ‖P‖: 1e-7·‖P‖ is
-            # orders above the observed round-off (≤ 3e-8·‖P‖ over these examples) and far below any
-            # modelling error (a wrong gain or a missed γ changes P at order one)
-            scale = max(1.0, float(np.abs(ref[k - 1]).max()))
-            np.testing.assert_allclose(got[k][:, :, r], ref[k - 1], rtol=0, atol=1e-7 * scale)
-            assert np.allclose(got[k][:, :, r], got[k][:, :, r].T)
-            assert np.linalg.eigvalsh(got[k][:, :, r])[0] > -1e-9
+        both = _textbook_kf(s, gam[0, :, r].astype(float), np.eye(n))
+        for q, i in (("filtered", 0), ("predicted", 1)):
+            ref = [b[i] for b in both]
+            got = {k: v[q] for k, v in got_both.items()}
+            _compare_textbook(got, ref, r, horizon)
+
+
+def _compare_textbook(got, ref, r, horizon):
+    """got[k] (n, n, runs) against the textbook ref[k − 1] for run r at k = 1, 10, horizon."""
+    for k in (1, 10, horizon):
+        # both are float64; the update P − PCᵀS⁻¹CP cancels digits on unstable, badly conditioned
+        # draws (‖P‖ up to 1e7 here), so the agreement is measured relative to ‖P‖: 1e-7·‖P‖ is
+        # orders above the observed round-off (≤ 3e-8·‖P‖ over these examples) and far below any
+        # modelling error (a wrong gain or a missed γ changes P at order one)
+        scale = max(1.0, float(np.abs(ref[k - 1]).max()))
+        np.testing.assert_allclose(got[k][:, :, r], ref[k - 1], rtol=0, atol=1e-7 * scale)
+        assert np.allclose(got[k][:, :, r], got[k][:, :, r].T)
+        assert np.linalg.eigvalsh(got[k][:, :, r])[0] > -1e-9
 
 
 def test_trace_channel_reproduces_hand_computed_sequence(tmp_path):
@@ -193,7 +210,7 @@ def test_trace_channel_reproduces_hand_computed_sequence(tmp_path):
     ch = TraceChannel(kind="trace", file=str(f), mode="once")
     s = LinearSystem.create(2.0, 1.0, 1.0, 1.0, 1.0)
     tr = ch.sample_trace(None, 2, 3)
-    got = {k: P[0, 0, 0] for k, P in KalmanFilterEstimator(kind="kf").covariances(s, tr, [1, 2, 3])}
+    got = {k: P["filtered"][0, 0, 0] for k, P in KalmanFilterEstimator(kind="kf").covariances(s, tr, [1, 2, 3])}
     assert got[1] == pytest.approx(5 / 6, rel=1e-14)
     assert got[2] == pytest.approx(13 / 3, rel=1e-14)
     assert got[3] == pytest.approx(55 / 58, rel=1e-14)

@@ -1,0 +1,412 @@
+"""``kind: tail`` — the exceedance law Pr[tr P_k > M] (or λ_max) against M, with its power-law exponent.
+
+Mo & Sinopoli 2012 (IEEE TAC 57(3), "Kalman filtering with intermittent observations: tail distribution and
+critical value"): for a non-degenerate system the tail decays like a power of M, Pr[tr P_k > M] ~ M^φ with
+φ = log s / (2 log ρ(A)), s = 1 − λ (i.i.d. arrivals) or 1 − q (Gilbert–Elliott recovery rate q) — a loss burst of
+length L has probability ∝ s^L and makes P grow like ρ^{2L}. The numbers a safety margin needs sit far in that
+tail, where plain Monte Carlo sees nothing, so the metric samples it:
+
+**Importance sampling of long loss bursts.** Runs are split evenly among K components: component 0 samples the
+scenario's channel as is; component c ≥ 1 replaces the last ``window`` steps before the reported step by a tilted
+law with more and longer losses (Bernoulli: arrival s_c·λ; Gilbert–Elliott: recovery s_c·q, failure
+1 − s_c(1 − p); s_c = ``tilts``). Every run carries the balance-heuristic weight over the window
+
+    w = p(γ_window) / Σ_c α_c q_c(γ_window)  ≤ 1/α_0 = K      (α_c = 1/K; p = the channel's own law),
+
+so the weighted estimator Σ w·1{X > M}/n is unbiased for every M and its weights are bounded (a defensive
+mixture: it never does worse than K times plain Monte Carlo). Component 0 alone is plain Monte Carlo, reported
+beside it (Wilson intervals) so the two are checked against each other where both are reliable. Other channels run
+plain Monte Carlo only (the figure says so).
+
+**Exponent.** φ̂ is the least-squares slope of log p̂ against log M over the tail region (p̂ ≤ ``fit_below``, relative
+standard error ≤ 0.25); its 95 % interval comes from a delete-one-batch jackknife over ``batches`` independent run
+batches (Student t with batches − 1 degrees of freedom), which accounts for the correlation between thresholds.
+The theoretical φ is attached for the ``kf`` estimator where a theorem (or the derived degenerate 2×2 law) gives it
+(:func:`netkf_cli.analysis.critical.tail_exponent`).
+
+The module also holds the critical recipe's time-averaged Monte Carlo kernel (:class:`TimeAverageKernel`), so both
+use only the stable contracts: ``channel.sample_trace``, ``estimator.covariances`` and ``montecarlo.run_chunked``.
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+from pydantic import Field, model_validator
+
+from netkf_cli.analysis import critical as cr
+from netkf_cli.errors import ConfigError
+from netkf_cli.metrics.common import MGrid, PaperRef, labels, m_values, needs
+from netkf_cli.montecarlo import run_chunked, wilson_interval
+from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
+from netkf_cli.recipes.base import Artefact, RunContext
+from netkf_cli.spec import AnalysisModel, PositiveInt
+
+QUANTITY = {"filtered": "P_{k|k}", "predicted": "P_{k+1|k}", "smoothed": "P_{k-N|k}"}
+
+
+# =============================================================================================
+# The estimator contract during the transition (bare arrays → {quantity: P})
+# =============================================================================================
+
+
+def accepts_quantities(est) -> bool:
+    try:
+        params = inspect.signature(est.covariances).parameters
+    except (TypeError, ValueError):
+        return False
+    return "quantities" in params or any(p.kind == p.VAR_KEYWORD for p in params.values())
+
+
+def covariances(est, system, trace, steps, quantity: str = "filtered"):
+    """Yield (k, P) of ``quantity`` from either contract: ``{quantity: P}`` (new) or a bare array (old)."""
+    gen = (est.covariances(system, trace, steps, quantities=(quantity,)) if accepts_quantities(est)
+           else est.covariances(system, trace, steps))
+    for k, out in gen:
+        if isinstance(out, dict):
+            if quantity not in out:
+                raise ConfigError.at("analysis.quantity", f"estimator {est.kind!r} does not report {quantity!r} "
+                                     f"(it reports {', '.join(sorted(out))})")
+            yield k, out[quantity]
+        else:
+            yield k, out
+
+
+def kf_for(quantity: str):
+    """A ``kf`` estimator reporting ``quantity`` under either contract (old: ``report:``; new: ``quantities=``)."""
+    from netkf_cli.estimators.kf import KalmanFilterEstimator
+
+    fields = getattr(KalmanFilterEstimator, "model_fields", {})
+    if "report" in fields and not accepts_quantities(KalmanFilterEstimator(kind="kf")):
+        return KalmanFilterEstimator(kind="kf", report=quantity)
+    return KalmanFilterEstimator(kind="kf")
+
+
+def statistic(P: np.ndarray, of: str) -> np.ndarray:
+    """tr P or λ_max(P) per run; non-finite runs are +inf (they exceed every M)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        if of == "trace":
+            x = np.einsum("iir->r", P)
+        else:
+            X = np.moveaxis(P, -1, 0)
+            ok = np.isfinite(X).all(axis=(1, 2))
+            x = np.full(P.shape[-1], np.inf)
+            if ok.any():
+                x[ok] = np.linalg.eigvalsh(X[ok])[:, -1]
+    return np.where(np.isfinite(x), x, np.inf)
+
+
+# =============================================================================================
+# Tilted loss windows and their likelihoods
+# =============================================================================================
+
+
+def _law(channel):
+    """('bernoulli', λ) or ('gilbert_elliott', (p, q)); None for channels without a tilt."""
+    kind = getattr(channel, "kind", None)
+    if kind == "bernoulli":
+        return kind, float(channel.arrival)
+    if kind == "gilbert_elliott":
+        return kind, tuple(float(x) for x in channel.transition)
+    return None
+
+
+def tilted_params(law, s: float):
+    kind, par = law
+    if kind == "bernoulli":
+        return kind, par * s
+    p, q = par
+    return kind, (1.0 - s * (1.0 - p), q * s)
+
+
+def window_loglik(law, prev: np.ndarray, win: np.ndarray) -> np.ndarray:
+    """log-probability of each run's window (W, runs) given the arrival just before it (runs,)."""
+    kind, par = law
+    g = win.astype(bool)
+    with np.errstate(divide="ignore"):
+        if kind == "bernoulli":
+            lam = par
+            return np.where(g, math.log(lam) if lam > 0 else -np.inf,
+                            math.log1p(-lam) if lam < 1 else -np.inf).sum(axis=0)
+        p, q = par
+        lp = {(1, 1): math.log1p(-p) if p < 1 else -np.inf, (1, 0): math.log(p) if p > 0 else -np.inf,
+              (0, 1): math.log(q) if q > 0 else -np.inf, (0, 0): math.log1p(-q) if q < 1 else -np.inf}
+        tot = np.zeros(win.shape[1])
+        a = prev.astype(bool)
+        for t in range(win.shape[0]):
+            b = g[t]
+            tot += np.where(a, np.where(b, lp[(1, 1)], lp[(1, 0)]), np.where(b, lp[(0, 1)], lp[(0, 0)]))
+            a = b
+        return tot
+
+
+def sample_window(rng, law, prev: np.ndarray, W: int) -> np.ndarray:
+    """(W, runs) bool arrivals from ``law`` continuing from the arrival ``prev`` (runs,)."""
+    kind, par = law
+    u = rng.random((W, prev.size))
+    if kind == "bernoulli":
+        return u < par
+    p, q = par
+    out = np.empty((W, prev.size), bool)
+    a = prev.astype(bool)
+    for t in range(W):
+        out[t] = np.where(a, u[t] >= p, u[t] < q)
+        a = out[t]
+    return out
+
+
+class TailKernel:
+    """One chunk: sample traces (K mixture components), run the estimators, reduce weighted exceedances.
+
+    Statistics (j = estimator, i = threshold): ``wf_{j}[c, i]`` = Σ_{runs of component c} w·1{X > M_i},
+    ``w2f_{j}[c, i]`` = Σ w²·1{X > M_i}, ``cnt0_{j}[i]`` = plain exceedance count of component 0, ``bwf_{j}[b, i]``
+    = Σ over batch b of w·1{X > M_i}; ``n_c[c]``, ``n_b[b]`` run counts; ``wsum`` = Σ w (≈ n, a check).
+    """
+
+    def __init__(self, system, channel, estimators, horizon: int, step: int, M, of: str, quantity: str,
+                 tilts, window: int, batches: int):
+        self.system, self.channel, self.estimators = system, channel, list(estimators)
+        self.horizon, self.step, self.M = int(horizon), int(step), np.asarray(M, float)
+        self.of, self.quantity = of, quantity
+        self.law = _law(channel)
+        self.tilts = [float(t) for t in tilts] if self.law is not None else []
+        self.window, self.batches = int(window), int(batches)
+
+    def __call__(self, rng: np.random.Generator, runs: int) -> dict:
+        K = 1 + len(self.tilts)
+        comp = np.arange(runs) % K
+        batch = (np.arange(runs) // K) % self.batches
+        trace = self.channel.sample_trace(rng, runs, self.horizon)
+        w = np.ones(runs)
+        if K > 1:
+            arr = trace.arrival
+            k1 = self.step - self.window          # window = steps k1 … step−1 (0-based trace index t ↔ y_{t+1})
+            prev = arr[0, k1 - 1] if k1 >= 1 else np.ones(runs, bool)
+            laws = [self.law] + [tilted_params(self.law, s) for s in self.tilts]
+            for c in range(1, K):
+                idx = np.flatnonzero(comp == c)
+                view = arr[0, k1:self.step]                                    # a view: (W, runs)
+                view[:, idx] = sample_window(rng, laws[c], prev[idx], self.window)
+            win = arr[0, k1:self.step]
+            ll = np.stack([window_loglik(lw, prev, win) for lw in laws])      # (K, runs)
+            top = ll.max(axis=0)
+            mix = np.log(np.exp(ll - top).sum(axis=0) / K) + top
+            w = np.exp(ll[0] - mix)
+        stats: dict = {"n_c": np.bincount(comp, minlength=K).astype(float),
+                       "n_b": np.bincount(batch, minlength=self.batches).astype(float), "wsum": np.asarray(w.sum())}
+        for j, est in enumerate(self.estimators):
+            for k, P in covariances(est, self.system, trace, [self.step], self.quantity):
+                x = statistic(P, self.of)
+                f = x[None, :] > self.M[:, None]                               # (nM, runs)
+                wf = f * w[None, :]
+                stats[f"wf_{j}"] = np.stack([wf[:, comp == c].sum(axis=1) for c in range(K)])
+                stats[f"w2f_{j}"] = np.stack([(wf[:, comp == c] * w[None, comp == c]).sum(axis=1) for c in range(K)])
+                stats[f"cnt0_{j}"] = f[:, comp == 0].sum(axis=1).astype(float)
+                stats[f"bwf_{j}"] = np.stack([wf[:, batch == b].sum(axis=1) for b in range(self.batches)])
+                stats[f"max_x_{j}"] = np.asarray(float(np.max(np.where(np.isfinite(x), x, -np.inf), initial=0.0)))
+        return stats
+
+
+def importance_estimate(st: dict, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """(p̂, s.e.) of the stratified mixture estimator: p̂ = Σ_c wf_c / n, var = Σ_c (w2f_c − wf_c²/n_c)/n²."""
+    n_c = st["n_c"]
+    n = n_c.sum()
+    wf, w2f = st[f"wf_{j}"], st[f"w2f_{j}"]
+    p = wf.sum(axis=0) / n
+    nc = np.maximum(n_c, 1)[:, None]
+    var = np.maximum(w2f - wf**2 / nc, 0.0).sum(axis=0) * (nc[:, 0].mean() / np.maximum(nc[:, 0].mean() - 1, 1)) / n**2
+    return p, np.sqrt(var)
+
+
+def jackknife_slope(M: np.ndarray, bwf: np.ndarray, n_b: np.ndarray, mask: np.ndarray) -> tuple[float, float, int]:
+    """(slope, jackknife s.e., batches used) of log p̂ on log M over ``mask``, deleting one batch at a time."""
+    x = np.log(M[mask])
+    tot, n = bwf.sum(axis=0), n_b.sum()
+
+    def slope(num, den):
+        p = num[mask] / den
+        if np.any(p <= 0) or x.size < 2:
+            return math.nan
+        return float(np.polyfit(x, np.log(p), 1)[0])
+
+    full = slope(tot, n)
+    B = bwf.shape[0]
+    loo = np.array([slope(tot - bwf[b], n - n_b[b]) for b in range(B)])
+    loo = loo[np.isfinite(loo)]
+    if loo.size < 3 or not math.isfinite(full):
+        return full, math.nan, int(loo.size)
+    se = math.sqrt((loo.size - 1) / loo.size * float(((loo - loo.mean()) ** 2).sum()))
+    return full, se, int(loo.size)
+
+
+# =============================================================================================
+# The metric
+# =============================================================================================
+
+
+class TailMetric(AnalysisModel):
+    """``kind: tail`` — Pr[tr P_k > M] against M (log–log), importance-sampled loss bursts, fitted and theoretical exponent."""
+
+    kind: Literal["tail"]
+    M: list[float] | MGrid = Field(description="thresholds M (list, or a grid {start, stop, num, spacing})")
+    of: Literal["trace", "lambda_max"] = Field("trace", description="tr P_k or λ_max(P_k)")
+    at: int | Literal["stationary"] = Field("stationary", description="the step k (or the horizon: stationary after P0)")
+    quantity: Literal["filtered", "predicted", "smoothed"] = Field("filtered", description="which covariance of the estimator")
+    importance: bool = Field(True, description="importance-sample long loss bursts (bernoulli and gilbert_elliott channels)")
+    tilts: list[float] = Field([0.5, 0.2], description="tilt factors s_c ∈ (0, 1) of the mixture components: arrival "
+                               "s·λ (bernoulli), recovery s·q and failure 1 − s(1 − p) (gilbert_elliott) in the window")
+    window: PositiveInt | None = Field(None, description="steps before k whose loss law is tilted (default: long enough "
+                                       "for the largest M, from ρ(A))")
+    batches: PositiveInt = Field(10, ge=4, le=100, description="independent run batches for the exponent's jackknife interval")
+    fit_below: float = Field(0.1, gt=0, lt=1, description="the exponent is fitted where p̂ ≤ this (the tail)")
+    paper: PaperRef | None = Field(None, description="the paper figure this reproduces (title only)")
+    title: str = Field("", description="what the figure shows")
+
+    @model_validator(mode="after")
+    def _tilts(self):
+        if any(not 0 < t < 1 for t in self.tilts):
+            raise ValueError(f"tilts must lie in (0, 1), got {self.tilts}")
+        return self
+
+    def _step(self, horizon: int) -> int:
+        if self.at == "stationary":
+            return horizon
+        if not 1 <= self.at <= horizon:
+            raise ConfigError.at("analysis.at", f"must be in 1 … montecarlo.horizon = {horizon}, got {self.at}")
+        return int(self.at)
+
+    def _window(self, s, step: int, Mmax: float) -> int:
+        if self.window is not None:
+            if self.window >= step:
+                raise ConfigError.at("analysis.window", f"must be < the reported step k = {step}, got {self.window}")
+            return int(self.window)
+        rho = cr.spectral_radius(s.A)
+        base = max(float(np.trace(s.Q)), 1e-12)
+        L = math.log(max(Mmax / base, 2.0)) / (2 * math.log(rho)) if rho > 1 + 1e-9 else 20.0
+        return int(max(1, min(step - 1, math.ceil(1.5 * L) + 10)))
+
+    def check(self, scenario) -> None:
+        needs(scenario, "channel"), needs(scenario, "estimators")
+        self._step(scenario.montecarlo.horizon)
+
+    def compute(self, scenario, ctx: RunContext) -> Artefact:
+        s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")
+        for e in ests:
+            e.check(s, ch)
+        mc = scenario.montecarlo
+        H = mc.horizon
+        step = self._step(H)
+        M = np.sort(m_values(self.M))
+        law = _law(ch) if self.importance else None
+        W = self._window(s, step, float(M.max())) if law is not None else 0
+        tilts = self.tilts if law is not None and W > 0 else []
+        runs = ctx.mc_runs(scenario)
+        ctx.total(runs)
+        kern = TailKernel(s, ch, ests, H, step, M, self.of, self.quantity, tilts, max(W, 1), self.batches)
+        st = run_chunked(kern, runs, mc.chunk, mc.seed, stream=0, progress=ctx.progress, label="tail")
+        labs = labels(ests)
+        K = 1 + len(tilts)
+        n0 = int(st["n_c"][0])
+        rows, fits = [], []
+        kind = getattr(ch, "kind", "")
+        loss_stay = None
+        if kind == "bernoulli":
+            loss_stay = 1.0 - float(ch.arrival)
+        elif kind == "gilbert_elliott":
+            loss_stay = 1.0 - float(ch.transition[1])
+        for j, lab in enumerate(labs):
+            cnt0 = st[f"cnt0_{j}"]
+            lo0, hi0 = wilson_interval(cnt0, max(n0, 1))
+            p0 = cnt0 / max(n0, 1)
+            se0 = np.sqrt(p0 * (1 - p0) / max(n0, 1))
+            if K > 1:
+                p, se = importance_estimate(st, j)
+            else:
+                p, se = p0, se0
+            for i, m in enumerate(M):
+                rows.append(dict(M=m, estimator=lab, series="importance" if K > 1 else "monte_carlo", value=p[i],
+                                 stderr=se[i], n=int(st["n_c"].sum()), lo=max(p[i] - 1.96 * se[i], 0.0),
+                                 hi=p[i] + 1.96 * se[i], count=np.nan))
+                if K > 1:
+                    rows.append(dict(M=m, estimator=lab, series="plain", value=p0[i], stderr=se0[i], n=n0,
+                                     lo=lo0[i], hi=hi0[i], count=cnt0[i]))
+            rel = np.where(p > 0, se / np.where(p > 0, p, 1), np.inf)
+            mask = (p > 0) & (p <= self.fit_below) & (rel <= 0.25)
+            slope, sej, nb = jackknife_slope(M, st[f"bwf_{j}"], st["n_b"], mask) if mask.sum() >= 3 else (math.nan, math.nan, 0)
+            from scipy import stats as sps
+
+            tq = float(sps.t.ppf(0.975, max(nb - 1, 1))) if nb >= 3 else math.nan
+            theo, why = (None, "theory only for the Kalman filter (kind: kf)")
+            if ests[j].kind == "kf" and loss_stay is not None:
+                theo, why = cr.tail_exponent(s.A, s.C, loss_stay=loss_stay, channel=kind)
+            elif loss_stay is None:
+                why = f"no loss-burst law for channel {kind!r}"
+            # IS against plain where both are reliable: plain count ≥ 30 and IS rel. s.e. ≤ 0.25
+            both = (cnt0 >= 30) & (rel <= 0.25)
+            z = np.abs(p - p0) / np.sqrt(se**2 + se0**2 + 1e-300)
+            fits.append(dict(estimator=lab, exponent_fit=slope, ci_lo=slope - tq * sej if math.isfinite(sej) else np.nan,
+                             ci_hi=slope + tq * sej if math.isfinite(sej) else np.nan, jackknife_se=sej, batches=nb,
+                             fit_points=int(mask.sum()), fit_M_lo=float(M[mask].min()) if mask.any() else np.nan,
+                             fit_M_hi=float(M[mask].max()) if mask.any() else np.nan,
+                             exponent_theory=np.nan if theo is None else theo, theory_source=why,
+                             theory_in_ci=float(theo is not None and math.isfinite(sej)
+                                                and slope - tq * sej <= theo <= slope + tq * sej),
+                             is_vs_plain_max_z=float(z[both].max()) if both.any() else np.nan,
+                             is_vs_plain_points=int(both.sum())))
+        table = pd.DataFrame(rows, columns=["M", "estimator", "series", "value", "stderr", "n", "lo", "hi", "count"])
+        fit = pd.DataFrame(fits)
+        meta = {"step": step, "statistic": self.of, "quantity": QUANTITY[self.quantity], "estimators": labs,
+                "importance_sampling": ({"components": K, "tilts": list(tilts), "window": W, "alpha": 1.0 / K,
+                                         "weights": "w = p(window) / Σ_c α_c q_c(window) ≤ K (balance heuristic); "
+                                                    "component 0 is the channel itself (plain Monte Carlo)"}
+                                        if K > 1 else "off (plain Monte Carlo: no tilt for this channel or importance: false)"),
+                "weight_mean": float(st["wsum"]) / float(st["n_c"].sum()),
+                "exponent_fit": "least squares of log p̂ on log M where p̂ ≤ fit_below and rel. s.e. ≤ 0.25; 95 % "
+                                "interval: delete-one-batch jackknife, Student t"}
+        return Artefact(table, meta=meta, extra_tables={"fit": fit})
+
+    def plot(self, tables, scenario):
+        t, fit = tables["main"], tables.get("fit")
+        fig, ax = new_figure(width=7.6, height=4.8)
+        X = r"\mathrm{tr}\,P_k" if self.of == "trace" else r"\lambda_{\max}(P_k)"
+        for j, (lab, g) in enumerate(t.groupby("estimator", sort=False)):
+            sty = series_style(j)
+            main = g[g.series.isin(["importance", "monte_carlo"])]
+            main = main[main.value > 0]
+            is_imp = (main.series == "importance").any()
+            ax.errorbar(main.M, main.value, yerr=[main.value - main.lo.clip(lower=main.value * 1e-3), main.hi - main.value],
+                        fmt=sty["marker"], color=sty["color"], ms=4, capsize=2, lw=1,
+                        label=f"{lab}: {'importance sampling' if is_imp else 'Monte Carlo'} (95 % interval)")
+            pl = g[(g.series == "plain") & (g.value > 0)]
+            if len(pl):
+                ax.plot(pl.M, pl.value, linestyle="none", marker="o", mfc="none", color="0.35", ms=6,
+                        label=f"{lab}: plain Monte Carlo (same runs' component 0)")
+            if fit is not None and len(fit):
+                f = fit[fit.estimator == lab].iloc[0]
+                if np.isfinite(f.exponent_fit) and np.isfinite(f.fit_M_lo):
+                    mm = np.geomspace(f.fit_M_lo, f.fit_M_hi, 20)
+                    sel = main[(main.M >= f.fit_M_lo) & (main.M <= f.fit_M_hi)]
+                    c = np.polyfit(np.log(sel.M), np.log(sel.value), 1)
+                    ci = f"[{f.ci_lo:.3f}, {f.ci_hi:.3f}]" if np.isfinite(f.ci_lo) else "(no interval)"
+                    ax.plot(mm, np.exp(np.polyval(c, np.log(mm))), color=sty["color"], lw=1.6,
+                            label=rf"fit: $\varphi$ = {f.exponent_fit:.3f}, 95 % CI {ci}")
+                    if np.isfinite(f.exponent_theory):
+                        xm = math.exp(0.5 * (math.log(f.fit_M_lo) + math.log(f.fit_M_hi)))
+                        ym = math.exp(np.polyval(c, math.log(xm)))
+                        ax.plot(mm, ym * (mm / xm) ** f.exponent_theory, color=PALETTE[5], lw=1.4, ls="--",
+                                label=rf"theory: $\varphi$ = {f.exponent_theory:.3f} (slope only)")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(r"threshold $M$ (log scale)")
+        ax.set_ylabel(rf"$\Pr[{X} > M]$ (log scale)")
+        what = self.title or rf"tail of ${X}$: power law $M^{{\varphi}}$"
+        ax.set_title(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
+        legend_outside(ax, loc="below", ncol=1)
+        n = int(t.n.max()) if len(t) else 0
+        footnote(fig, f"n = {n:,} runs; theory (Mo & Sinopoli 2012): φ = log s / (2 log ρ(A)), s = 1 − λ "
+                      f"(i.i.d.) or 1 − q (Gilbert–Elliott); importance weights ≤ number of mixture components")
+        return fig

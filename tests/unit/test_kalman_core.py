@@ -1,0 +1,167 @@
+"""The Kalman core against textbook identities on random systems (hypothesis), and its compiled twin.
+
+* ``update`` = the textbook P − PCᵀ(CPCᵀ + R)⁻¹CP = the information form (P⁻¹ + CᵀR⁻¹C)⁻¹ = Joseph
+  with the optimal gain;
+* ``update_rows`` with a row mask = the update with only the observed rows (any R, non-diagonal too);
+* the perfect-channel filter converges to ``scipy.linalg.solve_discrete_are``;
+* ``smooth_step`` (RTS) = the smoothed covariance of the joint Gaussian of (x_t, x_{t+1}, y_{t+1}) by
+  brute-force conditioning;
+* ``Rescue``: A = diag(1e6, 0.5) stays exact where the standard form cancels every digit;
+* kalman_numba's inlined primitives = the numpy core.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg as sl
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from netkf_cli import kalman
+from netkf_cli.system import LinearSystem
+
+
+def _spd(rng, n, eps=0.2):
+    X = rng.normal(size=(n, n))
+    return X @ X.T + eps * np.eye(n)
+
+
+def _random(seed, n, m):
+    rng = np.random.default_rng(seed)
+    return (rng.normal(size=(n, n)) * 0.7, rng.normal(size=(m, n)), _spd(rng, n), _spd(rng, m), _spd(rng, n))
+
+
+def _textbook(P, C, R):
+    S = C @ P @ C.T + R
+    return P - P @ C.T @ np.linalg.solve(S, C @ P)
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(n=st.integers(1, 5), m=st.integers(1, 4), seed=st.integers(0, 10**6))
+def test_update_equals_textbook_information_and_joseph_forms(n, m, seed):
+    A, C, Q, R, P = _random(seed, n, m)
+    Pb = P[:, :, None]
+    ref = _textbook(P, C, R)
+    scale = max(1.0, np.abs(P).max())
+    np.testing.assert_allclose(kalman.update(Pb, C, R)[:, :, 0], ref, atol=1e-10 * scale, rtol=0)
+    info = C.T @ np.linalg.solve(R, C)
+    np.testing.assert_allclose(kalman.information_update(Pb, info)[:, :, 0], ref, atol=1e-9 * scale, rtol=0)
+    K = kalman.gain(Pb, C, R)
+    np.testing.assert_allclose(kalman.joseph(Pb, K, C, R)[:, :, 0], ref, atol=1e-9 * scale, rtol=0)
+    # γ = 0 leaves P bit-for-bit unchanged; γ = 1 is the update
+    out = kalman.update(np.repeat(Pb, 2, axis=2), C, R, np.array([0.0, 1.0]))
+    assert np.array_equal(out[:, :, 0], kalman.batched.sym(P))
+    np.testing.assert_allclose(out[:, :, 1], ref, atol=1e-10 * scale, rtol=0)
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(n=st.integers(1, 4), m=st.integers(2, 4), seed=st.integers(0, 10**6))
+def test_update_rows_is_the_update_with_the_observed_rows(n, m, seed):
+    A, C, Q, R, P = _random(seed, n, m)  # R is a full (non-diagonal) SPD matrix
+    rng = np.random.default_rng(seed + 1)
+    masks = rng.random((m, 6)) < 0.5
+    masks[:, 0] = True
+    masks[:, 1] = False
+    got = kalman.update_rows(np.repeat(P[:, :, None], 6, axis=2), C, R, masks)
+    for r in range(6):
+        rows = np.flatnonzero(masks[:, r])
+        ref = P if rows.size == 0 else _textbook(P, C[rows], R[np.ix_(rows, rows)])
+        np.testing.assert_allclose(got[:, :, r], ref, atol=1e-10 * max(1.0, np.abs(P).max()), rtol=0)
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(n=st.integers(1, 4), m=st.integers(1, 3), seed=st.integers(0, 10**6))
+def test_perfect_channel_filter_converges_to_the_dare(n, m, seed):
+    A, C, Q, R, _ = _random(seed, n, m)
+    A = A / max(1.0, np.abs(np.linalg.eigvals(A)).max()) * 0.95  # stable: the DARE has a solution
+    s = LinearSystem.create(A, C, Q, R, np.eye(n))
+    f = kalman.Filter.of(s, 1)
+    gam = np.ones((1, 600, 2), dtype=bool)
+    (k, out), = list(f.run(np.eye(n), gam, [600], ("filtered", "predicted")))
+    X = sl.solve_discrete_are(A.T, C.T, Q, R)
+    np.testing.assert_allclose(out["predicted"][:, :, 0], X, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(out["filtered"][:, :, 0], _textbook(X, C, R), rtol=1e-8, atol=1e-10)
+
+
+@settings(max_examples=30, deadline=None, derandomize=True)
+@given(n=st.integers(1, 4), m=st.integers(1, 3), seed=st.integers(0, 10**6))
+def test_rts_step_equals_brute_force_conditioning(n, m, seed):
+    """x_t ~ N(0, Pf) given y_{1:t}; x_{t+1} = A x_t + w; y_{t+1} = C x_{t+1} + v. The smoothed
+    covariance of x_t given y_{1:t+1} is the Schur complement of the joint Gaussian; the RTS step with
+    P_{t+1|t+1} (the filtered covariance after y_{t+1}) must give the same."""
+    A, C, Q, R, Pf = _random(seed, n, m)
+    Pp = A @ Pf @ A.T + Q
+    Pnext = _textbook(Pp, C, R)
+    cov_xy = Pf @ A.T @ C.T                 # Cov(x_t, y_{t+1})
+    Syy = C @ Pp @ C.T + R
+    brute = Pf - cov_xy @ np.linalg.solve(Syy, cov_xy.T)
+    got = kalman.smooth_step(Pnext[:, :, None], Pf[:, :, None], Pp[:, :, None], A)[:, :, 0]
+    np.testing.assert_allclose(got, brute, atol=1e-9 * max(1.0, np.abs(Pf).max()), rtol=0)
+
+
+def test_rescue_keeps_a_huge_unstable_mode_exact():
+    """A = diag(1e6, 0.5), C = I, Q = R = I: after a loss P⁻[0,0] ≈ 1e12·P; the standard form
+    P − P²/(P + 1) loses every digit there, the information form gives 1/(1/P⁻ + 1) exactly."""
+    s = LinearSystem.create([[1e6, 0.0], [0.0, 0.5]], np.eye(2), np.eye(2), np.eye(2), np.eye(2))
+    f = kalman.Filter.of(s, 1)
+    gam = np.array([[[True], [False], [False], [True]]]).reshape(1, 4, 1)
+    outs = dict(f.run(np.eye(2), gam, [1, 2, 3, 4]))
+    P = np.eye(2)
+    for k, g in enumerate(gam[0, :, 0], start=1):
+        Pm = s.A @ P @ s.A.T + s.Q
+        P = np.linalg.inv(np.linalg.inv(Pm) + np.eye(2)) if g else Pm  # exact information form
+        np.testing.assert_allclose(outs[k]["filtered"][:, :, 0], P, rtol=1e-12)
+
+
+def test_rescue_sets_overflowed_runs_to_inf_never_nan():
+    s = LinearSystem.create(1e200, 1.0, 1.0, 1.0, 1.0)
+    f = kalman.Filter.of(s, 1)
+    gam = np.zeros((1, 5, 3), dtype=bool)
+    gam[0, 4, 0] = True
+    (k, out), = list(f.run(np.eye(1), gam, [5]))
+    P = out["filtered"]
+    assert not np.isnan(P).any()
+
+
+def test_stream_rows_names_the_fix():
+    from netkf_cli.errors import ConfigError
+
+    s = LinearSystem.create(1.0, [[1.0], [1.0]], 1.0, np.eye(2))
+    assert kalman.stream_rows(s, 1) == ((0, 1),)
+    assert kalman.stream_rows(s, 2) == ((0,), (1,))
+    with pytest.raises(ConfigError, match="system.sensors: 3"):
+        kalman.stream_rows(s, 3)
+
+
+def test_compiled_primitives_equal_the_numpy_core():
+    nb = pytest.importorskip("numba")
+    from netkf_cli import kalman_numba as kn
+
+    @nb.njit(cache=False)
+    def step(P, A, C, Q, R, gamma):
+        n, m = P.shape[0], C.shape[0]
+        tmp, PCt, S, X = np.empty((n, n)), np.empty((n, m)), np.empty((m, m)), np.empty((m, n))
+        Pm, out = np.empty((n, n)), np.empty((n, n))
+        kn.predict(P, A, Q, Pm, tmp)
+        kn.update(Pm, C, R, gamma, out, PCt, S, X)
+        return Pm, out
+
+    @nb.njit(cache=False)
+    def jos(P, K, C, R, gamma):
+        n = P.shape[0]
+        out, IKC, tmp = np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
+        kn.joseph(P, K, C, R, gamma, out, IKC, tmp)
+        return out
+
+    for seed, (n, m) in enumerate([(1, 1), (2, 1), (3, 2), (4, 3), (4, 4)]):
+        A, C, Q, R, P = _random(seed, n, m)
+        for gamma in (0.0, 1.0):
+            Pm, out = step(P, A, C, Q, R, gamma)
+            Pm_ref = kalman.one(kalman.predict, P, A, Q)
+            out_ref = kalman.update(Pm_ref[:, :, None], C, R, np.array([gamma]))[:, :, 0]
+            np.testing.assert_allclose(Pm, Pm_ref, rtol=1e-13, atol=1e-13)
+            np.testing.assert_allclose(out, out_ref, rtol=1e-11, atol=1e-12 * max(1.0, np.abs(Pm).max()))
+        K = kalman.gain(P[:, :, None], C, R)
+        np.testing.assert_allclose(jos(P, np.ascontiguousarray(K[:, :, 0]), C, R, 1.0),
+                                   kalman.joseph(P[:, :, None], K, C, R)[:, :, 0], rtol=1e-11, atol=1e-12)
