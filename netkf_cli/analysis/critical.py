@@ -140,6 +140,9 @@ class ExactCase:
     value: float | None
     condition: str
     source: str
+    basis: str = "theorem"
+    """``theorem`` (proven in the cited literature) or ``derived`` (derived in experiments/critical/README.md and
+    checked by exact enumeration in tests/critical/)."""
 
 
 def exact_case(A: np.ndarray, C: np.ndarray) -> ExactCase | None:
@@ -170,6 +173,15 @@ def exact_case(A: np.ndarray, C: np.ndarray) -> ExactCase | None:
     if len(unstable_eigenvalues(A)) == 1:
         return ExactCase("single_unstable", lmin, "A has a single unstable eigenvalue (algebraic multiplicity 1)",
                          "Mo & Sinopoli 2008; the stable modes act as bounded extra noise (experiments/critical/README.md)")
+    nd = nondegeneracy(A, C)
+    if nd.non_degenerate:
+        return ExactCase("non_degenerate", lmin,
+                         "non-degenerate: every quasi-equiblock (eigenvalues of equal modulus ≥ 1) is one-step observable",
+                         "Mo & Sinopoli 2012, IEEE TAC 57(3), 'Kalman filtering with intermittent observations: tail "
+                         "distribution and critical value' (critical value of non-degenerate systems: λ_c = 1 − 1/ρ(A)²)")
+    d2 = degenerate_second_order(A, C)
+    if d2 is not None:
+        return d2
     return None
 
 
@@ -482,7 +494,8 @@ class GECurvePoint:
 
 
 def exact_case_ge(A, C) -> ExactCase | None:
-    """Cases where one received packet bounds P, so q > 1 − 1/ρ(A)² is necessary and sufficient.
+    """Cases where q > 1 − 1/ρ(A)² is necessary and sufficient: one received packet bounds P, or the system is
+    non-degenerate (Mo & Sinopoli 2012; bounded by the time since the N-th most recent arrival).
 
     The i.i.d. cases carry over when their proof only needs "one arrival bounds the unstable
     part": scalar, C of full column rank, a single unstable eigenvalue, A stable. Not carried over:
@@ -491,8 +504,16 @@ def exact_case_ge(A, C) -> ExactCase | None:
     """
     A, C = np.atleast_2d(A), np.atleast_2d(C)
     ec = exact_case(A, C)
-    if ec is None or ec.key in ("c_invertible_observable", "marginal"):
+    if ec is None or ec.key == "marginal" or ec.key.startswith("degenerate_"):
         return None
+    if ec.key == "c_invertible_observable" and not nondegeneracy(A, C).non_degenerate:
+        return None
+    if ec.key in ("non_degenerate", "c_invertible_observable"):
+        return ExactCase(ec.key, ec.value, ec.condition,
+                         "Mo & Sinopoli 2012 (IEEE TAC 57(3)) treat the Gilbert–Elliott channel: for a non-degenerate "
+                         "system P_k ≤ α·(k − t)^β·ρ^{2(k − t)} with t the N-th most recent arrival, and fewer than N "
+                         "arrivals in L steps has probability ≤ poly(L)·(1 − q)^L; so E[P] < ∞ iff (1 − q)ρ(A)² < 1, "
+                         "whatever p (derivation and assumptions: experiments/critical/README.md)")
     return ec
 
 
@@ -535,6 +556,476 @@ def ge_critical_curve(A, C, ps, *, tol: float = 1e-4, solver: str = "CLARABEL", 
 
 
 # =============================================================================================
+# Non-degeneracy (Mo & Sinopoli 2012) and degenerate second-order systems (derived here)
+# =============================================================================================
+
+
+@dataclass(frozen=True)
+class ModulusGroup:
+    """Eigenvalues of (numerically) equal modulus: a quasi-equiblock of the Jordan form."""
+
+    modulus: float
+    eigenvalues: tuple[complex, ...]
+    dim: int
+    sigma_min: float          # smallest singular value of C V / ‖C‖ (V: orthonormal basis of the invariant subspace)
+    one_step_observable: bool
+
+
+@dataclass(frozen=True)
+class NonDegeneracy:
+    """Mo & Sinopoli 2012's non-degeneracy test on the modes with |σ| ≥ 1 (stable modes act as bounded noise)."""
+
+    non_degenerate: bool
+    groups: tuple[ModulusGroup, ...]
+    group_tol: float
+    rank_tol: float
+    reason: str = ""
+
+    def summary(self) -> str:
+        parts = [f"|σ| = {g.modulus:.6g} ×{g.dim}: {'one-step observable' if g.one_step_observable else 'NOT one-step observable'}"
+                 f" (σ_min(CV)/‖C‖ = {g.sigma_min:.3g})" for g in self.groups]
+        return "; ".join(parts) if parts else "no eigenvalue with |σ| ≥ 1"
+
+    def as_json(self) -> dict:
+        return {"non_degenerate": self.non_degenerate, "group_tol": self.group_tol, "rank_tol": self.rank_tol,
+                "reason": self.reason,
+                "groups": [{"modulus": g.modulus, "dim": g.dim, "eigenvalues": [[z.real, z.imag] for z in g.eigenvalues],
+                            "sigma_min_relative": g.sigma_min, "one_step_observable": g.one_step_observable}
+                           for g in self.groups]}
+
+
+RANK_TOL = 1e-8
+"""C restricted to a quasi-equiblock counts as injective when σ_min(C V) > RANK_TOL·‖C‖ (V orthonormal): scale-free."""
+
+
+def group_tolerance(A: np.ndarray) -> float:
+    """Two eigenvalue moduli closer than this are one quasi-equiblock.
+
+    A Jordan block of size k is split by rounding into eigenvalues ~(ε‖A‖)^{1/k} apart, so the tolerance is
+    max(1e-6·ρ(A), 10·(n ε)^{1/n}·‖A‖₂): it never splits a numerically defective block of size ≤ n. Grouping too
+    much is conservative — a larger group must be one-step observable as a whole, a stronger requirement.
+    """
+    n = A.shape[0]
+    eps = np.finfo(float).eps
+    return max(1e-6 * spectral_radius(A), 10.0 * (n * eps) ** (1.0 / n) * float(np.linalg.norm(A, 2)))
+
+
+def nondegeneracy(A, C, *, rank_tol: float = RANK_TOL) -> NonDegeneracy:
+    """Is (A, C) non-degenerate in the sense of Mo & Sinopoli 2012 (IEEE TAC 57(3), Def. of non-degeneracy)?
+
+    Jordan form grouped by eigenvalue modulus: each group of eigenvalues of equal modulus (a quasi-equiblock) must
+    be one-step observable, i.e. C restricted to the group's generalized eigenspace (real invariant subspace,
+    computed by an ordered real Schur form, so Jordan blocks and complex pairs are handled without a Jordan
+    decomposition) must be injective. Only modes with |σ| ≥ 1 are tested: Schur-stable modes contribute a bounded
+    extra measurement noise to the suboptimal estimators of the proof (experiments/critical/README.md).
+    """
+    A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
+    ev = np.linalg.eigvals(A)
+    gtol = group_tolerance(A)
+    cn = max(float(np.linalg.norm(C, 2)), np.finfo(float).tiny)
+    mods = np.abs(ev)
+    order = np.argsort(mods)
+    groups: list[list[int]] = []
+    for i in order:
+        if groups and mods[i] - mods[groups[-1][-1]] <= gtol:
+            groups[-1].append(int(i))
+        else:
+            groups.append([int(i)])
+    out = []
+    ok_all = True
+    reason = ""
+    for g in groups:
+        lo, hi = float(mods[g].min()), float(mods[g].max())
+        if hi < 1 - RHO_TOL:
+            continue
+        sel = lambda x, y, lo=lo, hi=hi: lo - gtol / 2 <= math.hypot(x, y) <= hi + gtol / 2  # noqa: E731
+        T, Z, sdim = scipy.linalg.schur(A, output="real", sort=sel)
+        if sdim != len(g):  # reordering failed (ill-conditioned): cannot decide — say so, never claim
+            ok_all = False
+            reason = f"ordered Schur form failed for the group |σ| ≈ {lo:.6g} (got {sdim} of {len(g)} eigenvalues)"
+            out.append(ModulusGroup(0.5 * (lo + hi), tuple(complex(z) for z in ev[g]), len(g), 0.0, False))
+            continue
+        V = Z[:, :sdim]
+        s = np.linalg.svd(C @ V, compute_uv=False)
+        smin = float(s[sdim - 1]) / cn if s.size >= sdim else 0.0
+        obs = smin > rank_tol
+        ok_all &= obs
+        out.append(ModulusGroup(0.5 * (lo + hi), tuple(complex(z) for z in ev[g]), len(g), smin, bool(obs)))
+    if not ok_all and not reason:
+        reason = "a quasi-equiblock is not one-step observable"
+    return NonDegeneracy(bool(ok_all), tuple(out), gtol, rank_tol, reason)
+
+
+MAX_ROOT_ORDER = 24
+"""Ratios of the two eigenvalues tested as primitive p-th roots of unity for p ≤ this (beyond: numerical certificate)."""
+
+
+def root_of_unity_order(w: complex, *, tol: float = 1e-9, p_max: int = MAX_ROOT_ORDER) -> int | None:
+    """The smallest p ≤ p_max with |w^p − 1| ≤ tol·p (w on the unit circle), or None."""
+    if abs(abs(w) - 1) > 1e-7:
+        return None
+    z = complex(1.0)
+    for p in range(1, p_max + 1):
+        z *= w
+        if abs(z - 1) <= tol * p:
+            return p
+    return None
+
+
+def degenerate_growth_exponent(p: int) -> float:
+    """e(p) with λ_c = 1 − ρ^{−e(p)}: e = 2p/(p − 1) for p ≥ 2, e = 2 for a Jordan block (p = 1)."""
+    return 2.0 if p == 1 else 2.0 * p / (p - 1)
+
+
+def degenerate_second_order(A, C) -> ExactCase | None:
+    """λ_c of a degenerate second-order system in closed form (derived: experiments/critical/README.md).
+
+    n = 2, both eigenvalues of modulus ρ > 1, C of rank 1 on R² (else the system is one-step observable), the ratio
+    ω = σ₂/σ₁ a primitive p-th root of unity. Two arrivals t < t' separate the modes iff p ∤ (t' − t)
+    (det [C A^t; C A^{t'}] ∝ ω^{t'−t} − 1), and A^p = σ₁^p I. A window of L steps in which every arrival falls in one
+    residue class mod p (probability ≈ p (1 − λ)^{L(p−1)/p}) leaves one direction unmeasured, growing like ρ^{2L};
+    conversely after two separating arrivals P is bounded by c·ρ^{2(k−t)}. Hence E[P_k] is bounded iff
+    ρ² (1 − λ)^{(p−1)/p} < 1:
+
+        λ_c = 1 − ρ^{−2p/(p−1)}  (p ≥ 2: real pairs ±ρ are p = 2, rotations ρ·R(π q/p) …),
+        λ_c = 1 − ρ^{−2} = λ_min  (p = 1, a 2×2 Jordan block: any two distinct arrival times separate).
+
+    Returns None when the case does not apply (including ratios that are no root of unity of order ≤ 24).
+    """
+    A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
+    if A.shape != (2, 2) or not is_detectable(A, C):
+        return None
+    ev = np.linalg.eigvals(A)
+    rho = spectral_radius(A)
+    if rho <= 1 + RHO_TOL or abs(abs(ev[0]) - abs(ev[1])) > group_tolerance(A):
+        return None
+    s = np.linalg.svd(C, compute_uv=False)
+    if s.size >= 2 and s[1] > RANK_TOL * s[0]:
+        return None  # C has rank 2: one-step observable (non-degenerate)
+    w = complex(ev[1] / ev[0])
+    p = root_of_unity_order(w / abs(w), tol=1e-9)
+    if p is None and abs(ev[0] - ev[1]) <= group_tolerance(A):
+        p = 1  # numerically repeated eigenvalue
+    if p is None:
+        return None
+    if p == 1 and np.linalg.norm(A - np.real(ev[0]) * np.eye(2)) <= group_tolerance(A):
+        return None  # A = σ I with rank-1 C: not detectable (caught above); defensive
+    e = degenerate_growth_exponent(p)
+    lam = 1.0 - rho ** (-e)
+    what = ("a 2×2 Jordan block (repeated eigenvalue): any two distinct arrival times separate the modes"
+            if p == 1 else
+            f"two eigenvalues of equal modulus ρ = {rho:.6g} whose ratio is a primitive {p}-th root of unity: arrivals "
+            f"a multiple of {p} steps apart never separate the modes")
+    formula = "1 − ρ^(−2)" if p == 1 else f"1 − ρ^(−2p/(p−1)) with p = {p}"
+    return ExactCase(f"degenerate_2x2_p{p}", lam, f"degenerate second-order system, {what}",
+                     f"λ_c = {formula} (derived in experiments/critical/README.md, checked against the exact "
+                     "expected covariance enumerated over every arrival sequence)", basis="derived")
+
+
+def tail_exponent(A, C, *, loss_stay: float, channel: str = "bernoulli") -> tuple[float | None, str]:
+    """Decay exponent φ of Pr[tr P_k > M] ~ M^φ and where it comes from.
+
+    Non-degenerate systems (Mo & Sinopoli 2012, IEEE TAC 57(3): power decay law with exact rate): a loss burst of
+    length L has probability ∝ s^L, s = 1 − λ (i.i.d.) or 1 − q (Gilbert–Elliott recovery rate q), and makes
+    tr P ∝ ρ^{2L}, so φ = log s / (2 log ρ(A)). Degenerate second-order systems (derived, i.i.d. only): the
+    probability of a one-residue-class window is ∝ (1 − λ)^{L(p−1)/p}, so φ = (p − 1)/p · log(1 − λ)/(2 log ρ).
+    Returns (None, why) where no exponent is known.
+    """
+    A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
+    rho = spectral_radius(A)
+    if rho <= 1 + RHO_TOL:
+        return None, "ρ(A) ≤ 1: no exponential growth during bursts (no power law)"
+    if not 0.0 < loss_stay < 1.0:
+        return None, "the loss-burst law is degenerate (no loss, or bursts never end)"
+    ec = exact_case(A, C)
+    if ec is None or ec.value is None:
+        return None, "no theorem gives the decay rate of this (degenerate) system"
+    base = math.log(loss_stay) / (2.0 * math.log(rho))
+    if ec.key.startswith("degenerate_2x2_p"):
+        p = int(ec.key.rsplit("p", 1)[1])
+        if channel != "bernoulli":
+            return None, "degenerate system over a Markov channel: the residue-class law is not derived"
+        f = 1.0 if p == 1 else (p - 1) / p
+        return f * base, f"derived for a degenerate 2×2 system (p = {p}): ((p−1)/p)·log(1−λ)/(2 log ρ(A))"
+    what = "1 − λ" if channel == "bernoulli" else "1 − q (q = recovery rate)"
+    return base, f"Mo & Sinopoli 2012 (non-degenerate, {ec.key}): log({what})/(2 log ρ(A))"
+
+
+# =============================================================================================
+# Numerical certificate: the L-step averaged Riccati map over every arrival pattern
+# =============================================================================================
+
+
+def _patterns(L: int) -> np.ndarray:
+    """All 2^L arrival patterns, shape (L, 2^L) bool (pattern index innermost)."""
+    idx = np.arange(2 ** L)
+    return ((idx[None, :] >> np.arange(L)[:, None]) & 1).astype(bool)
+
+
+def _riccati_steps(P: np.ndarray, pats: np.ndarray, A, C, Q, R) -> np.ndarray:
+    """Apply P ← A (P − γ P Cᵀ(C P Cᵀ + R)⁻¹ C P) Aᵀ + Q along each pattern; P (n, n, r), pats (L, r)."""
+    for t in range(pats.shape[0]):
+        PC = np.einsum("ijr,kj->ikr", P, C)                          # P Cᵀ  (n, m, r)
+        S = np.einsum("kj,jir->kir", C, PC) + R[:, :, None]          # C P Cᵀ + R (m, m, r)
+        if C.shape[0] == 1:
+            upd = P - np.einsum("ir,jr->ijr", PC[:, 0, :], PC[:, 0, :]) / S[0, 0]
+        else:
+            Sm = np.moveaxis(S, -1, 0)
+            G = np.moveaxis(np.linalg.solve(Sm, np.moveaxis(PC, -1, 0).transpose(0, 2, 1)), 0, -1)  # S⁻¹ C P (m, n, r)
+            upd = P - np.einsum("ikr,kjr->ijr", PC, G)
+        P = np.where(pats[t][None, None, :], upd, P)
+        P = np.einsum("ij,jkr,lk->ilr", A, P, A) + Q[:, :, None]
+        P = 0.5 * (P + P.transpose(1, 0, 2))
+    return P
+
+
+@dataclass(frozen=True)
+class BlockMap:
+    """Φ(Z)_j = (1/π_j) Σ_i π_i Σ_{γ ∈ {0,1}^L, γ_L = j} Pr(γ | γ₀ = i) G_γ(Z_i) on the chain states j ∈ {0, 1}.
+
+    G_γ is the composition of the L Riccati maps of the arrival pattern γ (prediction form). For i.i.d. arrivals the
+    two states coincide and Φ is the L-step averaged map Σ_γ π_γ G_γ (L = 1: Sinopoli's g_λ).
+    """
+
+    A: np.ndarray
+    C: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    T: np.ndarray   # T[a, b] = P(γ_{t+1} = b | γ_t = a)
+    L: int
+
+    def __post_init__(self):
+        pats = _patterns(self.L)
+        T = self.T
+        pi = np.array([T[1, 0], T[0, 1]]) / (T[1, 0] + T[0, 1])
+        object.__setattr__(self, "pi", pi)
+        object.__setattr__(self, "pats", pats)
+        w = np.empty((2, pats.shape[1]))
+        for i in (0, 1):
+            prev = np.full(pats.shape[1], i)
+            pr = np.ones(pats.shape[1])
+            for t in range(self.L):
+                g = pats[t].astype(int)
+                pr = pr * T[prev, g]
+                prev = g
+            w[i] = pr
+        object.__setattr__(self, "w", w)           # w[i, γ] = Pr(γ | γ₀ = i)
+        object.__setattr__(self, "end", pats[-1].astype(int))
+
+    def __call__(self, Z: np.ndarray) -> np.ndarray:
+        """Z shaped (2, n, n) → Φ(Z) (2, n, n)."""
+        r = self.pats.shape[1]
+        if np.allclose(self.T[0], self.T[1], rtol=0, atol=0):  # i.i.d.: one state, Φ = Σ_γ π_γ G_γ
+            G = _riccati_steps(np.repeat(Z[0][:, :, None], r, axis=2), self.pats, self.A, self.C, self.Q, self.R)
+            X = np.einsum("ijr,r->ij", G, self.w[0])
+            X = 0.5 * (X + X.T)
+            return np.stack([X, X])
+        P = np.concatenate([np.repeat(Z[i][:, :, None], r, axis=2) for i in (0, 1)], axis=2)
+        G = _riccati_steps(P, np.concatenate([self.pats, self.pats], axis=1), self.A, self.C, self.Q, self.R)
+        out = np.zeros_like(Z)
+        for j in (0, 1):
+            acc = np.zeros(Z.shape[1:])
+            for i in (0, 1):
+                m = (self.end == j)
+                acc += self.pi[i] * np.einsum("ijr,r->ij", G[:, :, i * r:(i + 1) * r][:, :, m], self.w[i][m])
+            out[j] = acc / self.pi[j] if self.pi[j] > 0 else np.nan
+        for j in (0, 1):
+            if self.pi[j] <= 0:  # a state the chain never visits: it does not matter, copy the other
+                out[j] = out[1 - j]
+        return 0.5 * (out + out.transpose(0, 2, 1))
+
+
+def block_certified(bm: BlockMap, *, iters: int = 400) -> tuple[bool, float]:
+    """(certified, margin): a Z with Z − Φ(Z) ≻ 0 found (Z = t·Φ^j(0), t ∈ {1.5, 2, 4}).
+
+    Why this proves E[P_k] bounded: each G_γ is monotone and concave (a composition of Riccati maps), and given
+    γ_{k−1} = i the next L arrivals are independent of P_k (Markov), so by Jensen E[P_{k+L} | γ_{k+L−1} = j] ≤
+    Φ(E[P_k | γ_{k−1} = ·])_j. Φ is a minimum over gain sequences of affine maps (each Riccati step is
+    min_K of an affine map in P), so a strict super-solution Z ≻ Φ(Z) makes the linear part of the minimizing
+    affine map a contraction, exactly as in Sinopoli et al. 2004, Thm 4 (L = 1): Φ^j(Y) stays bounded from any Y.
+    And Z = t·V with V = Φ(V), t > 1, is one: concavity gives Φ(tV) ≤ tΦ(V) − (t − 1)Φ(0) ≺ tV since Φ(0) ⪰ Q ≻ 0.
+    The margin is min eig(Z − Φ(Z)) / max eig(Z), re-evaluated in floating point.
+    """
+    n = bm.A.shape[0]
+    Z = np.zeros((2, n, n))
+    scale = 1.0 + float(np.trace(bm.Q))
+    for _ in range(iters):
+        Zn = bm(Z)
+        if not np.all(np.isfinite(Zn)) or np.trace(Zn[0]) + np.trace(Zn[1]) > 1e13 * scale:
+            return False, -math.inf
+        step = np.abs(Zn - Z).max()
+        Z = Zn
+        if step <= 1e-10 * max(1.0, np.abs(Z).max()):
+            break
+    best = -math.inf
+    for t in (1.5, 2.0, 4.0):
+        X = t * Z
+        F = bm(X)
+        if not np.all(np.isfinite(F)):
+            continue
+        top = max(float(np.linalg.eigvalsh(X[j]).max()) for j in (0, 1))
+        marg = min(float(np.linalg.eigvalsh(X[j] - F[j]).min()) for j in (0, 1)) / max(top, np.finfo(float).tiny)
+        best = max(best, marg)
+        if marg > MARGIN_TOL:
+            return True, marg
+    return False, best
+
+
+@dataclass(frozen=True)
+class Certificate:
+    """Numerical upper bound on λ_c (or on the critical recovery rate q_c): ``hi`` carries a checked super-solution."""
+
+    lo: float          # not certified at lo (lower end of the bisection: NOT a lower bound on λ_c)
+    hi: float          # certified: E[P_k] bounded for every rate above hi
+    L: int
+    tol: float
+    what: str = "lambda"
+
+    def as_json(self) -> dict:
+        return {"upper": self.hi if math.isfinite(self.hi) else None, "bisection_lower": self.lo, "block_length": self.L,
+                "bisection_tol": self.tol,
+                "method": "L-step averaged Riccati map over all 2^L arrival patterns (Jensen + concavity); the upper "
+                          "end carries a strict super-solution Z ≻ Φ(Z) re-checked in floating point (margin > %g)"
+                          % MARGIN_TOL,
+                "meaning": "numerical certificate: λ_c ≤ upper (the lower end is where the bisection found none, not "
+                           "a bound on λ_c)"}
+
+
+def iid_chain(lam: float) -> np.ndarray:
+    return np.array([[1 - lam, lam], [1 - lam, lam]])
+
+
+def ge_chain(p: float, q: float) -> np.ndarray:
+    """T[a, b] = P(γ_{t+1} = b | γ_t = a) of the Gilbert chain: failure p = P(0 | 1), recovery q = P(1 | 0)."""
+    return np.array([[1 - q, q], [p, 1 - p]])
+
+
+def lambda_c_certificate(A, C, Q=None, R=None, *, L: int = 6, tol: float = 1e-3, lo: float = 0.0,
+                         hi: float = 1.0) -> Certificate:
+    """Smallest i.i.d. arrival rate (bisection on [lo, hi], ± tol) at which :func:`block_certified` succeeds."""
+    A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
+    Q = np.eye(A.shape[0]) if Q is None else np.atleast_2d(np.asarray(Q, float))
+    R = np.eye(C.shape[0]) if R is None else np.atleast_2d(np.asarray(R, float))
+
+    def ok(lam):
+        return block_certified(BlockMap(A, C, Q, R, iid_chain(lam), L))[0]
+
+    if not ok(hi):
+        return Certificate(hi, math.inf, L, tol)
+    a, b = lo, hi
+    while b - a > tol:
+        m = 0.5 * (a + b)
+        a, b = (a, m) if ok(m) else (m, b)
+    return Certificate(a, b, L, tol)
+
+
+def ge_q_certificate(A, C, Q, R, p: float, *, L: int = 6, tol: float = 1e-3, lo: float = 0.0) -> Certificate:
+    """Smallest recovery rate q (bisection ± tol) certified by the Markov block map at failure rate p."""
+    A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
+    Q, R = np.atleast_2d(np.asarray(Q, float)), np.atleast_2d(np.asarray(R, float))
+
+    def ok(q):
+        return block_certified(BlockMap(A, C, Q, R, ge_chain(p, q), L))[0]
+
+    if not ok(1.0):
+        return Certificate(1.0, math.inf, L, tol, "q")
+    a, b = lo, 1.0
+    while b - a > tol:
+        m = 0.5 * (a + b)
+        a, b = (a, m) if ok(m) else (m, b)
+    return Certificate(a, b, L, tol, "q")
+
+
+def enumerate_expected_trace(A, C, Q, R, T: np.ndarray, K: int, P0=None, start=None) -> np.ndarray:
+    """Exact E[tr P_k], k = 1 … K, over every arrival sequence (2^K of them) of the chain T.
+
+    P_k = P_{k|k−1} (prediction form), P_0 = ``P0`` (default 0); γ_0 drawn from ``start`` (default the stationary
+    law of T). Each sequence is one column of a (n, n, 2^k) array whose probability is carried along; no sampling,
+    no truncation: the only error is floating-point rounding. K ≤ 22 (memory 2^K·n²·8 bytes).
+    """
+    A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
+    Q, R = np.atleast_2d(np.asarray(Q, float)), np.atleast_2d(np.asarray(R, float))
+    if K > 22:
+        raise ValueError(f"K = {K} > 22 sequences would not fit in memory")
+    n = A.shape[0]
+    T = np.asarray(T, float)
+    pi = np.array([T[1, 0], T[0, 1]]) / (T[1, 0] + T[0, 1]) if start is None else np.asarray(start, float)
+    P = (np.zeros((n, n)) if P0 is None else np.atleast_2d(np.asarray(P0, float)))[:, :, None].copy()
+    w = np.ones(1)
+    last = None
+    out = np.empty(K)
+    for k in range(K):
+        r = P.shape[2]
+        pr1 = np.full(r, pi[1]) if last is None else np.where(last, T[1, 1], T[0, 1])
+        both = np.concatenate([P, P], axis=2)
+        pats = np.concatenate([np.zeros(r, bool), np.ones(r, bool)])[None, :]
+        P = _riccati_steps(both, pats, A, C, Q, R)
+        w = np.concatenate([w * (1 - pr1), w * pr1])
+        last = pats[0]
+        out[k] = float(np.einsum("iir,r->", P, w))
+    return out
+
+
+def growth_per_period(e: np.ndarray, period: int) -> float:
+    """Ratio of the last two increments of e over ``period`` steps: (e_K − e_{K−p}) / (e_{K−p} − e_{K−2p}).
+
+    For a sequence e_k = a·r^{k/p} + b + (faster-decaying terms) this tends to r; it removes the constant b exactly.
+    """
+    K = len(e)
+    d1 = e[K - 1] - e[K - 1 - period]
+    d0 = e[K - 1 - period] - e[K - 1 - 2 * period]
+    return float(d1 / d0) if d0 > 0 else math.inf
+
+
+# =============================================================================================
+# When is a Monte Carlo mean of P a result? (issue 19, item 4)
+# =============================================================================================
+
+
+@dataclass(frozen=True)
+class MeanReliability:
+    reliable: bool
+    reason: str
+    burst_ratio: float            # r = s·ρ² per step (s = probability that a loss burst continues)
+    longest_burst_seen: float     # L*: the longest burst the sample is expected to contain
+    missing_fraction: float       # r^{L*+1}: share of the burst sum carried by longer bursts
+
+
+def mean_reliability(mean: float, stderr: float, *, runs: int, steps: int, loss_stay: float, growth: float,
+                     lower_bound: float | None = None, sigmas: float = 3.0, max_missing: float = 0.05) -> MeanReliability:
+    """Is a Monte Carlo mean of tr P a result, or is it dominated by loss bursts the sample cannot contain?
+
+    ``loss_stay`` s = P(a loss burst continues) (1 − λ i.i.d., 1 − q Gilbert–Elliott); ``growth`` g = growth of tr P
+    per lost step (ρ(A)², or the derived per-step rate of a degenerate system). A burst of length L has probability
+    ∝ s^L and adds ∝ g^L, so the mean is the sum Σ_L (s g)^L: infinite when r = s g ≥ 1. With runs × steps burst
+    opportunities the sample contains bursts up to L* = log(runs·steps·(1−s))/(−log s) (expected count ≥ 1); the
+    longer ones carry the fraction r^{L*+1} of the sum. Unreliable when
+
+    * r ≥ 1 (the mean is infinite whatever the sample), or r^{L*+1} > ``max_missing`` (rare-event dominated), or
+    * the mean lies below a proven lower bound by more than ``sigmas`` standard errors (it cannot be right).
+
+    A perfect channel (s = 0) has no bursts: nothing is missing.
+    """
+    r = loss_stay * growth
+    if not (math.isfinite(mean)):
+        return MeanReliability(False, "non-finite mean", r, 0.0, 1.0)
+    if lower_bound is not None and math.isfinite(lower_bound) and mean < lower_bound - sigmas * stderr:
+        return MeanReliability(False, f"below the proven lower bound {lower_bound:.4g} by "
+                                      f"{(lower_bound - mean) / max(stderr, 1e-300):.1f} s.e.", r, 0.0, 1.0)
+    if loss_stay <= 0.0:
+        return MeanReliability(True, "no loss bursts", 0.0, 0.0, 0.0)
+    if r >= 1.0:
+        return MeanReliability(False, f"rare-event dominated: s·ρ² = {r:.3g} ≥ 1 (the mean is infinite)", r, 0.0, 1.0)
+    opp = max(runs * steps * (1.0 - loss_stay), 1.0)
+    Lstar = math.log(opp) / -math.log(loss_stay) if loss_stay < 1 else math.inf
+    missing = r ** (Lstar + 1)
+    if missing > max_missing:
+        return MeanReliability(False, f"rare-event dominated: bursts longer than the ~{Lstar:.0f} steps the sample "
+                                      f"contains carry {100 * missing:.0f} % of the mean", r, Lstar, missing)
+    return MeanReliability(True, "", r, Lstar, missing)
+
+
+# =============================================================================================
 # Delay with a receive buffer (Shi, Xie & Murray 2009)
 # =============================================================================================
 
@@ -569,10 +1060,30 @@ class CriticalReport:
     lam_max: LambdaMax
     exact: ExactCase | None
     channel: dict = field(default_factory=dict)
+    certificate: Certificate | None = None
+    nondegeneracy: NonDegeneracy | None = None
 
     @property
     def proven(self) -> bool:
         return self.exact is not None
+
+    @property
+    def decided_by(self) -> str:
+        """One phrase: which theorem decides λ_c, or that only an interval / a numerical certificate is known."""
+        e = self.exact
+        if e is not None:
+            return f"{'derived closed form' if e.basis == 'derived' else 'theorem'} ({e.key}): {e.source}"
+        c = self.certificate
+        if c is not None and math.isfinite(c.hi) and c.hi < self.lam_max.hi:
+            return (f"numerical certificate: λ_min ≤ λ_c ≤ {c.hi:.6g} (L = {c.L}-step averaged Riccati map over every "
+                    f"arrival pattern, ± {c.tol:g}); no theorem decides λ_c for this degenerate system")
+        return "interval only: λ_min ≤ λ_c ≤ λ_max (Sinopoli et al. 2004, Thms 3–5); no theorem decides λ_c"
+
+    @property
+    def upper(self) -> float:
+        """The best proven or certified upper bound on λ_c."""
+        c = self.certificate
+        return min(self.lam_max.hi, c.hi if c is not None else math.inf)
 
     def verdict(self) -> str:
         e = self.exact
@@ -584,6 +1095,12 @@ class CriticalReport:
             return (f"λ_c = {e.value:.6g} exactly ({e.condition}; {e.source}). "
                     f"E[P_k] stays bounded for every arrival rate λ > {e.value:.6g} and diverges (for some P0) below.")
         lm = self.lam_max
+        c = self.certificate
+        if c is not None and math.isfinite(c.hi) and c.hi < lm.hi:
+            return (f"λ_c is bounded by a numerical certificate: {self.lam_min:.6g} = λ_min ≤ λ_c ≤ {c.hi:.6g} "
+                    f"(tighter than Sinopoli's λ_max ≤ {lm.hi:.6g}; {c.L}-step averaged Riccati map, bisection ± {c.tol:g}). "
+                    f"The system is degenerate and no theorem decides λ_c; λ ≤ {self.lam_min:.6g} is proven insufficient, "
+                    f"λ > {c.hi:.6g} certified sufficient; in between it is not decided.")
         return (f"λ_c is only bounded: {self.lam_min:.6g} = λ_min ≤ λ_c ≤ λ_max ≤ {lm.hi:.6g} "
                 f"(no exactness condition holds). λ > {lm.hi:.6g} is proven sufficient for bounded E[P_k]; "
                 f"λ ≤ {self.lam_min:.6g} proven insufficient; in between it is not decided.")
@@ -602,16 +1119,23 @@ class CriticalReport:
             "condition": None if e is None else e.key,
             "condition_text": "none of the exactness conditions holds: only the interval is proven" if e is None else e.condition,
             "source": None if e is None else e.source,
-            "interval": [self.lam_min, None if math.isinf(lm.hi) else lm.hi],
+            "interval": [self.lam_min, None if math.isinf(self.upper) else self.upper],
+            "basis": None if e is None else e.basis,
+            "decided_by": self.decided_by,
+            "certificate": None if self.certificate is None else self.certificate.as_json(),
+            "nondegeneracy": None if self.nondegeneracy is None else self.nondegeneracy.as_json(),
             "verdict": self.verdict(),
             "channel": self.channel,
         }
 
 
-def critical_report(A, C, *, tol: float = DEFAULT_BISECTION_TOL, solver: str = "CLARABEL") -> CriticalReport:
-    """λ_min, λ_max (bisection) and the proven case for (A, C)."""
+def critical_report(A, C, *, tol: float = DEFAULT_BISECTION_TOL, solver: str = "CLARABEL", Q=None, R=None,
+                    certificate: bool = True, block: int = 6, certificate_tol: float = 1e-3) -> CriticalReport:
+    """λ_min, λ_max (bisection), the proven case for (A, C), and where no theorem applies a numerical certificate
+    (:func:`lambda_c_certificate`, with the system's Q and R; identity when not given)."""
     A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
     exact = exact_case(A, C)
+    nd = nondegeneracy(A, C) if A.shape[0] > 0 else None
     try:
         lm = lambda_max(A, C, tol=tol, solver=solver)
     except CriticalRateError as exc:
@@ -620,4 +1144,9 @@ def critical_report(A, C, *, tol: float = DEFAULT_BISECTION_TOL, solver: str = "
                                     f"proven: λ_c ≥ λ_min = {lambda_min(A):.6g}") from None
         # the exact case does not need the LMI: report λ_max as not computed (hi = ∞ is never a claim)
         lm = LambdaMax(lambda_min(A), math.inf, tol, 0, solver, ("not solved: " + str(exc)[:120],))
-    return CriticalReport(A.shape[0], C.shape[0], spectral_radius(A), lambda_min(A), lm, exact)
+    cert = None
+    if exact is None and certificate and A.shape[0] <= 6:
+        cert = lambda_c_certificate(A, C, Q, R, L=block, tol=certificate_tol, lo=lambda_min(A),
+                                    hi=min(1.0, lm.hi + certificate_tol) if math.isfinite(lm.hi) else 1.0)
+    return CriticalReport(A.shape[0], C.shape[0], spectral_radius(A), lambda_min(A), lm, exact, certificate=cert,
+                          nondegeneracy=nd)

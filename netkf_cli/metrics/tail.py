@@ -7,16 +7,18 @@ length L has probability ∝ s^L and makes P grow like ρ^{2L}. The numbers a sa
 tail, where plain Monte Carlo sees nothing, so the metric samples it:
 
 **Importance sampling of long loss bursts.** Runs are split evenly among K components: component 0 samples the
-scenario's channel as is; component c ≥ 1 replaces the last ``window`` steps before the reported step by a tilted
-law with more and longer losses (Bernoulli: arrival s_c·λ; Gilbert–Elliott: recovery s_c·q, failure
-1 − s_c(1 − p); s_c = ``tilts``). Every run carries the balance-heuristic weight over the window
+scenario's channel as is; component c ≥ 1 resamples the last W_c steps before the reported step (``windows``,
+geometrically spaced up to the burst length the largest M needs) from a tilted law with more and longer losses
+(Bernoulli: arrival s·λ; Gilbert–Elliott: recovery s·q, failure 1 − s(1 − p); s = ``tilt``), so a loss burst of
+about W_c steps ending at k is typical for it. With r_c = q_c/p, the likelihood ratio of component c on its own
+window (the laws agree elsewhere), every run carries the balance-heuristic weight
 
-    w = p(γ_window) / Σ_c α_c q_c(γ_window)  ≤ 1/α_0 = K      (α_c = 1/K; p = the channel's own law),
+    w = 1 / (α₀ + Σ_c α_c r_c)  ≤ 1/α₀ = K      (α_c = 1/K),
 
 so the weighted estimator Σ w·1{X > M}/n is unbiased for every M and its weights are bounded (a defensive
-mixture: it never does worse than K times plain Monte Carlo). Component 0 alone is plain Monte Carlo, reported
-beside it (Wilson intervals) so the two are checked against each other where both are reliable. Other channels run
-plain Monte Carlo only (the figure says so).
+mixture: never worse than K times plain Monte Carlo). Component 0 alone is plain Monte Carlo, reported beside it
+(Wilson intervals), so the two are checked against each other where both are reliable. Other channels run plain
+Monte Carlo only (the figure says so).
 
 **Exponent.** φ̂ is the least-squares slope of log p̂ against log M over the tail region (p̂ ≤ ``fit_below``, relative
 standard error ≤ 0.25); its 95 % interval comes from a delete-one-batch jackknife over ``batches`` independent run
@@ -162,40 +164,48 @@ def sample_window(rng, law, prev: np.ndarray, W: int) -> np.ndarray:
 class TailKernel:
     """One chunk: sample traces (K mixture components), run the estimators, reduce weighted exceedances.
 
+    Component 0 is the channel itself; component c ≥ 1 resamples the last ``windows[c−1]`` steps before the reported
+    step from the tilted law (a long loss burst ending at k is then typical). With r_c = q_c/p the likelihood ratio
+    of component c on its own window (equal laws elsewhere), the balance-heuristic weight is
+    w = 1 / (α₀ + Σ_c α_c r_c) ≤ 1/α₀ = K.
+
     Statistics (j = estimator, i = threshold): ``wf_{j}[c, i]`` = Σ_{runs of component c} w·1{X > M_i},
     ``w2f_{j}[c, i]`` = Σ w²·1{X > M_i}, ``cnt0_{j}[i]`` = plain exceedance count of component 0, ``bwf_{j}[b, i]``
     = Σ over batch b of w·1{X > M_i}; ``n_c[c]``, ``n_b[b]`` run counts; ``wsum`` = Σ w (≈ n, a check).
     """
 
     def __init__(self, system, channel, estimators, horizon: int, step: int, M, of: str, quantity: str,
-                 tilts, window: int, batches: int):
+                 tilt: float, windows, batches: int):
         self.system, self.channel, self.estimators = system, channel, list(estimators)
         self.horizon, self.step, self.M = int(horizon), int(step), np.asarray(M, float)
         self.of, self.quantity = of, quantity
         self.law = _law(channel)
-        self.tilts = [float(t) for t in tilts] if self.law is not None else []
-        self.window, self.batches = int(window), int(batches)
+        self.windows = [int(w) for w in windows] if self.law is not None else []
+        self.tilt, self.batches = float(tilt), int(batches)
 
     def __call__(self, rng: np.random.Generator, runs: int) -> dict:
-        K = 1 + len(self.tilts)
+        K = 1 + len(self.windows)
         comp = np.arange(runs) % K
         batch = (np.arange(runs) // K) % self.batches
         trace = self.channel.sample_trace(rng, runs, self.horizon)
         w = np.ones(runs)
         if K > 1:
             arr = trace.arrival
-            k1 = self.step - self.window          # window = steps k1 … step−1 (0-based trace index t ↔ y_{t+1})
-            prev = arr[0, k1 - 1] if k1 >= 1 else np.ones(runs, bool)
-            laws = [self.law] + [tilted_params(self.law, s) for s in self.tilts]
-            for c in range(1, K):
+            tl = tilted_params(self.law, self.tilt)
+            for c, W in enumerate(self.windows, start=1):
                 idx = np.flatnonzero(comp == c)
-                view = arr[0, k1:self.step]                                    # a view: (W, runs)
-                view[:, idx] = sample_window(rng, laws[c], prev[idx], self.window)
-            win = arr[0, k1:self.step]
-            ll = np.stack([window_loglik(lw, prev, win) for lw in laws])      # (K, runs)
-            top = ll.max(axis=0)
-            mix = np.log(np.exp(ll - top).sum(axis=0) / K) + top
-            w = np.exp(ll[0] - mix)
+                k1 = self.step - W                           # window = trace steps k1 … step−1
+                prev = arr[0, k1 - 1, idx] if k1 >= 1 else np.ones(idx.size, bool)
+                view = arr[0, k1:self.step]                  # a view (W, runs)
+                view[:, idx] = sample_window(rng, tl, prev, W)
+            logr = np.empty((K - 1, runs))
+            for c, W in enumerate(self.windows):
+                k1 = self.step - W
+                prev = arr[0, k1 - 1] if k1 >= 1 else np.ones(runs, bool)
+                win = arr[0, k1:self.step]
+                logr[c] = window_loglik(tl, prev, win) - window_loglik(self.law, prev, win)
+            with np.errstate(over="ignore"):
+                w = 1.0 / ((1.0 + np.exp(logr).sum(axis=0)) / K)
         stats: dict = {"n_c": np.bincount(comp, minlength=K).astype(float),
                        "n_b": np.bincount(batch, minlength=self.batches).astype(float), "wsum": np.asarray(w.sum())}
         for j, est in enumerate(self.estimators):
@@ -257,20 +267,15 @@ class TailMetric(AnalysisModel):
     at: int | Literal["stationary"] = Field("stationary", description="the step k (or the horizon: stationary after P0)")
     quantity: Literal["filtered", "predicted", "smoothed"] = Field("filtered", description="which covariance of the estimator")
     importance: bool = Field(True, description="importance-sample long loss bursts (bernoulli and gilbert_elliott channels)")
-    tilts: list[float] = Field([0.5, 0.2], description="tilt factors s_c ∈ (0, 1) of the mixture components: arrival "
-                               "s·λ (bernoulli), recovery s·q and failure 1 − s(1 − p) (gilbert_elliott) in the window")
-    window: PositiveInt | None = Field(None, description="steps before k whose loss law is tilted (default: long enough "
-                                       "for the largest M, from ρ(A))")
+    tilt: float = Field(0.1, gt=0, lt=1, description="tilt factor s inside a window: arrival s·λ (bernoulli), "
+                        "recovery s·q and failure 1 − s(1 − p) (gilbert_elliott)")
+    windows: list[PositiveInt] | None = Field(None, description="window lengths (steps before k) of the tilted mixture "
+                                              "components (default: 8 lengths from 2 to what the largest M needs, from ρ(A))")
     batches: PositiveInt = Field(10, ge=4, le=100, description="independent run batches for the exponent's jackknife interval")
     fit_below: float = Field(0.1, gt=0, lt=1, description="the exponent is fitted where p̂ ≤ this (the tail)")
     paper: PaperRef | None = Field(None, description="the paper figure this reproduces (title only)")
     title: str = Field("", description="what the figure shows")
 
-    @model_validator(mode="after")
-    def _tilts(self):
-        if any(not 0 < t < 1 for t in self.tilts):
-            raise ValueError(f"tilts must lie in (0, 1), got {self.tilts}")
-        return self
 
     def _step(self, horizon: int) -> int:
         if self.at == "stationary":
@@ -279,15 +284,18 @@ class TailMetric(AnalysisModel):
             raise ConfigError.at("analysis.at", f"must be in 1 … montecarlo.horizon = {horizon}, got {self.at}")
         return int(self.at)
 
-    def _window(self, s, step: int, Mmax: float) -> int:
-        if self.window is not None:
-            if self.window >= step:
-                raise ConfigError.at("analysis.window", f"must be < the reported step k = {step}, got {self.window}")
-            return int(self.window)
+    def _windows(self, s, step: int, Mmax: float) -> list[int]:
+        if self.windows is not None:
+            bad = [w for w in self.windows if w >= step]
+            if bad:
+                raise ConfigError.at("analysis.windows", f"every window must be < the reported step k = {step}, got {bad}")
+            return sorted(set(int(w) for w in self.windows))
         rho = cr.spectral_radius(s.A)
         base = max(float(np.trace(s.Q)), 1e-12)
+        # a burst of L losses makes tr P ≈ tr Q·ρ^{2L}: reaching Mmax needs L ≈ log(Mmax/tr Q)/(2 log ρ)
         L = math.log(max(Mmax / base, 2.0)) / (2 * math.log(rho)) if rho > 1 + 1e-9 else 20.0
-        return int(max(1, min(step - 1, math.ceil(1.5 * L) + 10)))
+        top = int(max(2, min(step - 1, math.ceil(1.2 * L) + 2)))
+        return sorted(set(int(round(x)) for x in np.geomspace(2, top, 8)))
 
     def check(self, scenario) -> None:
         needs(scenario, "channel"), needs(scenario, "estimators")
@@ -302,14 +310,13 @@ class TailMetric(AnalysisModel):
         step = self._step(H)
         M = np.sort(m_values(self.M))
         law = _law(ch) if self.importance else None
-        W = self._window(s, step, float(M.max())) if law is not None else 0
-        tilts = self.tilts if law is not None and W > 0 else []
+        wins = self._windows(s, step, float(M.max())) if law is not None else []
         runs = ctx.mc_runs(scenario)
         ctx.total(runs)
-        kern = TailKernel(s, ch, ests, H, step, M, self.of, self.quantity, tilts, max(W, 1), self.batches)
+        kern = TailKernel(s, ch, ests, H, step, M, self.of, self.quantity, self.tilt, wins, self.batches)
         st = run_chunked(kern, runs, mc.chunk, mc.seed, stream=0, progress=ctx.progress, label="tail")
         labs = labels(ests)
-        K = 1 + len(tilts)
+        K = 1 + len(wins)
         n0 = int(st["n_c"][0])
         rows, fits = [], []
         kind = getattr(ch, "kind", "")
@@ -360,9 +367,10 @@ class TailMetric(AnalysisModel):
         table = pd.DataFrame(rows, columns=["M", "estimator", "series", "value", "stderr", "n", "lo", "hi", "count"])
         fit = pd.DataFrame(fits)
         meta = {"step": step, "statistic": self.of, "quantity": QUANTITY[self.quantity], "estimators": labs,
-                "importance_sampling": ({"components": K, "tilts": list(tilts), "window": W, "alpha": 1.0 / K,
-                                         "weights": "w = p(window) / Σ_c α_c q_c(window) ≤ K (balance heuristic); "
-                                                    "component 0 is the channel itself (plain Monte Carlo)"}
+                "importance_sampling": ({"components": K, "tilt": self.tilt, "windows": wins, "alpha": 1.0 / K,
+                                         "weights": "w = 1 / (α₀ + Σ_c α_c q_c/p) ≤ K over each component's window "
+                                                    "(balance heuristic); component 0 is the channel itself (plain "
+                                                    "Monte Carlo)"}
                                         if K > 1 else "off (plain Monte Carlo: no tilt for this channel or importance: false)"),
                 "weight_mean": float(st["wsum"]) / float(st["n_c"].sum()),
                 "exponent_fit": "least squares of log p̂ on log M where p̂ ≤ fit_below and rel. s.e. ≤ 0.25; 95 % "
@@ -383,8 +391,9 @@ class TailMetric(AnalysisModel):
                         label=f"{lab}: {'importance sampling' if is_imp else 'Monte Carlo'} (95 % interval)")
             pl = g[(g.series == "plain") & (g.value > 0)]
             if len(pl):
-                ax.plot(pl.M, pl.value, linestyle="none", marker="o", mfc="none", color="0.35", ms=6,
-                        label=f"{lab}: plain Monte Carlo (same runs' component 0)")
+                ax.errorbar(pl.M, pl.value, yerr=[pl.value - pl.lo, pl.hi - pl.value], linestyle="none", marker="o",
+                            mfc="none", color="0.35", ms=6, capsize=2, lw=0.8,
+                            label=f"{lab}: plain Monte Carlo, component 0 of the same runs (Wilson 95 %)")
             if fit is not None and len(fit):
                 f = fit[fit.estimator == lab].iloc[0]
                 if np.isfinite(f.exponent_fit) and np.isfinite(f.fit_M_lo):
@@ -410,3 +419,52 @@ class TailMetric(AnalysisModel):
         footnote(fig, f"n = {n:,} runs; theory (Mo & Sinopoli 2012): φ = log s / (2 log ρ(A)), s = 1 − λ "
                       f"(i.i.d.) or 1 − q (Gilbert–Elliott); importance weights ≤ number of mixture components")
         return fig
+
+
+# =============================================================================================
+# The critical recipe's Monte Carlo: time-averaged E[tr P] on the stable contracts
+# =============================================================================================
+
+
+class TimeAverageKernel:
+    """Per run, the average of tr P (``quantity``) over steps burn_in+1 … horizon; sums of it and its powers."""
+
+    def __init__(self, system, channel, estimator, horizon: int, burn_in: int, quantity: str = "predicted"):
+        self.system, self.channel, self.estimator = system, channel, estimator
+        self.horizon, self.burn_in, self.quantity = int(horizon), int(burn_in), quantity
+
+    def __call__(self, rng: np.random.Generator, runs: int) -> dict:
+        trace = self.channel.sample_trace(rng, runs, self.horizon)
+        steps = list(range(self.burn_in + 1, self.horizon + 1))
+        acc = np.zeros(runs)
+        with np.errstate(over="ignore", invalid="ignore"):
+            for k, P in covariances(self.estimator, self.system, trace, steps, self.quantity):
+                acc += np.einsum("iir->r", P) / len(steps)
+        ok = np.isfinite(acc)
+        a = np.where(ok, acc, 0.0)
+        with np.errstate(over="ignore"):
+            return {"s1": np.asarray(a.sum()), "s2": np.asarray((a * a).sum()), "s3": np.asarray((a**3).sum()),
+                    "s4": np.asarray((a**4).sum()), "bad": np.asarray(float((~ok).sum())), "n": np.asarray(float(runs))}
+
+
+HEAVY_TAIL_RSE = 0.5
+"""As the engine's rule: a mean is heavy-tailed when the relative s.e. of its sample variance exceeds this."""
+
+
+def time_average_mean(system, channel, estimator, *, runs: int, horizon: int, burn_in: int, seed: int, chunk: int,
+                      stream: int, progress=None, quantity: str = "predicted") -> dict:
+    """Mean over runs of the per-run time average of tr P, its s.e., and the 4th-moment heavy-tail flag."""
+    st = run_chunked(TimeAverageKernel(system, channel, estimator, horizon, burn_in, quantity), runs, chunk, seed,
+                     stream=stream, progress=progress, label="time_average_mean")
+    n = float(st["n"])
+    bad = int(st["bad"])
+    m = max(n - bad, 1.0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        mu = float(st["s1"]) / m
+        var = max(float(st["s2"]) / m - mu * mu, 0.0)
+        c4 = float(st["s4"]) / m - 4 * mu * float(st["s3"]) / m + 6 * mu**2 * float(st["s2"]) / m - 3 * mu**4
+        rse = math.sqrt(max(c4 - var * var, 0.0) / m) / var if var > 0 else 0.0
+    se = math.sqrt(var * m / max(m - 1, 1) / m)
+    heavy = bad > 0 or not math.isfinite(rse) or rse > HEAVY_TAIL_RSE
+    return {"mean_trace": mu if bad == 0 else math.inf, "stderr": se, "n": int(n), "heavy_tail": bool(heavy),
+            "nonfinite": bad, "rse_variance": rse}

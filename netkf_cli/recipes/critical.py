@@ -6,8 +6,9 @@ For the scenario's system (A, C, Q, R):
   LMI Ψ_λ(Y, Z) > 0 with cvxpy + Clarabel), λ_c itself only where a theorem gives it
   (:func:`netkf_cli.analysis.critical.exact_case`);
 * against λ: tr S̄ ≤ lim tr E[P_{k|k−1}] ≤ tr V̄ (Thms 3–4) and the Monte Carlo mean of
-  tr P_{k|k−1} from the generic engine (``kf`` estimator, ``bernoulli`` channel), flagged and
-  not drawn as a result where the engine calls it heavy-tailed;
+  tr P_{k|k−1} (``kf`` estimator, ``bernoulli`` channel, :func:`netkf_cli.metrics.tail.time_average_mean`),
+  drawn hollow and not as a result where it is heavy-tailed, below the proven S̄, or dominated by loss bursts
+  longer than the sample contains (:func:`netkf_cli.analysis.critical.mean_reliability`);
 * the Gilbert–Elliott critical curve in the (failure rate p, recovery rate q) plane: necessary
   q > 1 − 1/ρ(A)², the sufficient Markov LMI, the exact curve where proven, and the recovery rate
   at which i.i.d. loss with the same average loss rate would reach the Bernoulli bound;
@@ -31,6 +32,7 @@ from pydantic import Field, model_validator
 
 from netkf_cli.analysis import critical as cr
 from netkf_cli.errors import ConfigError
+from netkf_cli.metrics.tail import kf_for, time_average_mean
 from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt, Probability, StrictModel
@@ -92,7 +94,8 @@ def judge_rate(lam: float, lam_min: float, lam_max_hi: float, exact: cr.ExactCas
     if exact is not None:
         ok = lam > exact.value
         return (f"λ = {lam:.6g} {'>' if ok else '≤'} λ_c = {exact.value:.6g}: E[P_k] "
-                f"{'bounded' if ok else 'unbounded (for some P0)'} (proven)", ok)
+                f"{'bounded' if ok else 'unbounded (for some P0)'} "
+                f"({'derived closed form' if exact.basis == 'derived' else 'proven'})", ok)
     if lam > lam_max_hi:
         return f"λ = {lam:.6g} > λ_max = {lam_max_hi:.6g}: E[P_k] bounded (proven, Thm 4)", True
     if lam <= lam_min:
@@ -132,14 +135,25 @@ class CriticalAnswer:
         else:
             lines.append(f"  λ_max ∈ ({lm.lo:.6g}, {lm.hi:.6g}]   (Thm 5 LMI Ψ_λ(Y, Z) > 0, bisection tol {lm.tol:g}, "
                          f"{lm.solver}, {lm.solves} solves, status {'/'.join(lm.statuses)}; upper end certified)")
-        if e is None:
+        nd = r.nondegeneracy
+        if nd is not None and nd.groups:
+            lines.append(f"  non-degeneracy (Mo & Sinopoli 2012): {'yes' if nd.non_degenerate else 'no'} — {nd.summary()}")
+        c = r.certificate
+        if e is None and c is not None and math.isfinite(c.hi) and c.hi < lm.hi:
+            lines.append(f"  certified:  λ_c ≤ {c.hi:.6g}  (numerical certificate: {c.L}-step averaged Riccati map over all "
+                         f"2^{c.L} arrival patterns, bisection ± {c.tol:g}; tighter than λ_max)")
+            lines.append("  decided:    no theorem decides λ_c for this degenerate system: λ_min ≤ λ_c ≤ the certificate")
+        elif e is None:
             lines.append("  proven:     only the interval λ_min ≤ λ_c ≤ λ_max — none of the exactness conditions holds")
-            lines.append("              (scalar; C invertible on the observable subspace; one unstable eigenvalue; ρ(A) ≤ 1)")
+            lines.append("              (scalar; C invertible on the observable subspace; non-degenerate; degenerate 2×2 "
+                         "with a root-of-unity eigenvalue ratio; ρ(A) ≤ 1)")
         elif e.value is None:
             lines.append(f"  proven:     {e.condition} — {e.source}")
         else:
-            lines.append(f"  proven:     λ_c = {e.value:.6g} exactly — {e.condition}")
+            word = "derived" if e.basis == "derived" else "proven"
+            lines.append(f"  {word + ':':11s} λ_c = {e.value:.6g} exactly — {e.condition}")
             lines.append(f"              ({e.source})")
+        lines.append(f"  decided by: {r.decided_by}")
         ch = self.channel
         if ch:
             lines.append("")
@@ -181,8 +195,10 @@ def channel_answer(s: LinearSystem, channel, report: cr.CriticalReport, *, solve
             ok, why = True, f"{ege.condition}: E[P_k] bounded for every loss process"
         elif ege is not None:
             ok = q > ege.value
+            how = ("Mo & Sinopoli 2012 for Gilbert–Elliott loss" if ege.key in ("non_degenerate", "c_invertible_observable")
+                   else "one received packet bounds P")
             why = (f"recovery rate q = {q:.6g} {'>' if ok else '≤'} 1 − 1/ρ(A)² = {ege.value:.6g}: necessary and "
-                   f"sufficient here ({ege.condition}; one received packet bounds P), whatever the failure rate")
+                   f"sufficient here ({ege.key.replace('_', ' ')}; {how}), whatever the failure rate")
         elif q <= qn:
             ok, why = False, f"q = {q:.6g} ≤ 1 − 1/ρ(A)² = {qn:.6g}: E[P_k] unbounded (necessary condition fails)"
         else:
@@ -230,7 +246,7 @@ def critical_answer(*, config: Path | None = None, arrival: float | None = None,
         from netkf_cli.channels.bernoulli import BernoulliChannel
 
         channel = BernoulliChannel(kind="bernoulli", arrival=arrival)
-    rep = cr.critical_report(s.A, s.C, tol=tol)
+    rep = cr.critical_report(s.A, s.C, tol=tol, Q=s.Q, R=s.R)
     return CriticalAnswer(label, s, rep, channel_answer(s, channel, rep))
 
 
@@ -267,17 +283,19 @@ class CriticalAnalysis(AnalysisModel):
         return np.round(g, 6)
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
-        from netkf_cli import engine
         from netkf_cli.channels.bernoulli import BernoulliChannel
-        from netkf_cli.estimators.kf import KalmanFilterEstimator
 
         s = scenario.linear_system()
-        rep = cr.critical_report(s.A, s.C, tol=self.bisection_tol)
+        rep = cr.critical_report(s.A, s.C, tol=self.bisection_tol, Q=s.Q, R=s.R)
         lm, e = rep.lam_max, rep.exact
         lams = self._grid(rep.lam_min, lm.hi)
         mc = scenario.montecarlo
         runs = ctx.mc_runs(scenario)
-        est = KalmanFilterEstimator(kind="kf", report="predicted")
+        est = kf_for("predicted")  # the envelope bounds the prediction P_{k+1|k}
+        growth, stay_pow = cr.spectral_radius(s.A) ** 2, 1.0
+        if e is not None and e.key.startswith("degenerate_2x2_p"):
+            pp = int(e.key.rsplit("p", 1)[1])
+            stay_pow = 1.0 if pp == 1 else (pp - 1) / pp  # one-residue-class windows: s^{(p−1)/p} per step
         do_mc = self.monte_carlo and (e is None or e.value is not None)
         n_mc = int(sum(1 for lam in lams if lam > rep.lam_min and lam < 1)) if do_mc else 0
         ctx.total(runs * n_mc)
@@ -293,11 +311,17 @@ class CriticalAnalysis(AnalysisModel):
                                  n=np.nan, reliable=1.0 if math.isfinite(tr) else 0.0))
             if do_mc and rep.lam_min < lam < 1:
                 ch = BernoulliChannel(kind="bernoulli", arrival=lam)
-                r = engine.mean_covariance(s, ch, est, runs=runs, horizon=mc.horizon, burn_in=mc.burn_in, seed=mc.seed,
-                                           chunk=mc.chunk, stream=i + 1, progress=ctx.progress)
-                ok = (not r["heavy_tail"]) and r["nonfinite"] == 0 and math.isfinite(r["mean_trace"])
+                r = time_average_mean(s, ch, est, runs=runs, horizon=mc.horizon, burn_in=mc.burn_in, seed=mc.seed,
+                                      chunk=mc.chunk, stream=i + 1, progress=ctx.progress, quantity="predicted")
+                trS = float(np.trace(S))
+                mr = cr.mean_reliability(r["mean_trace"], r["stderr"], runs=r["n"], steps=mc.horizon - mc.burn_in,
+                                         loss_stay=(1 - lam) ** stay_pow, growth=growth,
+                                         lower_bound=trS if math.isfinite(trS) else None)
+                ok = (not r["heavy_tail"]) and r["nonfinite"] == 0 and math.isfinite(r["mean_trace"]) and mr.reliable
+                flag = mr.reason or ("heavy-tailed sample (4th-moment rule)" if r["heavy_tail"] else "")
                 rows.append(dict(base, series="monte_carlo", value=r["mean_trace"] if math.isfinite(r["mean_trace"]) else np.nan,
-                                 stderr=r["stderr"], n=r["n"], reliable=1.0 if ok else 0.0))
+                                 stderr=r["stderr"], n=r["n"], reliable=1.0 if ok else 0.0, flag=flag,
+                                 missing_fraction=mr.missing_fraction))
         table = pd.DataFrame(rows)
 
         # ---- rates (one row each) ----
@@ -307,8 +331,17 @@ class CriticalAnalysis(AnalysisModel):
             dict(quantity="lambda_max_upper", value=lm.hi if math.isfinite(lm.hi) else np.nan),
             dict(quantity="lambda_c", value=np.nan if e is None or e.value is None else e.value),
             dict(quantity="proven", value=1.0 if e is not None else 0.0),
+            dict(quantity="lambda_c_upper", value=rep.upper if math.isfinite(rep.upper) else np.nan),
+            dict(quantity="certificate_upper", value=np.nan if rep.certificate is None or not math.isfinite(rep.certificate.hi)
+                 else rep.certificate.hi),
+            dict(quantity="non_degenerate", value=np.nan if rep.nondegeneracy is None else float(rep.nondegeneracy.non_degenerate)),
         ])
-        rates["condition"] = "interval only" if e is None else e.key
+        cert = rep.certificate
+        rates["condition"] = (e.key if e is not None else
+                              "numerical certificate" if cert is not None and math.isfinite(cert.hi) and cert.hi < lm.hi
+                              else "interval only")
+        rates["basis"] = "none" if e is None else e.basis
+        rates["decided_by"] = rep.decided_by
 
         # ---- Gilbert–Elliott curve ----
         lam_ref = e.value if (e is not None and e.value is not None) else lm.hi
@@ -321,6 +354,8 @@ class CriticalAnalysis(AnalysisModel):
                                     q_bernoulli_same_loss=pt.q_bernoulli_same_loss,
                                     q_iid=1.0 - pt.p))
         ge = pd.DataFrame(ge_rows, columns=["p", "q_necessary", "q_sufficient", "q_exact", "q_bernoulli_same_loss", "q_iid"])
+        ege = cr.exact_case_ge(s.A, s.C)
+        ge["exact_by"] = "" if ege is None else ege.key
 
         # ---- claims ----
         claims = self._claims(table, rep, ge)
@@ -331,7 +366,10 @@ class CriticalAnalysis(AnalysisModel):
                 "monte_carlo": {"runs": runs, "horizon": mc.horizon, "burn_in": mc.burn_in,
                                 "sample": "per run, the time average of tr P_{k|k−1} over k in (burn_in, horizon]; "
                                           "P0 = P̄; stream i+1 for the i-th λ",
-                                "reliable": "0 where the engine flags the mean heavy-tailed or a run overflowed: not drawn as a result"},
+                                "reliable": "0 (drawn hollow, not a result) where the sample is heavy-tailed (4th-moment "
+                                            "rule), a run overflowed, the mean lies > 3 s.e. below tr S̄, or loss bursts "
+                                            "longer than the sample contains carry > 5 % of the mean "
+                                            "(analysis.critical.mean_reliability; column flag says which)"},
                 "title": self.title}
         return Artefact(table, meta=meta, extra_tables={"rates": rates, "ge": ge, "claims": claims})
 
@@ -375,6 +413,8 @@ class CriticalAnalysis(AnalysisModel):
         r = dict(zip(rates.quantity, rates.value))
         lmin, lhi, lc = r["lambda_min"], r["lambda_max_upper"], r["lambda_c"]
         cond = str(rates.condition.iloc[0])
+        basis = str(rates.basis.iloc[0]) if "basis" in rates else "theorem"
+        cert = r.get("certificate_upper", np.nan)
         # ---- left: bounds on lim E[tr P] against λ ----
         Sb = t[(t.series == "S_bar") & np.isfinite(t.value)]
         Vb = t[(t.series == "V_bar") & np.isfinite(t.value)]
@@ -389,13 +429,19 @@ class CriticalAnalysis(AnalysisModel):
             ax.errorbar(good.lam, good.value, yerr=good.stderr, fmt=st["marker"], color=st["color"], ms=5, capsize=2,
                         label=r"Monte Carlo $E[\mathrm{tr}\,P_{k|k-1}]$ ± 1 s.e.")
         if len(bad):
-            ax.plot(bad.lam, np.where(np.isfinite(bad.value), bad.value, np.nan), "x", color="0.45", ms=6, linestyle="none",
-                    label="Monte Carlo, heavy-tailed (not a result)")
+            st = series_style(2)
+            ax.plot(bad.lam, np.where(np.isfinite(bad.value), bad.value, np.nan), marker=st["marker"], mfc="none",
+                    color="0.45", ms=7, linestyle="none",
+                    label="Monte Carlo, unreliable: rare-event dominated\n(heavy tail / below S̄ / unseen bursts; not a result)")
         ax.axvline(lmin, color="0.2", lw=1.0, ls="--", label=rf"$\lambda_{{min}}$ = {lmin:.4g}")
         if np.isfinite(lhi):
             ax.axvline(lhi, color=PALETTE[3], lw=1.0, ls="-.", label=rf"$\lambda_{{max}}$ = {lhi:.4g} (LMI)")
         if np.isfinite(lc):
-            ax.axvline(lc, color=PALETTE[2], lw=1.6, ls=":", label=rf"$\lambda_c$ = {lc:.4g}, exact ({cond})")
+            word = "derived closed form" if basis == "derived" else "theorem"
+            ax.axvline(lc, color=PALETTE[2], lw=1.6, ls=":", label=rf"$\lambda_c$ = {lc:.4g}, exact: {word} ({cond.replace('_', ' ')})")
+        elif np.isfinite(cert) and cert < lhi:
+            ax.axvspan(lmin, cert, color="0.85", alpha=0.6, lw=0,
+                       label=rf"$\lambda_c \in$ [{lmin:.4g}, {cert:.4g}]: numerical certificate (no theorem)")
         elif np.isfinite(lhi) and lhi > lmin:
             ax.axvspan(lmin, lhi, color="0.85", alpha=0.6, lw=0, label=r"$\lambda_c$ undecided")
         ax.set_yscale("log")
@@ -412,7 +458,12 @@ class CriticalAnalysis(AnalysisModel):
             bx.plot(suf.p, suf.q_sufficient, **{**series_style(1), "markersize": 4}, label="sufficient (Markov LMI)")
             ex = ge[np.isfinite(ge.q_exact)]
             if len(ex):
-                bx.plot(ex.p, ex.q_exact, **{**series_style(2), "markersize": 4, "linestyle": ":"}, label="exact critical curve")
+                by = str(ge.exact_by.iloc[0]) if "exact_by" in ge and isinstance(ge.exact_by.iloc[0], str) else ""
+                src = "Mo & Sinopoli 2012" if by in ("non_degenerate", "c_invertible_observable") else "one arrival bounds P"
+                bx.plot(ex.p, ex.q_exact, **{**series_style(2), "markersize": 4, "linestyle": ":"},
+                        label=f"exact critical curve ({by.replace('_', ' ')}; {src})")
+            else:
+                bx.plot([], [], " ", label="no exact curve (degenerate): only necessary / sufficient")
             qb = ge.q_bernoulli_same_loss.clip(upper=1.0)
             keep = ge.q_bernoulli_same_loss <= 1.0
             bx.plot(ge.p[keep], qb[keep], **{**series_style(3), "marker": None},
