@@ -150,7 +150,7 @@ def mind_report(*, M: float, eps: float, config: Path | None, d: float | None, s
     check_arguments(M=M, eps=eps, d=d)
     if config is not None:
         from netkf_cli.loader import load_scenario, locate
-        from netkf_cli.recipes.shi2009_theta import delay_label
+        from netkf_cli.channels.delay import delay_label
 
         sc = load_scenario(config)
         try:

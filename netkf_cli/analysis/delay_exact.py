@@ -51,8 +51,8 @@ import numpy as np
 from netkf_cli import riccati
 from netkf_cli.channels.delay import max_kept_delay
 from netkf_cli.errors import ConfigError
-from netkf_cli.estimators.buffered import leq_threshold
 from netkf_cli.system import LinearSystem
+from netkf_cli.tolerances import PSD_TOL
 
 DEFAULT_TOL = 1e-6
 
@@ -112,6 +112,12 @@ def _open_loop_bound(s: LinearSystem) -> np.ndarray | None:
 
     X = scipy.linalg.solve_discrete_lyapunov(s.A, s.Q)
     return (X + X.T) / 2
+
+
+def leq_threshold(M: np.ndarray) -> np.ndarray:
+    """λ_max(P) ≤ threshold ⇔ P ≤ M·I in :func:`netkf_cli.riccati.psd_leq`'s tolerance."""
+    M = np.asarray(M, dtype=float)
+    return M + PSD_TOL * np.maximum(1.0, np.abs(M))
 
 
 def exact_probability(s: LinearSystem, channel, span: int, M_grid, *, tol: float = DEFAULT_TOL,

@@ -239,3 +239,80 @@ def delay_trace(channel, rng: np.random.Generator, runs: int, horizon: int) -> T
                  meta={"channel": channel.kind, "buffer": int(channel.D), "convention": channel.convention,
                        "D_max_kept_delay": max_kept_delay(channel.D, channel.convention),
                        "arrival_means": "delay 0 (usable on time)"})
+
+
+# ---------------------------------------------------------------------------------------------
+# What the delay-buffer estimators (buffered, smart_sensor) and the Shi 2009 recipes read from a
+# channel or a trace: the single link's delays, the keep rule of the buffer, the delay-law label,
+# and the channel statistic "MKF runs per step" (Prop. 3.1) — all channel-level, no filtering.
+# ---------------------------------------------------------------------------------------------
+
+
+def trace_delays(trace) -> np.ndarray:
+    """(horizon, runs) delays of the single link of a trace: ``delay``, else ``arrival`` as 0 / LOST."""
+    if trace.sensors > 1:
+        raise ValueError(f"a buffered/smart-sensor estimator reads one link, the trace has {trace.sensors}")
+    if trace.delay is not None:
+        return trace.delay[0]
+    if trace.arrival is not None:
+        return np.where(trace.arrival[0], 0, LOST).astype(np.int32)
+    raise ValueError("a delay-buffer estimator needs a trace with delay or arrival")
+
+
+def trace_max_kept_delay(trace) -> int:
+    """D_max of the trace's buffer (``meta['buffer']``, ``meta['convention']``); no buffer in the meta
+    (a pure-loss or replayed trace): every delay within the horizon is kept."""
+    D = trace.meta.get("buffer")
+    if D is None:
+        return int(trace.horizon)
+    return max_kept_delay(int(D), trace.meta.get("convention", DEFAULT_CONVENTION))
+
+
+def kept_by(d: np.ndarray, k: int, Dmax: int, first: int = 0) -> np.ndarray:
+    """γ_s^{(k)} = [d_s ≤ min(k − s, D_max)] for packets s = first+1 … k (eq. 4 in the time-k view),
+    from the delays ``d`` (horizon, runs) of packets 1 … horizon; shape (k − first, runs)."""
+    age = (k - np.arange(first + 1, k + 1))[:, None]
+    return d[first:k] <= np.minimum(age, Dmax)
+
+
+def delay_label(channel, math: bool = False) -> str:
+    """Short text for a delay law: 'Poisson d = 5' (``math=True``: mathtext, 'Poisson $d = 5$')."""
+    def eq(name: str, value: str) -> str:
+        return f"${name} = {value}$" if math else f"{name} = {value}"
+
+    if channel.kind == "bernoulli":
+        return "Bernoulli " + eq(r"\gamma" if math else "γ", f"{channel.arrival:g}")
+    dist = getattr(channel, "delay", None)
+    if dist is None:
+        return f"{channel.kind} channel"
+    if dist.kind == "poisson":
+        return "Poisson " + eq("d", f"{dist.mean:g}")
+    if dist.kind == "geometric":
+        return "geometric " + eq("p", f"{dist.p:g}")
+    if math:
+        return rf"pmf (loss ${dist.loss:.3g}$)"
+    return f"pmf {list(dist.probs)} (loss {dist.loss:.3g})"
+
+
+class UpdatesKernel:
+    """Picklable kernel: R_k = 1 + I_k MKF runs at time k, I_k = max{i ≤ D_max : d_{k−i} = i} ∪ {0}.
+
+    The events {d_{k−i} = i} are independent with probabilities f(i), so Pr[I_k < j] =
+    ∏_{i=j}^{D_max} (1 − f(i)) =: S_j (non-decreasing in j). Inverse transform with one uniform per
+    run: I_k = #{j ∈ 1..D_max : u < 1 − S_j} — exact, O(D_max + runs·log D_max) per chunk.
+    Statistics: ``sum``, ``sumsq`` of R_k and ``n``. (A statistic of the delay law alone: no filter.)
+    """
+
+    def __init__(self, channel):
+        Dmax = max_kept_delay(channel.D, channel.convention)
+        F = np.asarray(channel.cdf(np.arange(Dmax + 1)), dtype=float).reshape(Dmax + 1)
+        f = np.diff(np.concatenate([[0.0], F]))
+        S = np.cumprod((1.0 - f[1:])[::-1])[::-1]  # S[j − 1] = S_j, j = 1..Dmax
+        self.ge = 1.0 - S  # Pr[I_k ≥ j], non-increasing in j
+
+    def __call__(self, rng, runs):
+        u = rng.random(runs)
+        asc = self.ge[::-1]
+        oldest = (len(asc) - np.searchsorted(asc, u, side="right")).astype(float)  # #{j : u < Pr[I ≥ j]}
+        R = 1.0 + oldest
+        return {"sum": float(R.sum()), "sumsq": float((R**2).sum()), "n": np.int64(runs)}

@@ -13,27 +13,10 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli.analysis import delay_bounds as db
-from netkf_cli.channels.delay import CONVENTION_HELP
+from netkf_cli.channels.delay import CONVENTION_HELP, delay_label  # noqa: F401 - delay_label re-exported
 from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt
-
-
-def delay_label(channel, math: bool = False) -> str:
-    """Short text for a delay law: 'Poisson d = 5' (``math=True``: mathtext, 'Poisson $d = 5$')."""
-    def eq(name: str, value: str) -> str:
-        return f"${name} = {value}$" if math else f"{name} = {value}"
-
-    if channel.kind == "bernoulli":
-        return "Bernoulli " + eq(r"\gamma" if math else "γ", f"{channel.arrival:g}")
-    dist = channel.delay
-    if dist.kind == "poisson":
-        return "Poisson " + eq("d", f"{dist.mean:g}")
-    if dist.kind == "geometric":
-        return "geometric " + eq("p", f"{dist.p:g}")
-    if math:
-        return rf"pmf (loss ${dist.loss:.3g}$)"
-    return f"pmf {list(dist.probs)} (loss {dist.loss:.3g})"
 
 
 class ThetaVsBuffer(AnalysisModel):

@@ -15,9 +15,8 @@ from pydantic import Field
 
 from netkf_cli.analysis import delay_bounds as db
 from netkf_cli.analysis import delay_exact as dx
-from netkf_cli.channels.delay import CONVENTION_HELP
+from netkf_cli.channels.delay import CONVENTION_HELP, UpdatesKernel
 from netkf_cli.errors import ConfigError
-from netkf_cli.estimators.buffered import UpdatesKernel
 from netkf_cli.montecarlo import run_chunked, mean_and_stderr
 from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
@@ -158,5 +157,5 @@ class UpdatesVsBuffer(AnalysisModel):
 
 
 def _updates_kernel(channel):
-    """MKF runs at time k (Prop. 3.1): the picklable kernel of :mod:`netkf_cli.estimators.buffered`."""
+    """MKF runs at time k (Prop. 3.1): the picklable kernel of :mod:`netkf_cli.channels.delay` (a statistic of the delay law)."""
     return UpdatesKernel(channel)

@@ -7,16 +7,24 @@ from hypothesis import strategies as st
 
 from netkf_cli.analysis import delay_bounds as db
 from netkf_cli.analysis.delay_exact import (brute_force_probability, exact_probability, expected_updates)
-from netkf_cli.estimators.buffered import buffered_mc_kernel
-from netkf_cli.estimators.smart_sensor import smart_mc_kernel
+from netkf_cli import engine
+from netkf_cli.channels.delay import UpdatesKernel
+from netkf_cli.estimators.buffered import BufferedEstimator
+from netkf_cli.estimators.smart_sensor import SmartSensorEstimator
 from netkf_cli.montecarlo import mean_and_stderr, run_chunked
-from netkf_cli.estimators.buffered import UpdatesKernel
 from netkf_cli.system import LinearSystem
 
 from ._systems import bernoulli, pmf, poisson, scalar_system, vehicle_system
 
 SCALAR_M = np.array([0.5, 1.0, 2.0, 4.0, 8.0, 15.0, 30.0, 60.0, 120.0])
 VEHICLE_M = np.array([0.06, 0.085, 0.12, 0.2, 0.3, 0.5])
+
+
+def _engine_pr(s, ch, est, M, n, H, seed):
+    """Pr[P_H ≤ M] through the generic engine (one sample per run at k = H, P0 = P̄)."""
+    st_ = engine.simulate(s, ch, [est], engine.DistributionReducer(np.asarray(M, dtype=float), [H]), steps=[H],
+                          runs=n, horizon=H, seed=seed, chunk=20_000)
+    return st_["count_0"][0] / n
 
 
 def _z_ok(p_hat, p0, n, k=5.0):
@@ -41,8 +49,7 @@ def test_exact_between_bounds_and_equal_to_monte_carlo(name, s, ch, span, M):
     up = np.array([1 - db.theta(db.k2(m, s), ch.D, ch.cdf, ch.convention) for m in M])
     assert np.all(ex.lower >= lo - 1e-9) and np.all(ex.upper <= up + 1e-9)
     n = 40_000
-    st_ = run_chunked(buffered_mc_kernel(s, ch, span, 60, M), n, 20_000, 5)
-    p = st_["count_leq"] / n
+    p = _engine_pr(s, ch, BufferedEstimator(kind="buffered"), M, n, 60, 5)
     assert np.all(_z_ok(p, ex.value, n)), (p, ex.value)
     # and hence (5σ) inside Thm 3.8's bounds
     assert np.all(p >= lo - 5 * np.sqrt(lo * (1 - lo) / n) - 1 / n)
@@ -85,8 +92,7 @@ def test_bounds_bracket_the_exact_probability_on_random_scalar_systems(a, c, q, 
                                     (scalar_system(), poisson(3, 4, "delay_lt_D"), SCALAR_M)])
 def test_smart_sensor_monte_carlo_equals_thm41(s, ch, M):
     n = 100_000
-    st_ = run_chunked(smart_mc_kernel(s, ch, M), n, 20_000, 3)
-    p = st_["count_leq"] / n
+    p = _engine_pr(s, ch, SmartSensorEstimator(kind="smart_sensor"), M, n, 60, 3)
     th = np.array([1 - db.theta(db.k2(m, s), ch.D, ch.cdf, ch.convention) for m in M])
     assert np.all(_z_ok(p, th, n)), (p, th)
 

@@ -1,29 +1,28 @@
-"""The optional numba backend of the delay-buffer covariance Monte Carlo against the numpy reference.
+"""The compiled (numba) path of the ``buffered`` estimator against the numpy core, on the same traces.
 
-``backend: numba`` consumes the numpy kernel's own uniforms and repeats its floating-point
-operations in the same order, so P_k is compared bit for bit; ``numba_philox`` draws its own
-(counter-based) random numbers and is compared statistically (5 standard errors).
+``backend: numba`` runs, per run, kalman_numba's inlined ``predict``/``update`` over the time-k
+availabilities (one requested step); the numpy path runs ``kalman.Filter``. On the same trace P_k
+agrees to rounding, so the engine's statistics are identical: the counts Pr[P_k ≤ M] exactly (unless
+λ_max is within rounding of a threshold, which these grids avoid) and the moment sums to 1e-12.
 Skipped when numba is not installed.
 """
-
-import pickle
 
 import numpy as np
 import pytest
 
 pytest.importorskip("numba")
 
+from netkf_cli import engine, kalman  # noqa: E402
 from netkf_cli.estimators import buffered_numba as bn  # noqa: E402
-from netkf_cli.estimators.buffered import (BufferedEstimator, buffered_mc_kernel,  # noqa: E402
-                                           covariance_from_kept)
-from netkf_cli.montecarlo import execution, run_chunked  # noqa: E402
+from netkf_cli.estimators.buffered import BufferedEstimator, availability, mkf  # noqa: E402
+from netkf_cli.montecarlo import execution  # noqa: E402
 from netkf_cli.system import LinearSystem  # noqa: E402
 
 from ._systems import bernoulli, poisson, scalar_system, vehicle_system  # noqa: E402
 
 
 def _dense_system() -> LinearSystem:
-    """n = 3, m = 1 with generic coefficients, one exact 0, 1 and −1 (the skip/alias/negate paths)."""
+    """n = 3, m = 1 with generic coefficients, one exact 0, 1 and −1."""
     g = np.random.default_rng(11)
     A = g.normal(size=(3, 3)) * 0.6
     A[0, 1], A[2, 2], A[1, 0] = 0.0, 1.0, -1.0
@@ -32,168 +31,90 @@ def _dense_system() -> LinearSystem:
     return LinearSystem.create(A, C, L @ L.T * 0.1 + 0.01 * np.eye(3), 0.3)
 
 
-CASES = {  # name: (system, channel, span, M grid, horizon)
-    "scalar": (scalar_system(), poisson(5, 10), 1, np.geomspace(0.5, 250, 40), 60),
-    "vehicle_pairs": (vehicle_system(), poisson(3, 5), 2, np.geomspace(0.06, 3, 30), 40),
-    "dense_3x1": (_dense_system(), bernoulli(0.6), 1, np.geomspace(0.05, 20, 30), 30),
+def _three_outputs() -> LinearSystem:
+    """m = 3 (> 2: the compiled update's Gauss–Jordan branch)."""
+    g = np.random.default_rng(5)
+    A = g.normal(size=(3, 3)) * 0.5
+    L = g.normal(size=(3, 3))
+    return LinearSystem.create(A, g.normal(size=(3, 3)), L @ L.T * 0.1 + 0.01 * np.eye(3), np.eye(3) * 0.2)
+
+
+CASES = {  # name: (system, channel, M grid, horizon)
+    "scalar": (scalar_system(), poisson(5, 10), np.geomspace(0.5, 250, 40), 60),
+    "vehicle_pairs": (vehicle_system(), poisson(3, 5), np.geomspace(0.06, 3, 30), 40),
+    "dense_3x1": (_dense_system(), bernoulli(0.6), np.geomspace(0.05, 20, 30), 30),
+    "three_outputs": (_three_outputs(), poisson(1, 2), np.geomspace(0.05, 20, 30), 30),
 }
 
 
-def _reference_P(s, kernel, span, rng, runs, horizon):
-    """P_k per run from the numpy MKF on the uniforms the numpy kernel draws (one rng.random per step)."""
-    U = np.stack([rng.random(runs) for _ in range(horizon)])
-    return covariance_from_kept(s, U < kernel.F_keep[:, None], span, kernel.P0).matrices()
+def _stats(s, ch, M, H, backend, runs=3000, chunk=1500):
+    est = BufferedEstimator(kind="buffered", backend=backend)
+    d = engine.simulate(s, ch, [est], engine.DistributionReducer(M, [H]), steps=[H], runs=runs, horizon=H,
+                        seed=3, chunk=chunk)
+    m = engine.simulate(s, ch, [est], engine.MomentReducer([H]), steps=[H], runs=runs, horizon=H, seed=3, chunk=chunk)
+    return d, m
 
 
 @pytest.mark.parametrize("name", list(CASES))
-def test_numba_equals_numpy_on_identical_random_inputs(name):
-    s, ch, span, M, H = CASES[name]
-    runs = 3000  # not a multiple of the block size: the last block is partial
-    ref = buffered_mc_kernel(s, ch, span, H, M, P0=s.P0)
-    fast = buffered_mc_kernel(s, ch, span, H, M, P0=s.P0, backend="numba", threads=2)
-    assert (ref.backend, fast.backend) == ("numpy", "numba")
-    # per-run covariances, bit for bit
-    state, oldest, level = fast.raw(np.random.default_rng(5), runs)
-    P_fast = state[fast._full].transpose(2, 0, 1)
-    P_ref = _reference_P(s, ref, span, np.random.default_rng(5), runs, H)
-    assert np.array_equal(P_fast, P_ref)
-    # P symmetric (by construction) and PSD: λ_min ≥ −1e-12·λ_max
-    lam = np.linalg.eigvalsh(P_fast)
-    assert np.all(lam[:, 0] >= -1e-12 * np.maximum(1.0, lam[:, -1]))
-    # the Monte Carlo statistics on the same chunk stream: sums to 1e-12 (bitwise in practice), counts exact
-    a = ref(np.random.default_rng(7), runs)
-    b = fast(np.random.default_rng(7), runs)
-    assert set(a) == set(b)
-    for k in a:
-        if k in ("count_leq", "n", "overflow"):
-            assert np.array_equal(a[k], b[k]), k
-        else:
-            np.testing.assert_allclose(b[k], a[k], rtol=1e-12, atol=0, err_msg=k)
+def test_numba_equals_numpy_statistics_on_the_same_traces(name):
+    s, ch, M, H = CASES[name]
+    dn, mn = _stats(s, ch, M, H, "numpy")
+    dc, mc = _stats(s, ch, M, H, "numba")
+    assert set(dn) == set(dc) and set(mn) == set(mc)
+    for key in dn:
+        assert np.array_equal(dn[key], dc[key]), key  # counts: identical
+    for key in mn:
+        a, b = np.asarray(mn[key], dtype=float), np.asarray(mc[key], dtype=float)
+        assert np.allclose(a, b, rtol=1e-12, atol=0), key  # sums of P: equal to rounding
 
 
-def test_process_pool_after_parallel_use_equals_numpy():
-    """The kernel pickles, and a process pool forked AFTER the parent ran the threaded kernel works
-    (workers run the single-threaded variant) and gives the numpy reference's statistics."""
-    s, ch, span, M, H = CASES["scalar"]
-    fast = buffered_mc_kernel(s, ch, span, H, M, backend="numba")
-    fast = pickle.loads(pickle.dumps(fast))
-    a = run_chunked(buffered_mc_kernel(s, ch, span, H, M), 2500, 1000, 3)
-    b = run_chunked(fast, 2500, 1000, 3)  # parent: threaded variant
+def test_serial_and_parallel_kernels_agree():
+    s, ch, _, H = CASES["vehicle_pairs"]
+    tr = ch.sample_trace(np.random.default_rng(1), 2000, H)
+    from netkf_cli.channels.delay import kept_by, trace_delays, trace_max_kept_delay
+
+    a = availability(kept_by(trace_delays(tr), H, trace_max_kept_delay(tr)), 2)
+    f = kalman.Filter.of(s, 1)
+    P0 = s.P0 if s.P0 is not None else np.eye(4)
+    Ps, fs = bn.filtered(f.A, f.C, f.Q, f.R, P0, a, f.rescue.limit, threads=1)
+    Pp, fp = bn.filtered(f.A, f.C, f.Q, f.R, P0, a, f.rescue.limit)
+    assert not fs.any() and np.array_equal(fs, fp) and np.array_equal(Ps, Pp)
+    ref = mkf(f, np.repeat(P0[:, :, None], a.shape[1], axis=2), a)
+    assert np.allclose(Ps, ref, rtol=1e-12, atol=1e-15)
+
+
+def test_flagged_runs_are_the_numpy_cores():
+    """A = diag(10, 0.5): the Rescue flags a run once an outage drives tr P⁻ past 2e8 (≥ 4 lost packets in
+    a row); the kernel leaves those runs and the numpy core redoes them (bitwise the numpy path's).
+    A = diag(1e6, 0.5) flags every run at every step (P⁻_11 ≥ 1e12): all of them are the numpy core's."""
+    s = LinearSystem.create(np.diag([10.0, 0.5]), np.eye(2), np.eye(2), np.eye(2))
+    tr = bernoulli(0.7).sample_trace(np.random.default_rng(2), 500, 60)
+    f = kalman.Filter.of(s, 1)
+    a = tr.arrival[0]
+    _, flag = bn.filtered(f.A, f.C, f.Q, f.R, np.eye(2), a, f.rescue.limit, threads=1)
+    assert flag.any() and not flag.all()
+    with np.errstate(all="ignore"):
+        (_, Pn), = BufferedEstimator(kind="buffered", backend="numpy").covariances(s, tr, [60])
+        (_, Pc), = BufferedEstimator(kind="buffered", backend="numba").covariances(s, tr, [60])
+    assert np.array_equal(Pn["filtered"][:, :, flag], Pc["filtered"][:, :, flag])
+    ok = ~flag
+    # the others to rounding: the update P⁻ − P⁻Cᵀ S⁻¹ C P⁻ loses ~ε·‖P⁻‖/‖R‖ digits, and unflagged
+    # priors reach limit = 2e8, so relative to each run's largest entry 1e-16·2e8 = 2e-8 bounds it
+    a, b = Pn["filtered"][:, :, ok], Pc["filtered"][:, :, ok]
+    assert np.all(np.abs(a - b).max(axis=(0, 1)) <= 2e-8 * np.abs(a).max(axis=(0, 1)))
+
+
+def test_process_pool_equals_numpy():
+    s, ch, M, H = CASES["scalar"]
+    ref, _ = _stats(s, ch, M, H, "numpy", runs=2000, chunk=500)
     with execution("process", jobs=2):
-        c = run_chunked(fast, 2500, 1000, 3)
-    for k in a:
-        np.testing.assert_allclose(b[k], a[k], rtol=1e-12, atol=0, err_msg=k)
-        np.testing.assert_array_equal(c[k], b[k], err_msg=k)
-
-
-@pytest.mark.filterwarnings("ignore::RuntimeWarning")
-def test_overflow_is_counted_like_numpy():
-    """An unstable mode (a = 10) seen through rare packets: P overflows to inf/NaN in the runs with no
-    packet for ~150 steps (about 20%), and those runs are counted as overflow and as P ≰ M."""
-    s = LinearSystem.create(np.diag([10.0, 0.5]), np.array([[1.0, 0.0]]), np.eye(2), 1.0)
-    ch = bernoulli(0.01)
-    ref = buffered_mc_kernel(s, ch, 1, 200, [2.0, 10.0], P0=np.eye(2))
-    fast = buffered_mc_kernel(s, ch, 1, 200, [2.0, 10.0], P0=np.eye(2), backend="numba")
-    a, b = ref(np.random.default_rng(1), 500), fast(np.random.default_rng(1), 500)
-    assert 0 < a["overflow"] < 500
-    for k in a:
-        np.testing.assert_allclose(b[k], a[k], rtol=1e-12, atol=0, err_msg=k)
-
-
-def test_parallel_uniforms_are_the_sequential_stream():
-    r1, r2 = np.random.default_rng(9), np.random.default_rng(9)
-    U = bn.chunk_uniforms(r1, 50, 9001, threads=3)
-    assert np.array_equal(U, np.stack([r2.random(9001) for _ in range(50)]))
-    assert r1.random() == r2.random()  # the generator ends in the same state
-
-
-def test_philox_known_answers():
-    """Philox4x32-10 against the Random123 kat_vectors (Salmon et al. 2011)."""
-    mod = bn.compiled_module(scalar_system(), 1)
-    u = np.uint64
-    kat = [((0, 0, 0, 0, 0, 0), (0x6627E8D5, 0xE169C58D, 0xBC57AC4C, 0x9B00DBD8)),
-           ((0xFFFFFFFF,) * 6, (0x408F276D, 0x41C83B0E, 0xA20BC7C6, 0x6D5451FD)),
-           ((0x243F6A88, 0x85A308D3, 0x13198A2E, 0x03707344, 0xA4093822, 0x299F31D0),
-            (0xD16CFE09, 0x94FDCCEB, 0x5001E420, 0x24126EA1))]
-    for inp, out in kat:
-        assert tuple(int(x) for x in mod.philox4x32(*(u(v) for v in inp))) == out
-
-
-@pytest.mark.parametrize("name", ["scalar", "vehicle_pairs"])
-def test_philox_backend_agrees_statistically(name):
-    """Different streams, same law: |p̂_philox − p̂_numpy| ≤ 5·√(p₁(1−p₁)/n + p₂(1−p₂)/n) + 1/n per M
-    (two independent binomial proportions), and E[tr P_k] within 5 combined standard errors."""
-    s, ch, span, M, H = CASES[name]
-    n = 40_000
-    a = run_chunked(buffered_mc_kernel(s, ch, span, H, M), n, 20_000, 1)
-    b = run_chunked(buffered_mc_kernel(s, ch, span, H, M, backend="numba_philox"), n, 20_000, 2)
-    p1, p2 = a["count_leq"] / n, b["count_leq"] / n
-    assert np.all(np.abs(p1 - p2) <= 5 * np.sqrt((p1 * (1 - p1) + p2 * (1 - p2)) / n) + 1.0 / n)
-    m1, m2 = a["sum_trace"] / n, b["sum_trace"] / n
-    v1, v2 = a["sumsq_trace"] / n - m1**2, b["sumsq_trace"] / n - m2**2
-    assert abs(m1 - m2) <= 5 * np.sqrt((v1 + v2) / n)
-    if name == "scalar":  # deterministic for a seed, whatever the thread count (serial variant here)
-        c = run_chunked(buffered_mc_kernel(s, ch, span, H, M, backend="numba_philox", threads=1), n, 20_000, 2)
-        assert all(np.array_equal(b[x], c[x]) for x in b)
+        got, _ = _stats(s, ch, M, H, "numba", runs=2000, chunk=500)
+    for key in ref:
+        assert np.array_equal(ref[key], got[key]), key
 
 
 def test_backend_field_and_auto():
-    """Issue 15.3: ``auto`` is the default and picks the compiled kernel when numba imports."""
+    s = vehicle_system()
     est = BufferedEstimator(kind="buffered")
-    assert est.backend == "auto"
-    assert BufferedEstimator(kind="buffered", backend="numpy").backend == "numpy"
-    with pytest.raises(ValueError):
-        BufferedEstimator(kind="buffered", backend="cuda")
-    s = scalar_system()
-    assert bn.resolve_backend("auto", s) == "numba"
-    k = buffered_mc_kernel(s, poisson(2, 3), 1, 10, [1.0], backend=est.backend)
-    assert k.backend == "numba" and est.resolved_backend(s) == "numba"
-    ref = buffered_mc_kernel(s, poisson(2, 3), 1, 10, [1.0], backend="numpy")
-    a, b = ref(np.random.default_rng(0), 300), k(np.random.default_rng(0), 300)
-    assert all(np.array_equal(a[x], b[x]) for x in a)  # same uniforms ⇒ identical statistics
-
-
-def test_auto_falls_back_to_numpy_when_numba_is_hidden(monkeypatch):
-    """``import numba`` fails (sys.modules entry None ⇒ ImportError): auto → numpy, explicit numba → error."""
-    import sys
-
-    monkeypatch.setitem(sys.modules, "numba", None)
-    assert not bn.numba_available()
-    s = scalar_system()
-    k = buffered_mc_kernel(s, poisson(2, 3), 1, 10, [1.0], backend="auto")
-    assert k.backend == "numpy" and type(k).__name__ == "BufferedMCKernel"
-    assert BufferedEstimator(kind="buffered").resolved_backend(s) == "numpy"
-    with pytest.raises(bn.NumbaUnavailable):
-        buffered_mc_kernel(s, poisson(2, 3), 1, 10, [1.0], backend="numba")
-
-
-def test_auto_is_numpy_for_more_than_two_outputs():
-    s = LinearSystem.create(np.eye(3) * 0.9, np.eye(3), np.eye(3), np.eye(3))
-    assert bn.resolve_backend("auto", s) == "numpy"
-
-
-def test_philox_uniforms_are_the_kernel_stream():
-    """philox_uniforms (used to hand a chunk to the numpy reference) reproduces the in-kernel stream:
-    the numpy MKF on those uniforms gives the compiled philox kernel's P_k bit for bit."""
-    s, ch, span, M, H = CASES["vehicle_pairs"]
-    runs = 700
-    fast = buffered_mc_kernel(s, ch, span, H, M, backend="numba_philox", threads=1)
-    state, oldest, _ = fast.raw(np.random.default_rng(3), runs)
-    k0, k1 = (np.uint64(x) for x in np.random.default_rng(3).integers(0, 1 << 32, size=2, dtype=np.uint64))
-    U = np.empty((H, runs))
-    bn.compiled_module(s, span, fast.block).philox_uniforms(k0, k1, H, runs, U)
-    ref = buffered_mc_kernel(s, ch, span, H, M, backend="numpy")
-    mkf, old_ref = ref.run_uniforms(U, runs)
-    assert np.array_equal(state[fast._full].transpose(2, 0, 1), mkf.matrices())
-    assert np.array_equal(oldest, old_ref)
-
-
-def test_philox_overflow_chunk_is_handed_to_numpy():
-    """A = diag(1e6, 0.5), C = I, γ = 0.05: the compiled kernel flags the chunk, the numpy reference
-    (information-form rescue) redoes it on the same Philox uniforms; Pr[P_k ≤ M] within 5 s.e. of 0.05."""
-    s = LinearSystem.create(np.diag([1e6, 0.5]), np.eye(2), np.eye(2), np.eye(2))
-    n = 8000
-    k = buffered_mc_kernel(s, bernoulli(0.05), 1, 100, [2.0], backend="numba_philox", threads=1)
-    st = run_chunked(k, n, 4000, 2)
-    assert k.last_flagged > 0 and st["nonfinite"] == 0 and st["rescued"] > 0
-    assert abs(st["count_leq"][0] / n - 0.05) <= 5 * np.sqrt(0.05 * 0.95 / n)
+    assert est.backend == "auto" and est.resolved_backend(s) == "numba"
+    assert BufferedEstimator(kind="buffered", backend="numpy").resolved_backend(s) == "numpy"

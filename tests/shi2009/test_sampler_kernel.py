@@ -1,4 +1,5 @@
-"""Delay sampler (inverse CDF), kept indicators, and the batched MKF kernel against references."""
+"""Delay sampler (inverse CDF), kept indicators, and the MKF over the time-k view (on the Kalman core)
+against per-run references."""
 
 import numpy as np
 import pytest
@@ -6,10 +7,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from netkf_cli import riccati
-from netkf_cli.channels.delay import (LOST, arrivals_now, cdf_table, delays_from_uniforms, kept_at,
+from netkf_cli.channels.delay import (LOST, arrivals_now, cdf_table, delays_from_uniforms, kept_at,  # noqa: F401
                                       kept_thresholds, sample_capped_delays)
-from netkf_cli.estimators.buffered import (MKFBatch, availability, buffered_mc_kernel, covariance_from_kept,
-                                           leq_threshold)
+from netkf_cli import kalman
+from netkf_cli.estimators.buffered import BufferedEstimator, availability, covariance_from_kept, mkf
 from netkf_cli.system import LinearSystem
 
 from ._systems import bernoulli, pmf, poisson, scalar_system, vehicle_system
@@ -86,73 +87,57 @@ def _random_system(draw, n, m):
 @settings(max_examples=25, deadline=None)
 @given(st.data(), st.integers(1, 4), st.integers(1, 3))
 def test_batched_mkf_equals_per_run_loop(data, n, m):
-    """The entry-wise batched MKF equals the plain loop for random systems (any n, m; m ≤ 2 closed form)."""
+    """The MKF on the core (``kalman.Filter.step`` with γ_t = a_t) equals the plain loop (riccati.h /
+    g̃) for random systems, any n, m."""
     s, rng = _random_system(data.draw, n, m)
     runs, T = 7, 12
     avail = rng.random((T, runs)) < 0.6
-    mkf = MKFBatch(s, runs)
     P0 = np.eye(n) * 0.5
-    mkf.set(P0)
-    for t in range(T):
-        mkf.step(avail[t])
-    got = mkf.matrices()
+    got = mkf(kalman.Filter.of(s, 1), np.repeat(P0[:, :, None], runs, axis=2), avail)
     for r in range(runs):
         ref, big = _loop_mkf(s, P0, avail[:, r])
         # both paths round differently; the error is ~ machine eps × the largest prior met
-        assert np.allclose(got[r], ref, rtol=1e-8, atol=1e-11 * big)
-        assert np.array_equal(got[r], got[r].T)
-        assert np.linalg.eigvalsh(got[r])[0] >= -1e-11 * big
+        assert np.allclose(got[:, :, r], ref, rtol=1e-8, atol=1e-11 * big)
+        assert np.array_equal(got[:, :, r], got[:, :, r].T)
+        assert np.linalg.eigvalsh(got[:, :, r])[0] >= -1e-11 * big
 
 
 def test_all_packets_kept_gives_the_standard_filter():
     """γ ≡ 1 ⇒ the MKF is the Kalman filter: P_k → P̄ = g̃(P*) (scipy DARE)."""
     for s in (scalar_system(), vehicle_system()):
-        mkf = covariance_from_kept(s, np.ones((200, 3), dtype=bool), 1, P0=np.eye(s.n))
-        assert np.allclose(mkf.matrices(), riccati.pbar(s)[None], rtol=1e-9, atol=1e-12)
+        P = covariance_from_kept(s, np.ones((200, 3), dtype=bool), 1, P0=np.eye(s.n))
+        assert np.allclose(P, riccati.pbar(s)[:, :, None], rtol=1e-9, atol=1e-12)
 
 
 def test_overflow_is_counted_not_nan():
-    """An unstable run with no packets overflows to ∞: λ_max = ∞, counted as P ≰ M (never NaN)."""
+    """An unstable run with no packets overflows to ∞ in every entry (the core's Rescue policy):
+    λ_max = ∞, counted as P ≰ M (never NaN); a run that keeps receiving stays finite."""
     s = LinearSystem.create(np.diag([3.0, 2.0]), np.eye(2), np.eye(2), np.eye(2))
-    mkf = MKFBatch(s, 2)
-    mkf.set(np.eye(2))
     with np.errstate(all="ignore"):
-        for _ in range(800):
-            mkf.step(np.array([False, True]))
-    lam = mkf.lam_max()
-    assert np.isinf(lam[0]) and np.isfinite(lam[1])
+        P = covariance_from_kept(s, np.tile(np.array([[False, True]]), (800, 1)), 1, P0=np.eye(2))
+    assert np.all(np.isinf(P[:, :, 0])) and np.all(np.isfinite(P[:, :, 1]))
     s1 = LinearSystem.create(3.0, 1, 1, 1)
-    m1 = MKFBatch(s1, 1)
-    m1.set(np.eye(1))
     with np.errstate(all="ignore"):
-        for _ in range(800):
-            m1.step(np.array([False]))
-        assert np.isinf(m1.lam_max()[0])
-        m1.step(np.array([True]))  # information form recovers exactly r/c²
-    assert m1.lam_max()[0] == pytest.approx(1.0)
+        P1 = covariance_from_kept(s1, np.zeros((800, 1), dtype=bool), 1, P0=np.eye(1))
+    assert np.isinf(P1).all() and not np.isnan(P1).any()
 
 
 @pytest.mark.parametrize("which", ["scalar", "vehicle"])
-def test_kernel_equals_reference_on_the_same_delays(which):
-    """The hot kernel (u < F(min(age, D_max))) gives exactly the P_k of the reference path
-    (delays from the same uniforms → kept_at → covariance_from_kept)."""
+def test_covariances_equal_reference_on_the_same_delays(which):
+    """sample_trace + covariances([k]) (prefix pass, compiled or numpy) give the P_k of the reference
+    path (delays from the same uniforms → kept_at → covariance_from_kept)."""
     s, ch, span = (scalar_system(), poisson(5, 10), 1) if which == "scalar" else (vehicle_system(), poisson(3, 5), 2)
     runs, k = 500, 40
-    M = np.array([0.5, 2.0, 10.0]) if which == "scalar" else np.array([0.06, 0.1, 0.3])
-    out = buffered_mc_kernel(s, ch, span, k, M)(np.random.default_rng(7), runs)
-    rng = np.random.default_rng(7)
-    u = np.stack([rng.random(runs) for _ in range(k)])
-    delays = delays_from_uniforms(u, cdf_table(ch, 11))
+    tr = ch.sample_trace(np.random.default_rng(7), runs, k)
+    u = np.random.default_rng(7).random((k, runs))
+    delays = delays_from_uniforms(u, cdf_table(ch, k - 1))
     kept = kept_at(delays, k, ch.D, ch.convention)
     ref = covariance_from_kept(s, kept, span)
-    lam = ref.lam_max()
-    assert np.array_equal(out["count_leq"], (lam[:, None] <= leq_threshold(M)[None]).sum(axis=0))
-    assert np.allclose(out["sum_P"], ref.matrices().sum(axis=0), rtol=1e-12)
-    # MKF runs at k: 1 + oldest age arriving exactly now
-    now = arrivals_now(delays, k, ch.D, ch.convention)
-    ages = (k - np.arange(1, k + 1))[:, None]
-    R = 1 + np.max(np.where(now, ages, 0), axis=0)
-    assert out["sum_updates"] == pytest.approx(R.sum())
+    for backend in ("numpy", "auto"):
+        (_, out), = BufferedEstimator(kind="buffered", backend=backend).covariances(s, tr, [k])
+        assert np.allclose(out["filtered"], ref, rtol=1e-12, atol=0), backend
+    (_, out), = BufferedEstimator(kind="buffered", backend="numpy").covariances(s, tr, [k])
+    assert np.array_equal(out["filtered"], ref)  # the numpy path is the same core sequence: bitwise
 
 
 def test_availability_pair_packets():
