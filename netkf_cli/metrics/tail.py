@@ -21,8 +21,10 @@ mixture: never worse than K times plain Monte Carlo). Component 0 alone is plain
 Monte Carlo only (the figure says so).
 
 **Exponent.** φ̂ is the least-squares slope of log p̂ against log M over the tail region (p̂ ≤ ``fit_below``, relative
-standard error ≤ 0.25); its 95 % interval comes from a delete-one-batch jackknife over ``batches`` independent run
-batches (Student t with batches − 1 degrees of freedom), which accounts for the correlation between thresholds.
+standard error ≤ 0.25); its 95 % interval is the delete-one-batch jackknife over ``batches`` independent run batches
+(Student t with batches − 1 degrees of freedom: it accounts for the correlation between thresholds) widened by the
+staircase allowance |φ̂|·2 log ρ(A)/Δ (burst lengths are integers, so the law is a staircase of step 2 log ρ in log M;
+over a fitted log-range Δ a line through it can tilt by that much at any sample size).
 The theoretical φ is attached for the ``kf`` estimator where a theorem (or the derived degenerate 2×2 law) gives it
 (:func:`netkf_cli.analysis.critical.tail_exponent`).
 
@@ -352,16 +354,24 @@ class TailMetric(AnalysisModel):
                 theo, why = cr.tail_exponent(s.A, s.C, loss_stay=loss_stay, channel=kind)
             elif loss_stay is None:
                 why = f"no loss-burst law for channel {kind!r}"
-            # IS against plain where both are reliable: plain count ≥ 30 and IS rel. s.e. ≤ 0.25
+            # the exceedance law is a staircase in log M (burst lengths are integers: one step = 2 log ρ(A) in log M,
+            # log(1/s) in log p), so a least-squares line over a log-range Δ can tilt by up to |φ|·2 log ρ/Δ whatever
+            # the sample size: that allowance is added to the statistical half-width of the interval
+            rho = cr.spectral_radius(s.A)
+            span = math.log(M[mask].max() / M[mask].min()) if mask.sum() >= 2 else math.inf
+            stair = abs(slope) * 2 * math.log(rho) / span if (rho > 1 and math.isfinite(slope)) else 0.0
+            half = tq * sej + stair if math.isfinite(sej) else math.nan
+
             both = (cnt0 >= 30) & (rel <= 0.25)
             z = np.abs(p - p0) / np.sqrt(se**2 + se0**2 + 1e-300)
-            fits.append(dict(estimator=lab, exponent_fit=slope, ci_lo=slope - tq * sej if math.isfinite(sej) else np.nan,
-                             ci_hi=slope + tq * sej if math.isfinite(sej) else np.nan, jackknife_se=sej, batches=nb,
+            fits.append(dict(estimator=lab, exponent_fit=slope, ci_lo=slope - half if math.isfinite(half) else np.nan,
+                             ci_hi=slope + half if math.isfinite(half) else np.nan, jackknife_se=sej,
+                             staircase_allowance=stair, batches=nb,
                              fit_points=int(mask.sum()), fit_M_lo=float(M[mask].min()) if mask.any() else np.nan,
                              fit_M_hi=float(M[mask].max()) if mask.any() else np.nan,
                              exponent_theory=np.nan if theo is None else theo, theory_source=why,
-                             theory_in_ci=float(theo is not None and math.isfinite(sej)
-                                                and slope - tq * sej <= theo <= slope + tq * sej),
+                             theory_in_ci=float(theo is not None and math.isfinite(half)
+                                                and slope - half <= theo <= slope + half),
                              is_vs_plain_max_z=float(z[both].max()) if both.any() else np.nan,
                              is_vs_plain_points=int(both.sum())))
         table = pd.DataFrame(rows, columns=["M", "estimator", "series", "value", "stderr", "n", "lo", "hi", "count"])
@@ -374,7 +384,7 @@ class TailMetric(AnalysisModel):
                                         if K > 1 else "off (plain Monte Carlo: no tilt for this channel or importance: false)"),
                 "weight_mean": float(st["wsum"]) / float(st["n_c"].sum()),
                 "exponent_fit": "least squares of log p̂ on log M where p̂ ≤ fit_below and rel. s.e. ≤ 0.25; 95 % "
-                                "interval: delete-one-batch jackknife, Student t"}
+                                "interval: delete-one-batch jackknife (Student t) + staircase allowance |φ|·2 log ρ/Δ"}
         return Artefact(table, meta=meta, extra_tables={"fit": fit})
 
     def plot(self, tables, scenario):

@@ -299,7 +299,7 @@ class CriticalAnalysis(AnalysisModel):
         do_mc = self.monte_carlo and (e is None or e.value is not None)
         n_mc = int(sum(1 for lam in lams if lam > rep.lam_min and lam < 1)) if do_mc else 0
         ctx.total(runs * n_mc)
-        rows = []
+        rows, flags = [], []
         for i, lam in enumerate(lams):
             lam = float(lam)
             base = dict(lam=lam, lambda_min=rep.lam_min, lambda_max=lm.hi)
@@ -318,9 +318,12 @@ class CriticalAnalysis(AnalysisModel):
                                          loss_stay=(1 - lam) ** stay_pow, growth=growth,
                                          lower_bound=trS if math.isfinite(trS) else None)
                 ok = (not r["heavy_tail"]) and r["nonfinite"] == 0 and math.isfinite(r["mean_trace"]) and mr.reliable
-                flag = mr.reason or ("heavy-tailed sample (4th-moment rule)" if r["heavy_tail"] else "")
+                code = (0.0 if ok else 2.0 if mr.reason.startswith("below") else 3.0 if mr.reason.startswith("rare")
+                        else 1.0)
+                flags.append(dict(lam=lam, code=code, reason=mr.reason or ("heavy-tailed sample (4th-moment rule)"
+                                                                             if r["heavy_tail"] else "")))
                 rows.append(dict(base, series="monte_carlo", value=r["mean_trace"] if math.isfinite(r["mean_trace"]) else np.nan,
-                                 stderr=r["stderr"], n=r["n"], reliable=1.0 if ok else 0.0, flag=flag,
+                                 stderr=r["stderr"], n=r["n"], reliable=1.0 if ok else 0.0, flag=code,
                                  missing_fraction=mr.missing_fraction))
         table = pd.DataFrame(rows)
 
@@ -370,7 +373,10 @@ class CriticalAnalysis(AnalysisModel):
                                             "rule), a run overflowed, the mean lies > 3 s.e. below tr S̄, or loss bursts "
                                             "longer than the sample contains carry > 5 % of the mean "
                                             "(analysis.critical.mean_reliability; column flag says which)"},
-                "title": self.title}
+                "title": self.title,
+                "flags": {"codes": "flag: 0 reliable, 1 heavy-tailed (4th-moment rule) or overflow, 2 > 3 s.e. below tr S̄, "
+                                   "3 rare-event dominated (loss bursts longer than the sample contains)",
+                          "rows": flags}}
         return Artefact(table, meta=meta, extra_tables={"rates": rates, "ge": ge, "claims": claims})
 
     @staticmethod
