@@ -17,7 +17,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 # the fork-safe threading layers (tbb, workqueue) do not. A user's own setting wins.
 _os.environ.setdefault("NUMBA_THREADING_LAYER", "forksafe")
 
-__version__ = "0.1.0"
+from netkf_cli._version import __version__  # noqa: E402,F401
 
 
 def load(source, overrides=None):

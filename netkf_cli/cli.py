@@ -26,8 +26,6 @@ from netkf_cli import __version__
 from netkf_cli.errors import ConfigError, NetkfError, Problem
 
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, the shell convention for a command stopped by Ctrl-C
-LARGE_RUN_S = 120.0  # runs expected to take longer than this say so (with an ETA) before starting
-RUN_STEPS_PER_S = 1e7  # rough per-process speed of the covariance recursions, for that ETA only
 _STATE: dict = {"debug": False, "t0": None}
 
 
@@ -211,39 +209,71 @@ def main(
     warnings.showwarning = _show_warning
 
 
+def _split_overrides(args: list[Path] | list[str] | None) -> tuple[list[Path], list[str]]:
+    """Files and ``key=value`` / ``~key`` overrides among positional arguments (an existing file
+    whose name holds ``=`` is a file)."""
+    files, ovs = [], []
+    for a in args or []:
+        t = str(a)
+        if ("=" in t or t.startswith("~")) and not Path(t).is_file():
+            ovs.append(t)
+        else:
+            files.append(Path(t))
+    return files, ovs
+
+
 @app.command()
 @user_errors
 def run(
     config: Annotated[Path, typer.Argument(help="Scenario YAML file.")],
+    overrides: Annotated[Optional[list[str]], typer.Argument(
+        help="Field overrides key=value with dotted paths, e.g. channel.arrival=0.6 montecarlo.runs=2e5 "
+             "'system.A=[[1.1,0],[0,0.9]]' (values read as YAML 1.2); ~key deletes a key.", show_default=False)] = None,
     out_dir: Annotated[Optional[Path], typer.Option("--out", help="Result folder (default: <output.dir>/<name>).")] = None,
     runs: Annotated[Optional[int], typer.Option("--runs", min=1, help="Override the Monte Carlo size.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace an existing result folder.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary instead of text.")] = False,
-    jobs: Annotated[Optional[int], typer.Option("--jobs", "-j", min=1, help="Local processes for Monte Carlo chunks (default: all cores).")] = None,
+    jobs: Annotated[Optional[int], typer.Option("--jobs", "-j", min=1, help="Local processes for Monte Carlo chunks (default and at most: the cores).")] = None,
     executor: Annotated[str, typer.Option("--executor", help="local (process pool on --jobs cores) or dask.")] = "local",
     scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="Dask scheduler address, or 'local' for a LocalCluster.")] = None,
-    resume: Annotated[bool, typer.Option("--resume", help="Reuse the finished chunks of an interrupted run of the same scenario.")] = False,
+    resume: Annotated[bool, typer.Option("--resume", help="Reuse the finished chunks of an interrupted run of the identical scenario.")] = False,
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="Print the resolved scenario, its size, ETA, executor and folder; run and write nothing.")] = False,
+    yes: Annotated[bool, typer.Option("--yes", "-y", help="Accept a run count above montecarlo.max_runs.")] = False,
 ):
     """Run a scenario: write <name>.csv, <name>.png and manifest.json into the result folder."""
     from netkf_cli.loader import load_scenario
-    from netkf_cli.runner import ProgressTotals, result_paths, run_scenario, work_size
+    from netkf_cli.montecarlo import usable_cores
+    from netkf_cli.runner import LARGE_RUN_S, ProgressTotals, duration, plan_run, run_scenario
 
     if executor not in ("local", "dask"):
         raise typer.BadParameter("must be 'local' or 'dask'", param_hint="--executor")
     if scheduler is not None and executor != "dask":
         raise typer.BadParameter("--scheduler goes with --executor dask", param_hint="--scheduler")
-    n_jobs = jobs or os.cpu_count() or 1
+    extra_files, overrides = _split_overrides(overrides)
+    if extra_files:
+        raise typer.BadParameter(f"one scenario file per run; {extra_files[0]} is not a key=value override",
+                                 param_hint="OVERRIDES")
+    cores = usable_cores()
+    n_jobs = jobs or cores
+    remote = executor == "dask" and scheduler not in (None, "local")
+    if n_jobs > cores and not remote:
+        err.print(f"[yellow]note:[/] --jobs {n_jobs} capped at {cores}, the cores of this machine (more processes "
+                  f"would only add memory: each holds its own numpy, numba …)", highlight=False)
+        n_jobs = cores
     mode = "dask" if executor == "dask" else ("process" if n_jobs > 1 else "serial")
-    scenario = load_scenario(config)
-    out_path, cache = result_paths(scenario, out_dir, runs)
-    size = work_size(scenario, runs)
-    eta = size / (RUN_STEPS_PER_S * n_jobs)
-    if eta > LARGE_RUN_S:
-        err.print(f"[yellow]large run:[/] {scenario.name} is about {size:.2g} run-steps (Monte Carlo runs × horizon"
-                  f"{' × sweep points' if scenario.sweep is not None else ''}); rough ETA {_duration(eta)} on {n_jobs} "
-                  f"process{'es' if n_jobs > 1 else ''}. Ctrl-C stops it keeping finished chunks; --resume continues.",
-                  highlight=False)
+    scenario = load_scenario(config, overrides)
+    plan = plan_run(scenario, out_dir=out_dir, runs=runs, force=force, executor=mode, jobs=n_jobs, yes=yes)
+    out_path, cache = plan.out, plan.cache
+    if dry_run:
+        _print_plan(plan, config, overrides, as_json)
+        return
+    if plan.eta_s > LARGE_RUN_S:
+        err.print(f"[yellow]large run:[/] {scenario.name} is about {plan.run_steps:.2g} run-steps (Monte Carlo runs × "
+                  f"horizon{' × sweep points' if scenario.sweep is not None else ''}); rough ETA {duration(plan.eta_s)} "
+                  f"on {n_jobs} process{'es' if n_jobs > 1 else ''}. Ctrl-C stops it keeping finished chunks; "
+                  f"--resume continues.", highlight=False)
+    info: dict = {}
     with _terminate_as_interrupt(), make_progress(quiet or as_json) as prog:
         task = prog.add_task(f"{scenario.name} (Monte Carlo runs)", total=None)
         totals = ProgressTotals(lambda t: prog.update(task, total=t))
@@ -252,28 +282,75 @@ def run(
                 scenario, source=config, out_dir=out_dir, runs=runs, force=force,
                 progress=lambda n: prog.advance(task, n), set_total=totals.set_total, add_total=totals.add_total,
                 executor=mode, jobs=n_jobs, scheduler=scheduler or ("local" if executor == "dask" else None),
-                resume=resume,
+                resume=resume, yes=yes, overrides=overrides, started=command_started(), info=info,
+                notify=lambda msg: err.print("[yellow]note:[/] " + escape(msg), highlight=False),
             )
         except KeyboardInterrupt:
             done = int(prog.tasks[0].completed)
-            again = " ".join(["netkf run", str(config)] + (["--out", str(out_dir)] if out_dir else [])
-                             + (["--runs", str(runs)] if runs else []) + ["--resume"])
+            again = " ".join(["netkf run", _quote(config), *map(_quote, overrides)]
+                             + (["--out", _quote(out_dir)] if out_dir else []) + (["--runs", str(runs)] if runs else [])
+                             + (["--yes"] if yes else []) + ["--resume"])
             what = (f"{done:,} of {totals.total:,} Monte Carlo runs finished" if totals.total and done
                     else "no Monte Carlo run had finished")
             kept = (f"; their chunks are kept in {cache}/ — `{again}` continues from there"
                     if cache.is_dir() and any(cache.rglob("*.npz")) else "; nothing was kept, rerun to start again")
             err.print("[bold red]interrupted:[/] " + escape(f"{what}, {out_path} not written{kept}"), highlight=False)
             raise typer.Exit(EXIT_INTERRUPTED) from None
-    wall = time.perf_counter() - command_started()
     manifest = json.loads((folder / "manifest.json").read_text())
+    reused = (info.get("resume") or {}).get("chunks_reused", 0)
     if as_json:
-        out.print_json(json.dumps({"folder": str(folder), "files": manifest["files"],
-                                   "wall_time_s": round(wall, 3), "compute_time_s": manifest["wall_time_s"],
-                                   "meta": manifest["meta"]}))
+        out.print_json(json.dumps({"folder": str(folder), "files": manifest["files"], "unchanged": info.get("unchanged", False),
+                                   "command_time_s": manifest.get("command_time_s"), "compute_time_s": manifest["wall_time_s"],
+                                   "chunks_reused": reused, "meta": manifest["meta"]}))
         return
     conv = manifest["meta"].get("convention")
-    out.print(f"[green]✓[/] {scenario.name}: wrote {folder}/ ({', '.join(manifest['files'])}) in {wall:.2f} s"
-              + (f"; buffer convention {conv}" if conv else ""), highlight=False)
+    tail = (f"; buffer convention {conv}" if conv else "") + (f"; {reused} chunk{'s' if reused != 1 else ''} reused "
+                                                               f"from the resume cache" if resume else "")
+    if info.get("unchanged"):
+        out.print(f"[green]✓[/] {scenario.name}: {folder}/ already holds this exact result (same scenario, "
+                  f"byte-identical {', '.join(f for f in manifest['files'] if f != 'manifest.json')}); left untouched, "
+                  f"its manifest still records how it was made ({manifest.get('created')})" + tail, highlight=False)
+        return
+    out.print(f"[green]✓[/] {scenario.name}: wrote {folder}/ ({', '.join(manifest['files'])}) in "
+              f"{manifest.get('command_time_s', manifest['wall_time_s']):.2f} s (compute {manifest['wall_time_s']:.2f} s)"
+              + tail, highlight=False)
+
+
+def _quote(x) -> str:
+    import shlex
+
+    return shlex.quote(str(x))
+
+
+def _print_plan(plan, config: Path, overrides: list[str], as_json: bool) -> None:
+    """``--dry-run``: what the run would do, from the same checks the run makes first."""
+    import yaml
+
+    from netkf_cli.runner import duration
+
+    sc = plan.scenario
+    resolved = sc.model_dump(mode="json", by_alias=True, exclude_none=True)
+    info = plan.as_json()
+    if as_json:
+        sys.stdout.write(json.dumps({"scenario": resolved, "overrides": overrides, **info}, indent=2,
+                                    ensure_ascii=False) + "\n")
+        return
+    head = f"# netkf run {config} --dry-run" + (f" (overrides: {' '.join(overrides)})" if overrides else "")
+    out.print(head + "\n" + yaml.safe_dump(resolved, sort_keys=False, allow_unicode=True, default_flow_style=None,
+                                           width=100).rstrip(), highlight=False, markup=False)
+    mc = sc.montecarlo
+    pts = f" × {plan.points} sweep points" if plan.points > 1 else ""
+    lines = [
+        f"size:     {plan.runs:,} Monte Carlo runs × {mc.horizon} steps{pts} ≈ {plan.run_steps:.3g} run-steps; "
+        f"{plan.chunks:,} chunk{'s' if plan.chunks != 1 else ''} of ≤ {mc.chunk:,} runs per Monte Carlo series",
+        f"ETA:      about {duration(plan.eta_s)} (rough: {plan.jobs} process{'es' if plan.jobs > 1 else ''} at ~1e7 "
+        f"run-steps/s each)",
+        f"executor: {plan.executor}" + (f", {plan.jobs} processes" if plan.executor != "serial" else ""),
+        f"writes:   {plan.out}/" + (" (replacing the result there)" if plan.replaces else "")
+        + f"; resume cache {plan.cache}/ while it runs",
+        "dry run: nothing was computed or written.",
+    ]
+    out.print("\n".join(lines), highlight=False, markup=False)
 
 
 @contextlib.contextmanager
@@ -300,30 +377,22 @@ def _terminate_as_interrupt():
             signal.signal(signal.SIGTERM, previous)
 
 
-def _duration(seconds: float) -> str:
-    if seconds < 120:
-        return f"{seconds:.0f} s"
-    if seconds < 7200:
-        return f"{seconds / 60:.0f} min"
-    if seconds < 2 * 86400:
-        return f"{seconds / 3600:.1f} h"
-    if seconds < 2 * 365 * 86400:
-        return f"{seconds / 86400:.0f} days"
-    return f"{seconds / (365 * 86400):.2g} years"
-
-
 @app.command()
 @user_errors
 def validate(
-    configs: Annotated[list[Path], typer.Argument(help="Scenario YAML files.")],
+    configs: Annotated[list[str], typer.Argument(help="Scenario YAML files, then optional key=value overrides "
+                                                      "applied to each (as `netkf run`).")],
 ):
     """Check scenarios without running them (every problem of every file is reported)."""
     from netkf_cli.loader import load_scenario
 
+    files, overrides = _split_overrides(configs)
+    if not files:
+        raise typer.BadParameter("give at least one scenario file", param_hint="CONFIGS")
     problems = []
-    for c in configs:
+    for c in files:
         try:
-            sc = load_scenario(c)
+            sc = load_scenario(c, overrides)
             if sc.sweep is not None:  # every sweep point is validated too, as `run` does first
                 from netkf_cli import sweep
                 from netkf_cli.loader import locate
@@ -376,6 +445,9 @@ def list_kinds(
             elif fam == "estimator":
                 out.print(f"  {'':<22} accepts: {', '.join(e['accepts']) or '—'}; channels: {', '.join(e['channels']) or '—'}",
                           highlight=False, markup=False)
+                if e.get("quantities"):
+                    out.print(f"  {'':<22} reports (analysis.quantity): {'; '.join(e['quantities'].values())}",
+                              highlight=False, markup=False)
             elif e.get("generic"):
                 out.print(f"  {'':<22} generic metric: {e['works_with']}", highlight=False, markup=False)
             if kind is not None or len(entries) == 1:

@@ -17,12 +17,10 @@ order to the same bits for any executor (:mod:`netkf_cli.montecarlo`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from netkf_cli import batched
-from netkf_cli.compat import check_pair
+from netkf_cli.errors import ConfigError
 from netkf_cli.montecarlo import run_chunked
 from netkf_cli.stats import MeanSummary, central4, heavy_tail_flag, mean_se, rare_event_flag  # noqa: F401 (re-exported)
 from netkf_cli.tolerances import HEAVY_TAIL_RSE  # noqa: F401 (re-exported)
@@ -34,7 +32,7 @@ def covariances(estimator, system, trace, steps, quantity: str = "filtered"):
     ``w`` is ``None``, or the per-run importance weights (runs,) of a variance-reduced estimator
     (E[w] = 1): every statistic is then a mean of w·x (unbiased), its standard error that of w·x.
     """
-    import inspect  # TRANSITION (removed when every estimator is on the core contract)
+    import inspect  # noqa: PLC0415 — TRANSITION (removed when every estimator is on the core contract)
 
     if "quantities" not in inspect.signature(estimator.covariances).parameters:
         for k, P in estimator.covariances(system, trace, steps):
@@ -42,6 +40,17 @@ def covariances(estimator, system, trace, steps, quantity: str = "filtered"):
         return
     for k, out in estimator.covariances(system, trace, steps, (quantity,)):
         yield k, out[quantity], out.get("weight")
+
+
+def _check_pair(channel, estimator) -> None:
+    """The engine's own guard (the loader's ``netkf validate`` gives the full message with the compatible kinds):
+    the estimator must read a trace field the channel samples."""
+    acc = getattr(estimator, "accepts", frozenset())
+    tk = getattr(channel, "trace_kinds", frozenset())
+    if not (acc & tk):
+        raise ConfigError.at("estimator.kind", f"estimator {estimator.kind!r} needs a channel providing "
+                                               f"{'/'.join(sorted(acc)) or 'a trace'}, but channel {channel.kind!r} "
+                                               f"provides {'/'.join(sorted(tk)) or 'no trace'}")
 
 
 class DistributionReducer:
@@ -151,7 +160,7 @@ def simulate(system, channel, estimators, reducer, *, steps, runs: int, horizon:
              stream: int = 0, progress=None, label: str = "", quantity: str = "filtered") -> dict:
     """Run the generic kernel over all chunks (on the current executor) and return summed statistics."""
     for es in estimators:
-        check_pair(channel, es)
+        _check_pair(channel, es)
         es.check(system, channel)
     kernel = PairKernel(system, channel, estimators, horizon, steps, reducer, quantity)
     return run_chunked(kernel, runs, chunk, seed, stream=stream, progress=progress, label=label)

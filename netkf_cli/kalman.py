@@ -274,19 +274,105 @@ class Filter:
             return Pm, self.correct(Pm, gamma_t)
 
     def run(self, P0: np.ndarray, gamma: np.ndarray, steps: Iterable[int],
-            quantities: Iterable[str] = ("filtered",)) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
+            quantities: Iterable[str] = ("filtered",), backend: str = "numpy") -> Iterator[tuple[int, dict[str, np.ndarray]]]:
         """Yield (k, {quantity: P}) for k in ``steps``: ``gamma`` (S, horizon, runs), step k uses
-        gamma[:, k − 1]; ``filtered`` = P_{k|k}, ``predicted`` = P_{k+1|k} = A P_{k|k} Aᵀ + Q."""
+        gamma[:, k − 1]; ``filtered`` = P_{k|k}, ``predicted`` = P_{k+1|k} = A P_{k|k} Aᵀ + Q.
+        ``backend`` numba runs :func:`netkf_cli.kalman_numba.filter_advance` (the same equations
+        compiled; runs the rescue flags are redone here, so the rescue policy is this module's)."""
         qs = check_quantities(quantities, ("filtered", "predicted"))
         want = sorted(set(int(k) for k in steps))
         runs = gamma.shape[-1]
         P = np.repeat(np.asarray(P0, dtype=float)[:, :, None], runs, axis=2) if P0.ndim == 2 else P0
+        if backend == "numba" and self.sequential:
+            yield from self._run_compiled(P, gamma, want, qs)
+            return
         t = 0
         for k in want:
             while t < k:
                 _, P = self.step(P, gamma[:, t])
                 t += 1
             yield k, report(P, qs, self.A, self.Q)
+
+    def _run_compiled(self, P, gamma, want, qs):
+        """The numba path of :meth:`run`: a kernel generated for this system where it can be
+        (:mod:`netkf_cli.kalman_codegen`: n ≤ 6, sensor groups of ≤ 2 rows), the generic compiled
+        step otherwise; runs flagged by the rescue test continue on the numpy core from their start."""
+        from netkf_cli import kalman_codegen as kc  # optional dependency (numba)
+        from netkf_cli import kalman_numba as kn
+
+        n = self.A.shape[0]
+        P = np.array(P, dtype=float, order="C")
+        P_init = P.copy()  # the flagged runs restart from their own P0
+        flag = np.zeros(P.shape[-1], dtype=np.bool_)
+        if kc.supported(n, self.groups):
+            adv = kc.kernel(self.A, self.C, self.Q, self.R, self.groups, self.rescue.limit)
+            T = kc.pack(P)
+            gam = np.ascontiguousarray(gamma)
+
+            def advance(t0, t1):
+                adv(T, gam, t0, t1, flag)
+                return kc.unpack(T, n)
+        else:
+            if any(list(g) != list(range(g[0], g[0] + len(g))) for g in self.groups):
+                raise ValueError("compiled filter: sensor groups must be contiguous rows")
+            gam_r = np.ascontiguousarray(gamma.transpose(2, 0, 1))  # run-major for the compiled loop
+            starts = np.array([g[0] for g in self.groups], dtype=np.int64)
+            lens = np.array([len(g) for g in self.groups], dtype=np.int64)
+
+            def advance(t0, t1):
+                kn.filter_advance(P, self.A, self.C, self.Q, self.R, gam_r, starts, lens, t0, t1, self.rescue.limit, flag)
+                return P.copy()
+
+        idx = np.zeros(0, dtype=np.int64)  # runs on the numpy core
+        Pn = P[:, :, :0]
+        t = 0
+        for k in want:
+            out = advance(t, k)
+            new = np.setdiff1d(np.flatnonzero(flag), idx)
+            for tt in range(t, k):  # runs already on the numpy core: one step at a time
+                _, Pn = self.step(Pn, gamma[:, tt][:, idx])
+            if new.size:  # newly flagged: the numpy core from their P0 up to k
+                Pnew = P_init[:, :, new]
+                for tt in range(k):
+                    _, Pnew = self.step(Pnew, gamma[:, tt][:, new])
+                idx, Pn = np.concatenate([idx, new]), np.concatenate([Pn, Pnew], axis=2)
+                order = np.argsort(idx)
+                idx, Pn = idx[order], Pn[:, :, order]
+            t = k
+            if idx.size:
+                out[:, :, idx] = Pn
+            yield k, report(out, qs, self.A, self.Q)
+
+
+AUTO_MIN_RUN_STEPS = 2_000_000
+"""``backend: auto`` compiles only chunks of at least this many run-steps (a default chunk of 20 000
+runs × 100 steps): a new system's kernel costs ~2 s to generate and compile once per machine, then
+~1 s to load per process, which the compiled recursion (~10× the numpy core, benchmarks/) repays
+within the first few such chunks; small test-sized runs stay on numpy."""
+
+
+def numba_available() -> bool:
+    """numba importable (an optional dependency: where it is missing, everything runs on numpy)."""
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def choose_backend(backend: str, f: "Filter", run_steps: int, path: str = "estimator.backend") -> str:
+    """The backend that runs: ``numpy``; ``numba`` (refused with a message when numba is missing or the
+    recursion is not sequential); ``auto`` = numba when importable, the sensors are independent
+    (block-diagonal R) and the batch has ≥ AUTO_MIN_RUN_STEPS run-steps, else numpy."""
+    if backend == "numpy":
+        return "numpy"
+    ok = numba_available() and f.sequential
+    if backend == "numba":
+        if not ok:
+            raise ConfigError.at(path, "backend numba needs numba installed and independent sensors (R block-diagonal "
+                                       "across the channel's streams); use backend: numpy or auto")
+        return "numba"
+    return "numba" if ok and run_steps >= AUTO_MIN_RUN_STEPS else "numpy"
 
 
 def report(P_filtered: np.ndarray, quantities: tuple[str, ...], A: np.ndarray, Q: np.ndarray) -> dict[str, np.ndarray]:
@@ -315,3 +401,110 @@ def check_quantities(quantities: Iterable[str], offered: Iterable[str], who: str
 def one(fn, P: np.ndarray, *args, **kw) -> np.ndarray:
     """Apply a batched primitive to a single (n, n) matrix (runs = 1)."""
     return fn(np.asarray(P, dtype=float)[:, :, None], *args, **kw)[:, :, 0]
+
+
+# ----------------------------------------------------------------------------------------------
+# appended (issue 19, the fading receivers): the rescue with per-run added measurement noise
+# ----------------------------------------------------------------------------------------------
+
+def rescue_noisy(rescue: Rescue, P: np.ndarray, Pm: np.ndarray, flagged: np.ndarray, gamma: np.ndarray,
+                 extra_R: np.ndarray) -> np.ndarray:
+    """:meth:`Rescue.apply` for one packet carrying all of y_k with noise R + ``extra_R`` (m, m, runs)
+    per run (communication noise on top of the sensor noise; Mostofi & Murray 2009 eqs 27–28,
+    σ_z² = σ_n² I + R): flagged runs with a finite prior whose packet arrived (``gamma`` (runs,))
+    are redone as (P⁻⁻¹ + Cᵀ (R + extra_R)⁻¹ C)⁻¹ (:func:`information_update`); a run non-finite
+    after the step is ``inf``. With ``extra_R`` = 0 this is :meth:`Rescue.apply` with every row arrived."""
+    idx = np.flatnonzero(flagged)
+    if idx.size == 0:
+        return P
+    P = P.copy()
+    prior = Pm[:, :, idx]
+    redo = np.isfinite(prior).all(axis=(0, 1)) & (np.asarray(gamma)[idx] > 0)
+    if redo.any():
+        C = rescue.C
+        Rt = rescue.R[:, :, None] + extra_R[:, :, idx[redo]]
+        Ct = np.broadcast_to(C[:, :, None], C.shape + (int(redo.sum()),))
+        RiC = np.moveaxis(np.linalg.solve(np.moveaxis(Rt, -1, 0), np.moveaxis(Ct, -1, 0)), 0, -1)
+        info = np.einsum("min,mjn->ijn", Ct, RiC)
+        P[:, :, idx[redo]] = information_update(prior[:, :, redo], info)
+    bad = idx[~np.isfinite(P[:, :, idx]).all(axis=(0, 1))]
+    P[:, :, bad] = np.inf
+    return P
+
+
+# ----------------------------------------------------------------------------------------------
+# appended (issue 19, the Markov-mode filters): the update when an innovation can have zero variance
+# ----------------------------------------------------------------------------------------------
+
+def update_pinv(P: np.ndarray, C: np.ndarray, R: np.ndarray, floor: np.ndarray,
+                innov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """(P − P Cᵀ S⁺ C P, P Cᵀ S⁺ e) per run, S = C P Cᵀ + R, where S⁺ gives zero gain to innovation
+    directions whose variance is ≤ ``floor`` (runs,): a measurement the receiver already knows carries
+    no information (a held packet or an already-known delayed one, Moayedi, Soh & Foo 2009 modes 2
+    and 4, where R = 0 and S can vanish). ``innov`` (m, runs) is the innovation e (the second output
+    is then the state correction K e; else None).
+
+    A run whose S is regular (every pivot below > floor) is :func:`update` / :func:`gain` bit for bit.
+    Otherwise S⁺ is the generalized inverse of symmetric pivoted elimination: the rows of the
+    measurement are decorrelated one at a time (pivot = the largest remaining innovation variance s,
+    P ← P − b bᵀ / s with b the pivot row of the residual C P — the sequential scalar update,
+    Anderson & Moore 1979 §6.4), stopping when s ≤ floor. Any generalized inverse gives the same
+    update when the remaining rows are exactly redundant (their residual variance is 0).
+    """
+    floor = np.broadcast_to(np.asarray(floor, dtype=float), (P.shape[-1],))
+    m = C.shape[0]
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        PCt, S = innovation(P, C, R)
+        if m == 1:
+            reg = S[0, 0] > floor
+            Pe, dxe = P, None
+        else:
+            Pe, dxe, reg = _pivoted_update(P, PCt, S, floor, innov)
+        if reg.all():
+            Pf = update(P, C, R)
+            dx = None if innov is None else batched.matmul(gain(P, C, R), innov[:, None, :])[:, 0, :]
+            return Pf, dx
+        Pf = np.array(P if m == 1 else Pe, copy=True)
+        dx = None if innov is None else (np.zeros((P.shape[0], P.shape[-1])) if m == 1 else dxe.copy())
+        idx = np.flatnonzero(reg)
+        if idx.size:
+            Pr = P[:, :, idx]
+            Pf[:, :, idx] = update(Pr, C, R)
+            if innov is not None:
+                dx[:, idx] = batched.matmul(gain(Pr, C, R), innov[:, None, idx])[:, 0, :]
+        return Pf, dx
+
+
+def _pivoted_update(P, PCt, S, floor, innov):
+    """The pivoted sequential update of :func:`update_pinv` for every run: (P_f, K e or None, regular)."""
+    n, runs = P.shape[0], P.shape[-1]
+    m = S.shape[0]
+    S = S.copy()
+    B = PCt.swapaxes(0, 1).copy()  # (m, n, runs): C P
+    e = None if innov is None else np.array(innov, dtype=float, copy=True)
+    out = P.copy()
+    dx = None if innov is None else np.zeros((n, runs))
+    regular = np.ones(runs, dtype=bool)
+    cols = np.arange(runs)
+    idx = np.arange(m)
+    for _ in range(m):
+        diag = S[idx, idx]  # (m, runs); pivoted rows are 0
+        p = np.argmax(diag, axis=0)
+        s = diag[p, cols]
+        ok = s > floor
+        regular &= ok
+        sinv = np.where(ok, 1.0 / np.where(ok, s, 1.0), 0.0)
+        b = B[p, :, cols].T  # (n, runs)
+        out -= b[:, None, :] * b[None, :, :] * sinv
+        f = S[:, p, cols] * sinv  # (m, runs)
+        Sp = S[p, :, cols].T  # (m, runs)
+        S -= f[:, None, :] * Sp[None, :, :]
+        B -= f[:, None, :] * b[None, :, :]
+        if e is not None:
+            ep = e[p, cols]
+            dx += b * (ep * sinv)
+            e -= f * ep
+        S[p, :, cols] = 0.0
+        S[:, p, cols] = 0.0
+        B[p, :, cols] = 0.0
+    return batched.sym(out), dx, regular

@@ -160,3 +160,208 @@ def joseph(P, K, C, R, gamma, out, IKC, tmp):
 def work(n: int, m: int) -> tuple[np.ndarray, ...]:
     """Work arrays for :func:`predict` / :func:`update`: (tmp n×n, PCt n×m, S m×m, X m×n)."""
     return np.empty((n, n)), np.empty((n, m)), np.empty((m, m)), np.empty((m, n))
+
+
+# ----------------------------------------------------------------------------------------------
+# appended (issue 19, the smoother): the information-form update of kalman.Rescue and the RTS step
+# ----------------------------------------------------------------------------------------------
+
+@nb.njit(**_opts)
+def information_update(Pm, info, out, W, Y):
+    """out = (Pm⁻¹ + info)⁻¹, symmetrised: :func:`netkf_cli.kalman.information_update` for one run
+    (the information form of the update, ``info`` = C̃ᵀR̃⁻¹C̃; the rescue of :class:`kalman.Rescue`).
+    ``Pm`` finite; work arrays W, Y (n, n)."""
+    n = Pm.shape[0]
+    for i in range(n):
+        for j in range(n):
+            W[i, j] = Pm[i, j]
+            Y[i, j] = 1.0 if i == j else 0.0
+    solve_inplace(W, Y)  # Y = Pm⁻¹
+    for i in range(n):
+        for j in range(n):
+            W[i, j] = Y[i, j] + info[i, j]
+            out[i, j] = 1.0 if i == j else 0.0
+    solve_inplace(W, out)  # (Pm⁻¹ + info)⁻¹
+    sym(out)
+
+
+@nb.njit(**_opts)
+def smooth(Ps, Pf, Pp, A, out, Jt, D, W):
+    """out = Pf + J (Ps − Pp) Jᵀ, J = Pf Aᵀ Pp⁻¹: one Rauch–Tung–Striebel step,
+    :func:`netkf_cli.kalman.smooth_step` for one run (Ps = P_{t+1|T}, Pf = P_{t|t}, Pp = P_{t+1|t}).
+    ``out`` may not alias the inputs; work arrays Jt, D, W (n, n)."""
+    n = Pf.shape[0]
+    for i in range(n):
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += A[i, k] * Pf[k, j]
+            Jt[i, j] = acc  # A Pf
+            W[i, j] = Pp[i, j]
+            D[i, j] = Ps[i, j] - Pp[i, j]
+    solve_inplace(W, Jt)  # Jᵀ = Pp⁻¹ A Pf
+    for a in range(n):
+        for j in range(n):
+            acc = 0.0
+            for b in range(n):
+                acc += D[a, b] * Jt[b, j]
+            W[a, j] = acc  # (Ps − Pp) Jᵀ
+    for i in range(n):
+        for j in range(n):
+            acc = 0.0
+            for a in range(n):
+                acc += Jt[a, i] * W[a, j]
+            out[i, j] = Pf[i, j] + acc
+    sym(out)
+
+
+# ----------------------------------------------------------------------------------------------
+# appended (issue 19, the fading receivers): the gain alone, for a filter whose covariance is then
+# propagated by :func:`joseph` (a gain computed from another covariance or another R)
+# ----------------------------------------------------------------------------------------------
+
+@nb.njit(**_opts)
+def gain(P, C, R, K, S, X):
+    """K = P Cᵀ (C P Cᵀ + R)⁻¹ for one run: :func:`netkf_cli.kalman.gain` (the optimal gain of the
+    covariance P and noise R; Sinopoli 2004 eq. 9). K (n, m) out; work arrays S (m, m), X (m, n)."""
+    n = P.shape[0]
+    m = C.shape[0]
+    for a in range(m):
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += C[a, k] * P[k, j]
+            X[a, j] = acc  # C P
+    for a in range(m):
+        for b in range(m):
+            acc = R[a, b]
+            for k in range(n):
+                acc += X[a, k] * C[b, k]
+            S[a, b] = acc  # C P Cᵀ + R
+    solve_inplace(S, X)  # S⁻¹ C P = Kᵀ (P, S symmetric)
+    for i in range(n):
+        for a in range(m):
+            K[i, a] = X[a, i]
+
+
+# ----------------------------------------------------------------------------------------------
+# appended (issue 19, the Markov-mode filters): the update when an innovation can have zero variance
+# ----------------------------------------------------------------------------------------------
+
+@nb.njit(**_opts)
+def update_pinv(P, C, R, floor, e, out, dx, S, X):
+    """out = P − P Cᵀ S⁺ C P and dx = P Cᵀ S⁺ e for one run: :func:`netkf_cli.kalman.update_pinv`
+    (S = C P Cᵀ + R; innovation directions of variance ≤ ``floor`` get zero gain). Symmetric pivoted
+    elimination — the sequential scalar update on decorrelated rows, pivot = the largest remaining
+    variance, stop at ≤ floor; for a regular S it is :func:`update` to rounding. ``e`` (m,) is
+    overwritten; work arrays S (m, m), X (m, n)."""
+    n = P.shape[0]
+    m = C.shape[0]
+    for a in range(m):
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += C[a, k] * P[k, j]
+            X[a, j] = acc  # C P
+    for a in range(m):
+        for b in range(m):
+            acc = R[a, b]
+            for k in range(n):
+                acc += X[a, k] * C[b, k]
+            S[a, b] = acc
+    for i in range(n):
+        dx[i] = 0.0
+        for j in range(n):
+            out[i, j] = P[i, j]
+    for _ in range(m):
+        p = -1
+        best = floor
+        for a in range(m):
+            if S[a, a] > best:
+                best = S[a, a]
+                p = a
+        if p < 0:
+            break
+        inv = 1.0 / S[p, p]
+        for i in range(n):
+            bi = X[p, i] * inv
+            dx[i] += bi * e[p]
+            for j in range(i, n):
+                v = out[i, j] - bi * X[p, j]
+                out[i, j] = v
+        for a in range(m):
+            if a != p:
+                f = S[a, p] * inv
+                if f != 0.0:
+                    for c in range(m):
+                        S[a, c] -= f * S[p, c]
+                    for c in range(n):
+                        X[a, c] -= f * X[p, c]
+                    e[a] -= f * e[p]
+        for c in range(m):
+            S[p, c] = 0.0
+            S[c, p] = 0.0
+        for c in range(n):
+            X[p, c] = 0.0
+        e[p] = 0.0
+    for i in range(n):
+        for j in range(i + 1, n):
+            out[j, i] = out[i, j]
+
+
+# ----------------------------------------------------------------------------------------------
+# the compiled filter recursion (kalman.Filter with backend numba)
+# ----------------------------------------------------------------------------------------------
+
+@nb.njit(cache=True, nogil=True)
+def filter_advance(P, A, C, Q, R, gamma, starts, lens, t0, t1, limit, flag):
+    """Advance every run of P (n, n, runs) over trace steps t0 … t1 − 1: predict, then one sequential
+    update per sensor group s (rows starts[s] … starts[s] + lens[s], applied iff gamma[r, s, t]; the
+    arrivals run-major, (runs, S, horizon), so one run's history is contiguous) —
+    :meth:`netkf_cli.kalman.Filter.step` for block-diagonal R, entry by entry. A run whose prior has
+    tr P⁻ > ``limit`` or is non-finite is flagged (``flag[r]``) and left where it was: the numpy core
+    (:class:`netkf_cli.kalman.Rescue`) redoes it, so the rescue policy stays the core's."""
+    n = P.shape[0]
+    runs = P.shape[2]
+    G = starts.shape[0]
+    mmax = 1
+    for s in range(G):
+        if lens[s] > mmax:
+            mmax = lens[s]
+    Pl = np.empty((n, n))
+    Pm = np.empty((n, n))
+    out = np.empty((n, n))
+    tmp = np.empty((n, n))
+    PCt = np.empty((n, mmax))
+    S = np.empty((mmax, mmax))
+    X = np.empty((mmax, n))
+    for r in range(runs):
+        if flag[r]:
+            continue
+        for i in range(n):
+            for j in range(n):
+                Pl[i, j] = P[i, j, r]
+        for t in range(t0, t1):
+            predict(Pl, A, Q, Pm, tmp)
+            tr = 0.0
+            for i in range(n):
+                tr += Pm[i, i]
+            if not (tr <= limit):
+                flag[r] = True
+                break
+            for s in range(G):
+                if gamma[r, s, t]:
+                    a = starts[s]
+                    b = a + lens[s]
+                    mg = lens[s]
+                    update(Pm, C[a:b], R[a:b, a:b], 1.0, out, PCt[:, :mg], S[:mg, :mg], X[:mg])
+                    for i in range(n):
+                        for j in range(n):
+                            Pm[i, j] = out[i, j]
+            for i in range(n):
+                for j in range(n):
+                    Pl[i, j] = Pm[i, j]
+        if not flag[r]:
+            for i in range(n):
+                for j in range(n):
+                    P[i, j, r] = Pl[i, j]

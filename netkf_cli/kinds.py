@@ -57,7 +57,9 @@ def describe() -> dict[str, dict[str, dict]]:
             elif family == "estimator":
                 entry["accepts"] = sorted(getattr(cls, "accepts", ()))
                 entry["channels"] = compatible_channels(cls)
-                entry["quantity"] = getattr(cls, "quantity", "")
+                from netkf_cli.kalman import MEANING
+
+                entry["quantities"] = {q: MEANING[q] for q in getattr(cls, "quantities", ("filtered",))}
             else:
                 entry["generic"] = k in GENERIC_METRICS
                 if k in GENERIC_METRICS:

@@ -65,6 +65,10 @@ class EstimatorModel(StrictModel):
         """The first step k at which ``quantity`` is defined (a lag-N smoother: N)."""
         return 1
 
+    def backend_used(self, system: Any, channel: Any, runs: int, horizon: int) -> str:
+        """The recursion backend a chunk of ``runs`` × ``horizon`` runs on (recorded in the manifest)."""
+        return str(getattr(self, "backend", "numpy"))
+
     def conventions(self, system: Any, channel: Any) -> dict[str, str]:
         """Conventions its numbers depend on, as short ``{name: value}`` labels (default none)."""
         return {}

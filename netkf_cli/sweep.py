@@ -191,13 +191,21 @@ def plot(tables, scenario):
             fixed.append(f"{c} = {first:g}" if isinstance(first, (int, float, np.number)) else f"{c} = {first}")
     fig, ax = new_figure()
     groups = t.groupby(line, sort=True) if line else [(None, t)]
+    flagged_total = 0
     for val, g in groups:
         g = g.sort_values(x)
         label = f"{line} = {val}" if line else series
+        bad = _unreliable(g)  # heavy-tailed / rare-event dominated / not reliable: hollow, off the line
+        flagged_total += int(bad.sum())
+        y = g["value"].where(~bad)
         if "stderr" in g.columns and g["stderr"].notna().any():
-            ax.errorbar(g[x], g["value"], yerr=g["stderr"], marker="o", ms=3, capsize=2, label=label)
+            h = ax.errorbar(g[x], y, yerr=g["stderr"].where(~bad), marker="o", ms=3, capsize=2, label=label)
         else:
-            ax.plot(g[x], g["value"], marker="o", ms=3, label=label)
+            (h,) = ax.plot(g[x], y, marker="o", ms=3, label=label)
+        if bad.any():
+            colour = h[0].get_color() if isinstance(h, tuple) or hasattr(h, "lines") else h.get_color()
+            ax.plot(g[x][bad], g["value"][bad], ls="none", marker="o", ms=6, mfc="none", color=colour,
+                    label=f"{label}: unreliable (flagged in the CSV)")
     if spec.plot.logy:
         ax.set_yscale("log")
     ax.set_xlabel(x)
@@ -206,5 +214,21 @@ def plot(tables, scenario):
     ax.set_title(f"{scenario.name}: {series}" + (f" ({', '.join(where)})" if where else ""), fontsize=10)
     if line:
         ax.legend(fontsize=7, ncol=2)
-    footnote(fig, f"sweep ({spec.mode}) over {', '.join(axes)}; {len(spec.points())} points")
+    footnote(fig, f"sweep ({spec.mode}) over {', '.join(axes)}; {len(spec.points())} points"
+             + (f"; {flagged_total} unreliable points drawn hollow, off the line" if flagged_total else ""))
     return fig
+
+
+def _unreliable(g: pd.DataFrame) -> np.ndarray:
+    """Rows the CSV flags: heavy_tail / rare_event true, or reliable false."""
+    def flag(col, bad_when_true=True):
+        v = g[col].astype(str).str.lower().isin(["true", "1", "1.0"]).to_numpy()
+        return v if bad_when_true else ~v
+
+    bad = np.zeros(len(g), dtype=bool)
+    for col in ("heavy_tail", "rare_event"):
+        if col in g.columns:
+            bad |= flag(col)
+    if "reliable" in g.columns:
+        bad |= flag("reliable", bad_when_true=False)
+    return bad

@@ -117,6 +117,28 @@ def describe(scenario, system, ests, quantity: str) -> list[dict]:
     return [dict(quantity=quantity, P0=p0_label(system), conventions=conventions_label(system, ch, e)) for e in ests]
 
 
+def backends(scenario, system, ests, labs, runs: int, horizon: int) -> dict[str, str]:
+    """Per estimator label, the backend its chunks ran on (a last, smaller chunk may run on another)."""
+    chunk = min(scenario.montecarlo.chunk, runs)
+    sizes = [chunk] + ([runs % chunk] if runs % chunk else [])
+    out = {}
+    for e, lab in zip(ests, labs):
+        used = {n: e.backend_used(system, scenario.channel, n, horizon) for n in sizes}
+        vals = set(used.values())
+        out[lab] = vals.pop() if len(vals) == 1 else ", ".join(f"{b} (chunks of {n} runs)" for n, b in used.items())
+    return out
+
+
+def n_runs_of(stats) -> int:
+    return int(stats["n"])
+
+
+def horizon_of(scenario, metric) -> int:
+    """The horizon the engine simulated for this metric (``at`` for distribution/compare, else the horizon)."""
+    at = getattr(metric, "at", None)
+    return step_of(at, scenario.montecarlo.horizon) if at is not None else scenario.montecarlo.horizon
+
+
 def quantity_text(quantity: str, what: str = "P_k") -> str:
     """Mathtext for a quantity: ``filtered`` → P_{k|k}."""
     sub = {"filtered": "k|k", "predicted": "k+1|k", "smoothed": "k-N|k"}[quantity]

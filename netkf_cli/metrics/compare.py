@@ -19,11 +19,11 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine
-from netkf_cli.metrics.common import (LABEL_COLUMNS, GenericMetric, PaperRef, channel_words, describe, labels, quantity_text,
+from netkf_cli.metrics.common import (backends, horizon_of, n_runs_of, LABEL_COLUMNS, GenericMetric, PaperRef, channel_words, describe, labels, quantity_text,
                                       step_of)
 from netkf_cli.stats import mean_se, proportion_stderr, wilson_interval
 from netkf_cli.plotting import footnote, new_figure, paper_title, series_style
-from netkf_cli.recipes.base import Artefact, RunContext
+from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.spec import PositiveFloat, PositiveInt
 
 COLUMNS = ["estimator", "statistic", "M", "value", "stderr", "ci_low", "ci_high", "n", "heavy_tail", "k"] + LABEL_COLUMNS
@@ -82,6 +82,7 @@ class Compare(GenericMetric):
         return Artefact(pd.DataFrame(rows, columns=COLUMNS),
                         meta={"runs": n, "at": k, "estimators": labs, "reference": labs[0], "quantity": self.quantity,
                               "labels": dict(zip(labs, lab_cols)),
+                              "backends": backends(scenario, s, ests, labs, n_runs_of(st), horizon_of(scenario, self)),
                               "common_random_numbers": "every estimator runs on the same sampled traces"})
 
     def plot(self, tables, scenario):

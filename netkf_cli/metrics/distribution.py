@@ -29,11 +29,11 @@ from pydantic import Field, model_validator
 
 from netkf_cli import engine, riccati
 from netkf_cli.errors import ConfigError
-from netkf_cli.metrics.common import (LABEL_COLUMNS, GenericMetric, MGrid, PaperRef, describe, labels, m_values, needs,
+from netkf_cli.metrics.common import (backends, horizon_of, n_runs_of, LABEL_COLUMNS, GenericMetric, MGrid, PaperRef, describe, labels, m_values, needs,
                                       quantity_text, step_of)
 from netkf_cli.stats import mean_se, proportion_stderr, wilson_interval
 from netkf_cli.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
-from netkf_cli.recipes.base import Artefact, RunContext
+from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.spec import PositiveFloat, PositiveInt
 
 COLUMNS = ["M", "estimator", "series", "value", "stderr", "ci_low", "ci_high", "n", "err", "k"] + LABEL_COLUMNS
@@ -170,6 +170,7 @@ class Distribution(GenericMetric):
         lab_cols = describe(scenario, s, ests, self.quantity)
         rows, curves, meta = [], [], {"at": k, "runs": n, "estimators": labs, "closed_forms": {},
                                       "quantity": self.quantity, "labels": dict(zip(labs, lab_cols)),
+                              "backends": backends(scenario, s, ests, labs, n_runs_of(st), horizon_of(scenario, self)),
                                       "M_means": "M·I_n (PSD order)", "warnings": []}
         for j, (est, lab) in enumerate(zip(ests, labs)):
             cnt = st[f"count_{j}"][0]
@@ -262,7 +263,7 @@ def _channel_text(ch) -> str:
     if ch is None:
         return ""
     if ch.kind in ("delay", "bernoulli"):
-        from netkf_cli.recipes.shi2009_theta import delay_label
+        from netkf_cli.channels.delay import delay_label
 
         keep = {"delay_le_D": r"kept iff delay $\leq D$", "delay_lt_D": r"kept iff delay $< D$ (eq. 4)"}
         conv = getattr(ch, "convention", None)

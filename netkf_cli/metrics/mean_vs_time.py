@@ -19,9 +19,9 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine
-from netkf_cli.metrics.common import LABEL_COLUMNS, GenericMetric, PaperRef, describe, labels, quantity_text
+from netkf_cli.metrics.common import backends, horizon_of, n_runs_of, LABEL_COLUMNS, GenericMetric, PaperRef, describe, labels, quantity_text
 from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
-from netkf_cli.recipes.base import Artefact, RunContext
+from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.spec import PositiveInt
 
 ONE = {"trace": r"$\mathrm{tr}\,P_k$", "lambda_max": r"$\lambda_{\max}(P_k)$", "entries": r"$P_k$ entries"}
@@ -84,6 +84,7 @@ class MeanVsTime(GenericMetric):
         table = pd.DataFrame(rows, columns=COLUMNS)
         return Artefact(table, meta={"runs": int(st["n"]), "estimators": labs, "steps": f"{ks[0]}…{ks[-1]}",
                                      "quantity": self.quantity, "labels": dict(zip(labs, lab_cols)),
+                              "backends": backends(scenario, s, ests, labs, n_runs_of(st), horizon_of(scenario, self)),
                                      "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE} "
                                                         f"or any non-finite run",
                                      "rare_event_rule": "one run carries more than half of the sum", "warnings": warnings_})

@@ -1,0 +1,172 @@
+"""The Kalman core compiled per system: generated numba kernels of :meth:`kalman.Filter.step`.
+
+For a given (A, C, Q, R, sensor groups) the filter's step is written out as scalar expressions with
+the system's numbers as constants (zeros skipped, ones dropped), over the upper triangle of P kept
+as one contiguous array per entry with the run axis innermost — design.md's fast layout — and the
+inner loop over runs is branch-free (a lost packet multiplies the correction by γ = 0), so the
+compiler vectorizes it. The equations are exactly the core's:
+
+    predict  M = A P Aᵀ + Q
+    update   per sensor group g (rows of C, block-diagonal R):  U = M C_gᵀ, S = C_g U + R_g,
+             P ← M − γ_g U S⁻¹ Uᵀ   (S⁻¹ in closed form for groups of one or two rows)
+
+A run whose prior trace exceeds the rescue limit, or is non-finite, is flagged; the caller
+(:meth:`kalman.Filter.run`) redoes it on the numpy core, so the rescue policy stays the core's.
+Kernels are cached on disk by the hash of their source (``NETKF_KERNEL_CACHE``, default
+``~/.cache/netkf/kernels``); numba compiles each once per machine. Tested against the numpy core
+in ``tests/unit/test_kalman_core.py``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+MAX_N = 6
+"""Largest state dimension a kernel is generated for (the expression size grows as n³)."""
+MAX_GROUP = 2
+"""Largest sensor group (rows per stream) with a closed-form S⁻¹."""
+
+
+def supported(n: int, groups) -> bool:
+    return n <= MAX_N and all(1 <= len(g) <= MAX_GROUP for g in groups)
+
+
+def _num(x: float) -> str:
+    return repr(float(x))
+
+
+def _lin(terms: list[tuple[float, str]]) -> str:
+    """Σ coef·name with zeros skipped and ±1 folded; '0.0' when empty."""
+    out = []
+    for c, v in terms:
+        if c == 0.0:
+            continue
+        if c == 1.0:
+            out.append(f"+ {v}")
+        elif c == -1.0:
+            out.append(f"- {v}")
+        else:
+            out.append(f"+ {_num(c)} * {v}")
+    if not out:
+        return "0.0"
+    s = " ".join(out)
+    return s[2:] if s.startswith("+ ") else "-" + s[2:]
+
+
+def source(A, C, Q, R, groups, limit: float) -> str:
+    """The Python source of ``advance(P, gam, t0, t1, flag)`` for this system (see the module doc)."""
+    A, C, Q, R = (np.asarray(x, dtype=float) for x in (A, C, Q, R))
+    n = A.shape[0]
+    tri = [(i, j) for i in range(n) for j in range(i, n)]
+    pos = {ij: k for k, ij in enumerate(tri)}
+
+    def p(name, i, j):
+        return f"{name}{min(i, j)}_{max(i, j)}"
+
+    L = []
+    L.append("import numpy as np")
+    L.append("import numba as nb")
+    L.append("")
+    L.append("@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')")
+    L.append("def advance(P, gam, t0, t1, flag):")
+    L.append("    runs = P.shape[1]")
+    L.append(f"    limit = {_num(limit)}")
+    L.append("    for t in range(t0, t1):")
+    L.append("        for r in range(runs):")
+    for (i, j), k in pos.items():
+        L.append(f"            {p('p', i, j)} = P[{k}, r]")
+    # predict: X = A P (full n×n), M = X Aᵀ + Q (upper triangle)
+    for i in range(n):
+        for j in range(n):
+            L.append(f"            x{i}_{j} = {_lin([(A[i, k], p('p', k, j)) for k in range(n)])}")
+    for i, j in tri:
+        e = _lin([(A[j, k], f"x{i}_{k}") for k in range(n)])
+        L.append(f"            {p('m', i, j)} = {e} + {_num(Q[i, j])}")
+    L.append("            tr = " + " + ".join(p("m", i, i) for i in range(n)))
+    L.append("            flag[r] = flag[r] or not (tr <= limit)")
+    cur = "m"
+    for g_idx, rows in enumerate(groups):
+        rows = list(rows)
+        mg = len(rows)
+        Cg, Rg = C[rows], R[np.ix_(rows, rows)]
+        L.append(f"            g = gam[{g_idx}, t, r]")
+        # U = M Cgᵀ (n × mg)
+        for i in range(n):
+            for a in range(mg):
+                L.append(f"            u{i}_{a} = {_lin([(Cg[a, k], p(cur, i, k)) for k in range(n)])}")
+        # S = Cg U + Rg (mg × mg, symmetric)
+        for a in range(mg):
+            for b in range(a, mg):
+                L.append(f"            s{a}_{b} = {_lin([(Cg[a, k], f'u{k}_{b}') for k in range(n)])} + {_num(Rg[a, b])}")
+        if mg == 1:
+            L.append("            i0_0 = g / s0_0")
+            inv = {(0, 0): "i0_0"}
+        else:
+            L.append("            det = s0_0 * s1_1 - s0_1 * s0_1")
+            L.append("            i0_0 = g * s1_1 / det")
+            L.append("            i1_1 = g * s0_0 / det")
+            L.append("            i0_1 = -g * s0_1 / det")
+            inv = {(0, 0): "i0_0", (1, 1): "i1_1", (0, 1): "i0_1", (1, 0): "i0_1"}
+        # K = U S⁻¹ γ ; P ← M − K Uᵀ (upper triangle)
+        for i in range(n):
+            for a in range(mg):
+                L.append(f"            k{i}_{a} = " + " + ".join(f"u{i}_{b} * {inv[(b, a)]}" for b in range(mg)))
+        nxt = f"q{g_idx}_"
+        for i, j in tri:
+            corr = " + ".join(f"k{i}_{a} * u{j}_{a}" for a in range(mg))
+            L.append(f"            {p(nxt, i, j)} = {p(cur, i, j)} - ({corr})")
+        cur = nxt
+    for (i, j), k in pos.items():
+        L.append(f"            P[{k}, r] = {p(cur, i, j)}")
+    return "\n".join(L) + "\n"
+
+
+def _cache_dir() -> Path:
+    d = Path(os.environ.get("NETKF_KERNEL_CACHE", Path.home() / ".cache" / "netkf" / "kernels"))
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+_LOADED: dict[str, object] = {}
+
+
+def kernel(A, C, Q, R, groups, limit: float):
+    """The compiled ``advance`` for this system (generated, written once, imported, numba-cached)."""
+    src = source(A, C, Q, R, groups, limit)
+    key = hashlib.sha256(src.encode()).hexdigest()[:20]
+    if key in _LOADED:
+        return _LOADED[key]
+    path = _cache_dir() / f"netkf_kf_{key}.py"
+    if not path.exists():
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(src, encoding="utf-8")
+        os.replace(tmp, path)  # atomic: concurrent workers never import half a file
+    name = f"netkf_kf_{key}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    _LOADED[key] = mod.advance
+    return mod.advance
+
+
+def pack(P: np.ndarray) -> np.ndarray:
+    """(n, n, runs) → (n(n+1)/2, runs), the upper triangle row by row (the kernel's layout)."""
+    n = P.shape[0]
+    iu = np.triu_indices(n)
+    return np.ascontiguousarray(P[iu[0], iu[1], :])
+
+
+def unpack(T: np.ndarray, n: int) -> np.ndarray:
+    """(n(n+1)/2, runs) → (n, n, runs), symmetric."""
+    iu = np.triu_indices(n)
+    P = np.empty((n, n, T.shape[-1]))
+    P[iu[0], iu[1]] = T
+    P[iu[1], iu[0]] = T
+    return P

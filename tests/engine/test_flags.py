@@ -1,0 +1,51 @@
+"""The reliability flags are right in both directions (issue 19, item 4).
+
+* A = 2 over a perfect channel: every run is the same number (the DARE value), the sample variance is
+  round-off — no step is flagged heavy-tailed or rare-event dominated, every step is drawn;
+* a sample whose sum is carried by one run is flagged rare-event dominated;
+* an infinite-variance (Pareto α = 1.5) sample is flagged heavy-tailed, an exponential one is not.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from netkf_cli import load, run
+from netkf_cli.stats import heavy_tail_flag, mean_se, rare_event_flag
+
+
+def _sums(x):
+    return x.sum(), (x**2).sum(), (x**3).sum(), (x**4).sum()
+
+
+def test_perfect_channel_unstable_plant_is_not_flagged():
+    sc = load({"name": "a2", "system": {"A": 2, "C": 1, "Q": 1, "R": 1},
+               "channel": {"kind": "bernoulli", "arrival": 1.0}, "estimator": {"kind": "kf"},
+               "analysis": {"kind": "mean_vs_time", "every": 1}, "montecarlo": {"runs": 3000, "horizon": 40}})
+    res = run(sc)
+    t = res.table
+    assert not t.heavy_tail.any() and not t.rare_event.any()
+    assert (t.stderr == 0).all()
+    # every step is drawn: the plotted line has one finite point per step
+    line = res.figure.axes[0].get_lines()[0]
+    assert np.isfinite(np.asarray(line.get_ydata(), dtype=float)).sum() == 40
+
+
+def test_degenerate_sample_has_zero_variance_not_noise():
+    x = np.full(1000, 4.23606797749979)
+    m, se = mean_se(x.sum(), (x * x).sum(), 1000)
+    assert se == 0.0 and abs(m - x[0]) < 1e-12
+    _, rse, heavy = heavy_tail_flag(*_sums(x), 1000, 0)
+    assert rse == 0.0 and not heavy
+
+
+def test_rare_event_and_heavy_tail_rules_in_both_directions():
+    rng = np.random.default_rng(0)
+    light = rng.exponential(size=20_000)
+    assert not rare_event_flag(light.sum(), light.max(), light.size)
+    assert not heavy_tail_flag(*_sums(light), light.size, 0)[2]
+    one = np.full(20_000, 1e-3)
+    one[17] = 1e3  # one run carries 98 % of the sum
+    assert rare_event_flag(one.sum(), one.max(), one.size)
+    pareto = rng.pareto(1.5, size=20_000) + 1  # infinite variance
+    assert heavy_tail_flag(*_sums(pareto), pareto.size, 0)[2]
