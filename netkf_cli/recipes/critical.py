@@ -87,8 +87,11 @@ def envelope(s: LinearSystem, lam: float, lam_max_hi: float) -> dict:
                        "null = the bound does not exist at this λ"}
 
 
-def judge_rate(lam: float, lam_min: float, lam_max_hi: float, exact: cr.ExactCase | None) -> tuple[str, bool | None]:
-    """(sentence, bounded?) for i.i.d. arrivals at rate λ; bounded = None when not decided."""
+def judge_rate(lam: float, lam_min: float, lam_max_hi: float, exact: cr.ExactCase | None,
+               certificate: float | None = None) -> tuple[str, bool | None]:
+    """(sentence, bounded?) for i.i.d. arrivals at rate λ; bounded = None when not decided.
+
+    ``certificate``: a numerical upper bound on λ_c tighter than λ_max (:func:`cr.lambda_c_certificate`)."""
     if exact is not None and exact.value is None:
         return "E[P_k] is unbounded whatever λ ((A, C) not detectable)", False
     if exact is not None:
@@ -98,9 +101,14 @@ def judge_rate(lam: float, lam_min: float, lam_max_hi: float, exact: cr.ExactCas
                 f"({'derived closed form' if exact.basis == 'derived' else 'proven'})", ok)
     if lam > lam_max_hi:
         return f"λ = {lam:.6g} > λ_max = {lam_max_hi:.6g}: E[P_k] bounded (proven, Thm 4)", True
+    if certificate is not None and math.isfinite(certificate) and lam > certificate:
+        return (f"λ = {lam:.6g} > {certificate:.6g}, the numerical certificate's bound: E[P_k] bounded (a strict "
+                f"super-solution of the L-step averaged Riccati map, checked in floating point)", True)
+    if certificate is not None and math.isfinite(certificate) and certificate < lam_max_hi:
+        lam_max_hi = certificate
     if lam <= lam_min:
         return f"λ = {lam:.6g} ≤ λ_min = {lam_min:.6g}: E[P_k] unbounded for some P0 (proven, Thm 3)", False
-    return (f"λ = {lam:.6g} lies in [λ_min, λ_max] = [{lam_min:.6g}, {lam_max_hi:.6g}]: not decided by the known "
+    return (f"λ = {lam:.6g} lies in [λ_min, upper bound] = [{lam_min:.6g}, {lam_max_hi:.6g}]: not decided by the known "
             f"bounds", None)
 
 
@@ -179,9 +187,10 @@ def channel_answer(s: LinearSystem, channel, report: cr.CriticalReport, *, solve
         return {}
     kind = getattr(channel, "kind", None)
     lmin, lhi, e = report.lam_min, report.lam_max.hi, report.exact
+    cert = report.certificate.hi if report.certificate is not None else None
     if kind == "bernoulli":
         lam = float(channel.arrival)
-        verdict, ok = judge_rate(lam, lmin, lhi, e)
+        verdict, ok = judge_rate(lam, lmin, lhi, e, cert)
         return {"kind": kind, "label": f"bernoulli, arrival rate λ = {lam:g}", "arrival": lam, "bounded": ok,
                 "verdict": verdict, "envelope": envelope(s, lam, lhi)}
     if kind == "gilbert_elliott":
@@ -206,7 +215,7 @@ def channel_answer(s: LinearSystem, channel, report: cr.CriticalReport, *, solve
             ok = True if feas else None
             why = (f"q = {q:.6g} > {qn:.6g} (necessary) and the Markov LMI is "
                    + ("feasible: E[P_k] bounded (sufficient condition)" if feas else "infeasible: not decided"))
-        b_verdict, b_ok = judge_rate(lam, lmin, lhi, e)
+        b_verdict, b_ok = judge_rate(lam, lmin, lhi, e, cert)
         return {"kind": kind, "label": f"gilbert_elliott, failure rate p = {p:.6g}, recovery rate q = {q:.6g} "
                                        f"(stationary arrival rate {lam:.6g}, mean loss burst {1 / q:.4g} steps)",
                 "p": p, "q": q, "q_necessary": qn, "bounded": ok, "verdict": "Gilbert–Elliott: " + why,
@@ -214,7 +223,7 @@ def channel_answer(s: LinearSystem, channel, report: cr.CriticalReport, *, solve
                 "bernoulli_bounded": b_ok}
     if kind == "delay":
         lam, Dmax = cr.delay_effective_rate(channel)
-        verdict, ok = judge_rate(lam, lmin, lhi, e)
+        verdict, ok = judge_rate(lam, lmin, lhi, e, cert)
         return {"kind": kind, "label": f"delay ({channel.delay.kind}), buffer D = {channel.D}, convention {channel.convention}",
                 "usable_fraction": lam, "D_max": Dmax, "bounded": ok,
                 "detail": (f"usable packets: delay ≤ {Dmax} ⇒ λ_eff = F({Dmax}) = {lam:.6g}; with i.i.d. delays the "

@@ -40,15 +40,34 @@ def test_fig9_vehicle_answers_with_both_bounds_and_the_envelope(root, monkeypatc
     assert "λ_max" in text and "tr S̄" in text and "tr V̄" in text and "exactly" in text
 
 
-def test_interval_only_is_said_so(root, monkeypatch):
+def test_two_unstable_is_decided_by_non_degeneracy(root, monkeypatch):
+    """Issue 22: the committed two-unstable system is non-degenerate, so λ_c = λ_min = 0.36 (Mo & Sinopoli 2012)."""
     monkeypatch.chdir(root)
     res = runner.invoke(app, ["critical", "--config", "configs/critical/two_unstable.yaml", "--arrival", "0.42", "--json"])
     assert res.exit_code == 0, res.output
     js = json.loads(res.stdout)
+    assert js["proven"] is True and js["condition"] == "non_degenerate" and js["lambda_c"] == pytest.approx(0.36)
+    assert "Mo & Sinopoli 2012" in js["decided_by"] and js["nondegeneracy"]["non_degenerate"] is True
+    assert js["interval"][1] > 0.47  # λ_max stays what the LMI says
+    assert js["channel"]["bounded"] is True  # 0.42 > λ_c, although 0.42 < λ_max
+    text = runner.invoke(app, ["critical", "--config", "configs/critical/two_unstable.yaml"]).stdout
+    assert "decided by: theorem (non_degenerate)" in text and "non-degeneracy (Mo & Sinopoli 2012): yes" in text
+
+
+def test_undecided_system_gets_a_numerical_certificate(tmp_path):
+    """diag(2, −2, 1.5), C = [1 1 1]: degenerate, no theorem; the certificate (not λ_max) judges the channel."""
+    cfg = tmp_path / "deg3.yaml"
+    cfg.write_text("name: deg3\nsystem: {A: [[2, 0, 0], [0, -2, 0], [0, 0, 1.5]], C: [[1, 1, 1]], Q: [[1, 0, 0], "
+                   "[0, 1, 0], [0, 0, 1]], R: 1}\nanalysis: {kind: critical}\n")
+    js = json.loads(runner.invoke(app, ["critical", "--config", str(cfg), "--arrival", "0.95", "--json"]).stdout)
     assert js["proven"] is False and js["lambda_c"] is None
-    assert js["interval"][0] == pytest.approx(0.36) and js["interval"][1] > 0.47
+    c = js["certificate"]
+    assert c is not None and 0.9375 - 1e-3 <= c["upper"] < js["lambda_max"]["upper"] - 0.02
+    assert js["interval"] == [pytest.approx(0.75), pytest.approx(c["upper"])]
+    assert "numerical certificate" in js["decided_by"]
+    assert js["channel"]["bounded"] is True and "certificate" in js["channel"]["verdict"]
+    js = json.loads(runner.invoke(app, ["critical", "--config", str(cfg), "--arrival", "0.9", "--json"]).stdout)
     assert js["channel"]["bounded"] is None and "not decided" in js["channel"]["verdict"]
-    assert js["channel"]["envelope"]["trace_V_bar"] is None  # λ = 0.42 < λ_max: V̄ does not exist
 
 
 @pytest.mark.parametrize("args, code, needle", [

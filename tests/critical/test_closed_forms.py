@@ -83,12 +83,13 @@ def test_lambda_max_matches_brute_force_iteration():
 
 def test_strict_gap_example_and_cases():
     rep = cr.critical_report(TWO_UNSTABLE_A, TWO_UNSTABLE_C)
-    assert rep.exact is None  # two unstable eigenvalues, C not invertible: only the interval
-    assert rep.lam_min == pytest.approx(0.36)
+    # two unstable eigenvalues, C not invertible — but non-degenerate (issue 22): λ_c = λ_min although λ_max is larger
+    assert rep.exact is not None and rep.exact.key == "non_degenerate"
+    assert rep.lam_min == pytest.approx(0.36) and rep.exact.value == pytest.approx(0.36)
     assert rep.lam_max.lo > rep.lam_min + 0.1  # λ_min < λ_max strictly (≈ 0.4711)
     js = rep.as_json()
-    assert js["lambda_c"] is None and js["proven"] is False and js["interval"][0] == pytest.approx(0.36)
-    assert "only bounded" in rep.verdict()
+    assert js["lambda_c"] == pytest.approx(0.36) and js["proven"] is True and js["interval"][0] == pytest.approx(0.36)
+    assert "exactly" in rep.verdict()
 
 
 def test_exact_case_conditions():
@@ -100,7 +101,8 @@ def test_exact_case_conditions():
     assert cr.exact_case(A, np.array([[1.0, 0]])).key == "c_invertible_observable"
     undet = cr.exact_case(np.array([[1.25, 0], [1, 1.1]]), np.array([[1.0, 0]]))
     assert undet.key == "undetectable" and undet.value is None
-    assert cr.exact_case(np.diag([2.0, 1.5]), np.array([[1.0, 1.0]])) is None
+    assert cr.exact_case(np.diag([2.0, 1.5]), np.array([[1.0, 1.0]])).key == "non_degenerate"
+    assert cr.exact_case(np.diag([2.0, -2.0, 1.5]), np.array([[1.0, 1.0, 1.0]])) is None  # degenerate, 3 states
 
 
 # ---------------------------------------------------------------------------------------------
@@ -225,8 +227,8 @@ def test_delay_effective_rate_uses_the_buffer_convention():
 
 def test_degenerate_parity_example_lambda_max():
     """A = diag(2, −2), C = [1 1]: only arrivals of both parities separate the modes, so
-    λ_c ≥ 1 − 1/a⁴ = 0.9375 (README); the LMI bound meets it: λ_c = λ_max = 0.9375 > λ_min = 0.75."""
+    λ_c = 1 − 1/a⁴ = 0.9375 (derived, README); the LMI bound meets it: λ_c = λ_max = 0.9375 > λ_min = 0.75."""
     lm = cr.lambda_max(np.diag([2.0, -2.0]), np.array([[1.0, 1.0]]), tol=1e-5)
     assert cr.lambda_min(np.diag([2.0, -2.0])) == pytest.approx(0.75)
     assert lm.lo - 1e-5 <= 0.9375 <= lm.hi + 1e-5
-    assert cr.exact_case(np.diag([2.0, -2.0]), np.array([[1.0, 1.0]])) is None
+    assert cr.exact_case(np.diag([2.0, -2.0]), np.array([[1.0, 1.0]])).key == "degenerate_2x2_p2"
