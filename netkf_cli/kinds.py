@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 from pydantic.fields import PydanticUndefined
 
-GENERIC_METRICS = ("distribution", "mean_vs_time", "compare")
+GENERIC_METRICS = ("distribution", "mean_vs_time", "compare", "tail")
 
 
 def _type_name(ann: Any) -> str:
