@@ -165,3 +165,61 @@ def test_compiled_primitives_equal_the_numpy_core():
         K = kalman.gain(P[:, :, None], C, R)
         np.testing.assert_allclose(jos(P, np.ascontiguousarray(K[:, :, 0]), C, R, 1.0),
                                    kalman.joseph(P[:, :, None], K, C, R)[:, :, 0], rtol=1e-11, atol=1e-12)
+
+
+@pytest.mark.parametrize("case", ["scalar", "vehicle-2-sensors", "2-state-full-R", "5-state-3-rows"])
+def test_generated_kernel_equals_the_numpy_core(case, tmp_path, monkeypatch):
+    """The compiled filter (generated kernel, or the generic compiled step for groups > 2 rows) gives
+    the numpy core's P_{k|k} and P_{k+1|k} to rounding on the same trace, rescue runs included."""
+    pytest.importorskip("numba")
+    monkeypatch.setenv("NETKF_KERNEL_CACHE", str(tmp_path))
+    rng = np.random.default_rng(5)
+    if case == "scalar":
+        s, S = LinearSystem.create(1.3, 1.0, 0.5, 0.8, 2.0), 1
+    elif case == "vehicle-2-sensors":
+        A = [[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1]]
+        s, S = LinearSystem.create(A, [[1, 0, 0, 0], [0, 1, 0, 0]], np.eye(4) * 0.2, np.diag([0.5, 0.3])), 2
+    elif case == "2-state-full-R":
+        s, S = LinearSystem.create([[1.05, 0.3], [0.0, 0.9]], np.eye(2), [[0.2, 0.05], [0.05, 0.3]],
+                                   [[0.5, 0.1], [0.1, 0.4]], np.eye(2)), 1
+    else:
+        A, C, Q, R, P0 = _random(11, 5, 3)
+        s, S = LinearSystem.create(A, C, Q, R, P0), 1
+    f = kalman.Filter.of(s, S)
+    g = rng.random((S, 60, 40)) < 0.6
+    steps = [1, 2, 17, 60]
+    a = dict(f.run(np.eye(s.n) if s.P0 is None else s.P0, g, steps, ("filtered", "predicted"), backend="numpy"))
+    b = dict(f.run(np.eye(s.n) if s.P0 is None else s.P0, g, steps, ("filtered", "predicted"), backend="numba"))
+    for k in steps:
+        for q in ("filtered", "predicted"):
+            scale = np.abs(a[k][q]).max(axis=(0, 1))
+            # same equations, different association order: round-off only (≪ 1e-9 relative over 60 steps)
+            np.testing.assert_allclose(b[k][q], a[k][q], rtol=0, atol=float(1e-10 * scale.max()))
+
+
+def test_auto_backend_picks_compiled_with_numba_and_numpy_without(monkeypatch):
+    from netkf_cli.estimators.kf import KalmanFilterEstimator
+    from netkf_cli.channels.bernoulli import BernoulliChannel
+
+    s = LinearSystem.create(1.3, 1.0, 0.5, 0.8)
+    ch = BernoulliChannel(kind="bernoulli", arrival=0.7)
+    est = KalmanFilterEstimator(kind="kf")
+    big, small = kalman.AUTO_MIN_RUN_STEPS, kalman.AUTO_MIN_RUN_STEPS - 1
+    assert est.backend_used(s, ch, small, 1) == "numpy"
+    if kalman.numba_available():
+        assert est.backend_used(s, ch, big, 1) == "numba"
+    monkeypatch.setattr(kalman, "numba_available", lambda: False)
+    assert est.backend_used(s, ch, big, 1) == "numpy"
+    from netkf_cli.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="backend numba needs numba"):
+        KalmanFilterEstimator(kind="kf", backend="numba").backend_used(s, ch, big, 1)
+
+
+def test_manifest_says_which_backend_ran(tmp_path):
+    from netkf_cli import load, run
+
+    sc = load({"name": "be", "system": {"A": 1.2, "C": 1, "Q": 1, "R": 1}, "channel": {"kind": "bernoulli", "arrival": 0.7},
+               "estimator": {"kind": "kf", "backend": "numpy"}, "analysis": {"kind": "distribution", "M": [2, 5]},
+               "montecarlo": {"runs": 500, "horizon": 20}})
+    assert run(sc).meta["backends"] == {"kf": "numpy"}
