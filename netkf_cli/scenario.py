@@ -14,7 +14,7 @@ import pkgutil
 from functools import lru_cache
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import Field, create_model, model_validator
+from pydantic import AfterValidator, BeforeValidator, Field, create_model, model_validator
 
 from netkf_cli import channels, estimators, metrics, recipes
 from netkf_cli.spec import (
@@ -25,6 +25,7 @@ from netkf_cli.spec import (
     NonNegInt,
     PositiveInt,
     StrictModel,
+    _integer_input,
 )
 from netkf_cli.sweep import SweepSpec
 from netkf_cli.system import LinearSystem
@@ -111,8 +112,25 @@ class SystemSpec(StrictModel):
         return LinearSystem.from_spec(self)
 
 
+MAX_RUNS = 10**12
+"""Default ``montecarlo.max_runs``: 10¹² runs (weeks on one machine) is the largest run count
+accepted without ``--yes``."""
+MAX_DPI = 1200
+"""Largest figure resolution: a 6.4 × 4.4 in figure at 1200 dpi is already 40 megapixels."""
+MAX_NAME = 100
+"""Longest ``name`` (it names files and folders, with suffixes, within the file system's 255 bytes)."""
+
+
+def _check_name(v: str) -> str:
+    if set(v) <= {"."}:
+        raise ValueError(f"must name a folder, got {v!r} (a name of dots only means the current or parent folder)")
+    if v.startswith("."):
+        raise ValueError(f"must not start with a dot (a hidden folder), got {v!r}")
+    return v
+
+
 class MonteCarloSpec(StrictModel):
-    """``montecarlo:`` size and seeding. Chunk i draws from SeedSequence(seed, spawn_key=(i,))."""
+    """``montecarlo:`` size and seeding. Chunk i of stream s draws from SeedSequence(seed, spawn_key=(s, i))."""
 
     runs: PositiveInt = Field(100_000, description="independent runs (samples)")
     horizon: PositiveInt = Field(200, description="time steps per run")
@@ -120,6 +138,8 @@ class MonteCarloSpec(StrictModel):
     seed: NonNegInt = Field(0, description="root seed")
     chunk: PositiveInt = Field(20_000, description="runs per chunk (memory bound; part of the random stream layout)")
     quick_runs: PositiveInt | None = Field(None, description="Monte Carlo size under `netkf reproduce --quick` (default: min(runs, 2000))")
+    max_runs: PositiveInt = Field(MAX_RUNS, description="largest `runs` accepted without `netkf run --yes` (a guard "
+                                  "against a typo such as runs: 1e15; not part of the scenario hash)")
 
     def quick_size(self) -> int:
         return self.quick_runs if self.quick_runs is not None else min(self.runs, 2000)
@@ -129,7 +149,8 @@ class OutputSpec(StrictModel):
     """``output:`` where and how results are written."""
 
     dir: str = Field("results", description="parent folder of the result folder <dir>/<name>/")
-    dpi: PositiveInt = Field(150, description="resolution of the PNG figure (dots per inch)")
+    dpi: Annotated[int, BeforeValidator(_integer_input), Field(gt=0, le=MAX_DPI)] = Field(
+        150, description=f"resolution of the PNG figure (dots per inch, at most {MAX_DPI})")
     formats: list[Literal["png", "pdf", "svg"]] = Field(
         default_factory=lambda: ["png"], min_length=1,
         description="figure formats written as <name>.<format>, the same figure in each (png, pdf, svg)")
@@ -141,7 +162,9 @@ def scenario_model() -> type[StrictModel]:
     _import_all()
     ch, es, an = _union(ChannelModel), _union(EstimatorModel), _union(AnalysisModel)
     fields: dict[str, Any] = {
-        "name": (Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]+$", description="artefact name (result folder)")], ...),
+        "name": (Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]+$", max_length=MAX_NAME,
+                                      description=f"artefact name (result folder; letters, digits, _ . -; at most "
+                                                  f"{MAX_NAME} characters)"), AfterValidator(_check_name)], ...),
         "description": (str, Field("", description="free text, copied into the manifest")),
         "system": (SystemSpec | None, Field(None, description="the plant x_{k+1} = A x_k + w_k, y_k = C x_k + v_k")),
         "channel": ((ch | None) if ch is not None else None,
