@@ -38,3 +38,9 @@ SOLVER_TOL = 1e-8
 
 DARE_RTOL = 1e-12
 """Relative convergence tolerance of fixed-point Riccati iterations (P*, P̄, steady states)."""
+
+ZERO_INNOVATION_RTOL = 1e-9
+"""(appended, the Markov-mode filters) An innovation direction whose variance is ≤ this times
+tr Σ + tr P⁻ counts as zero and gets no gain (kalman.update_pinv): a held packet, whose value the
+receiver already knows, has variance 0 up to round-off (≈1e-16 relative); 1e-9 separates it from
+any genuinely informative measurement."""

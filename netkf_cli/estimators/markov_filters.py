@@ -33,25 +33,32 @@ Filters (all run on the same simulated runs)
   the best *linear* (affine) estimator of ``Z`` — hence of ``ξ = Σ_i Z_i``.
 * :func:`naive_filter` — the Kalman filter that assumes every packet is mode 1.
 * the LMI filter of the paper (:mod:`netkf_cli.estimators.markov_lmi`).
-* :func:`mode_aware_step` — the time-varying Kalman filter on ξ for a receiver that knows
-  θ(k) (per run; the lower bound).
+* :class:`ModeAwareKFTr` — the time-varying Kalman filter on ξ for a receiver that knows
+  θ(k) (per run; the lower bound), on the Kalman core (``kalman.update_pinv`` + ``kalman.predict``),
+  compiled twin :class:`ModeAwareCompiled` on ``kalman_numba``'s primitives.
 
 All filters whose gains do not depend on the data are :class:`LinearFilter` objects
 ``s(k+1) = A_s(k) s(k) + G_s(k) y(k)``, ``x̂(k|k−1) = E_p s(k)``,
 ``x̂(k|k) = E_f(k) s(k) + L_f(k) y(k)``; :func:`exact_mse` evaluates any of them exactly
 through the second moments of the joint Markov-jump system ``[ξ; s]``.
+
+Time bases
+----------
+The paper's (``base="paper"``, the ``markov_filters`` analysis): x(0) ~ (x0, P0) is the prior of the
+first measurement y(0). netkf's (``base="contract"``, the ``markov_lmi`` estimator's ``covariances``):
+P0 = P_{0|0}, the first measurement is y_1 on trace step 0 (:meth:`AugmentedModel.prior_moments`).
+The scenario block (``kind: markov_lmi``) is :class:`netkf_cli.estimators.markov_lmi.MarkovLMIEstimator`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import ClassVar, Literal
 
 import numpy as np
-from pydantic import Field
 
+from netkf_cli import batched, kalman
 from netkf_cli.errors import ConfigError
-from netkf_cli.spec import EstimatorModel, NonNegFloat, NonNegInt, PositiveFloat
+from netkf_cli.tolerances import PSD_INPUT_TOL, ZERO_INNOVATION_RTOL
 
 N_MODES = 4
 
@@ -64,7 +71,7 @@ def psd_sqrt(M: np.ndarray) -> np.ndarray:
     return V * np.sqrt(np.clip(w, 0.0, None))
 
 
-def pinv_psd(S: np.ndarray, scale: np.ndarray | float, rtol: float = 1e-9) -> np.ndarray:
+def pinv_psd(S: np.ndarray, scale: np.ndarray | float, rtol: float = ZERO_INNOVATION_RTOL) -> np.ndarray:
     """Pseudo-inverse of symmetric PSD matrices (batched over leading axes).
 
     Eigenvalues below ``rtol * scale`` count as zero: an innovation with (numerically) zero
@@ -135,7 +142,7 @@ class AugmentedModel:
             raise ValueError(f"S must be {n}×{m} (E[w vᵀ]), got {S.shape}")
         Sigma = np.block([[Q, S], [S.T, R]])
         Sigma = (Sigma + Sigma.T) / 2
-        if np.linalg.eigvalsh(Sigma).min() < -1e-9 * max(1.0, np.abs(Sigma).max()):
+        if np.linalg.eigvalsh(Sigma).min() < -PSD_INPUT_TOL * max(1.0, np.abs(Sigma).max()):
             raise ValueError("the joint noise covariance [[Q, S], [Sᵀ, R]] must be positive semi-definite")
         d, p = 2 * n + 2 * m, n + m
         ix, ixp, iy, iv = slice(0, n), slice(n, 2 * n), slice(2 * n, 2 * n + m), slice(2 * n + m, d)
@@ -166,6 +173,57 @@ class AugmentedModel:
         cov[: 2 * n, : 2 * n] = np.block([[P0, P0], [P0, P0]])
         cov[2 * n:, 2 * n:] = np.block([[self.R, self.R], [self.R, self.R]])
         return mean, cov
+
+
+    # ---- the filtered-form per-mode matrices (the measurement noise J_q ε(k) is correlated with G_q ε(k))
+    @property
+    def Rq(self) -> np.ndarray:
+        """(N, m, m) measurement noise of each mode, J_q Σ J_qᵀ (R in modes 1, 3; 0 in modes 2, 4)."""
+        return np.einsum("iap,pq,ibq->iab", self.J, self.Sigma, self.J)
+
+    @property
+    def GSG(self) -> np.ndarray:
+        """(N, d, d) G_q Σ G_qᵀ."""
+        return np.einsum("iap,pq,ibq->iab", self.G, self.Sigma, self.G)
+
+    def decorrelated(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(F̄, D, Q̄) per mode, each (N, ·, ·): the time update after the measurement update of mode q.
+
+        G_q ε(k) = D_q J_q ε(k) + G_q ε̃(k) with D_q = G_q Σ J_qᵀ R_q⁺ and ε̃ = ε − Σ J_qᵀ R_q⁺ J_q ε
+        uncorrelated with J_q ε (Anderson & Moore 1979, §5.5, correlated noise); J_q ε = y − H_q ξ, so
+
+            ξ(k+1) = F̄_q ξ(k) + D_q y(k) + G_q ε̃(k),   F̄_q = F_q − D_q H_q,
+            P(k+1|k) = F̄_q P(k|k) F̄_qᵀ + Q̄_q,         Q̄_q = G_q (Σ − Σ J_qᵀ R_q⁺ J_q Σ) G_qᵀ
+
+        (``kalman.predict``). With S = 0 the x rows of F̄_q are [A 0 0 0] and Q̄_q's x block is Q: the
+        x block of P(k+1|k) is A P_x(k|k) Aᵀ + Q, the plain KF's prediction."""
+        N, d = N_MODES, self.d
+        Rq = self.Rq
+        Fb, D, Qb = np.empty((N, d, d)), np.empty((N, d, self.m)), np.empty((N, d, d))
+        for q in range(N):
+            Rp = pinv_psd(Rq[q], np.trace(Rq[q]) + 1e-300)
+            SJ = self.Sigma @ self.J[q].T  # Σ J_qᵀ (p, m)
+            D[q] = self.G[q] @ SJ @ Rp
+            Fb[q] = self.F[q] - D[q] @ self.H[q]
+            St = self.Sigma - SJ @ Rp @ SJ.T
+            Qb[q] = self.G[q] @ (0.5 * (St + St.T)) @ self.G[q].T
+            Qb[q] = 0.5 * (Qb[q] + Qb[q].T)
+        return Fb, D, Qb
+
+    def prior_moments(self, x0: np.ndarray, P0: np.ndarray, base: str = "paper") -> tuple[np.ndarray, np.ndarray]:
+        """Mean and covariance of ξ at the first measurement.
+
+        ``paper``: ξ(0) with x(0) ~ (x0, P0) measured by y(0) (eq. 35, :meth:`initial_moments`).
+        ``contract``: netkf's time base — P0 = P_{0|0} (the covariance of x_0 given the data up to
+        time 0), the first measurement is y_1 (trace step 0): ξ(1) = F_3 ξ(0) + G_3 ε(0) =
+        [A x_0 + w_0; x_0; v_0; v_0] (nothing was received at time 0: eq. 35's y(−1) = v(−1) one
+        step later), covariance ``kalman.predict`` of eq. 35's. Its x block is A P0 Aᵀ + Q = P_{1|0}."""
+        mean, cov = self.initial_moments(np.asarray(x0, float), np.asarray(P0, float))
+        if base == "paper":
+            return mean, cov
+        if base != "contract":
+            raise ValueError(f"base must be 'paper' or 'contract', got {base!r}")
+        return self.F[2] @ mean, kalman.one(kalman.predict, cov, self.F[2], self.GSG[2])
 
 
 # --------------------------------------------------------------------------- linear filters
@@ -200,25 +258,31 @@ class LinearFilter:
 def naive_filter(model: AugmentedModel, x0: np.ndarray, P0: np.ndarray, horizon: int) -> LinearFilter:
     """Kalman filter that assumes every y(k) = C x(k) + v(k) (mode 1), with E[w vᵀ] = S.
 
-    Predictor form with correlated noise: K = (A P Cᵀ + S) Σ_y⁻¹, Σ_y = C P Cᵀ + R,
-    P⁺ = A P Aᵀ + Q − K Σ_y Kᵀ; filtered gain K_f = P Cᵀ Σ_y⁻¹.
+    On the core (``P0`` the prior of the first measurement): K_f = ``kalman.gain``(P, C, R),
+    P_f = ``kalman.update``(P, C, R); the correlated noise w = S R⁺ v + w̃ makes the time update
+    P⁺ = ``kalman.predict``(P_f, Ā, Q − S R⁺ Sᵀ), Ā = A − S R⁺ C (Anderson & Moore 1979, §5.5), and the
+    predictor gain K = Ā K_f + S R⁺ (= (A P Cᵀ + S) Σ_y⁻¹): s(k+1) = (A − K C) s(k) + K y(k).
+    Its gains are optimal only in mode 1; the true error of this fixed-gain filter in every mode is
+    the joint second-moment recursion (:func:`exact_mse`, :func:`linear_filter_covariances`).
     """
     A, C, Q, R, S = model.A, model.C, model.Q, model.R, model.S
     n, m = model.n, model.m
+    SRi = S @ pinv_psd(R, np.trace(R) + 1e-300)
+    Abar, Qbar = A - SRi @ C, Q - SRi @ S.T
+    Qbar = 0.5 * (Qbar + Qbar.T)
     As = np.empty((horizon, n, n)); Gs = np.empty((horizon, n, m))
     Ef = np.empty((horizon, n, n)); Lf = np.empty((horizon, n, m))
-    P = np.array(P0, dtype=float)
+    P = np.array(P0, dtype=float)[:, :, None]
     tp, tf = np.empty(horizon), np.empty(horizon)
     for k in range(horizon):
-        Sy = C @ P @ C.T + R
-        Kf = np.linalg.solve(Sy, C @ P).T
-        K = np.linalg.solve(Sy, (A @ P @ C.T + S).T).T
-        tp[k] = np.trace(P)
-        tf[k] = np.trace(P - Kf @ Sy @ Kf.T)
+        Kf = kalman.gain(P, C, R)[:, :, 0]
+        Pf = kalman.update(P, C, R)
+        tp[k] = np.trace(P[:, :, 0])
+        tf[k] = np.trace(Pf[:, :, 0])
+        K = Abar @ Kf + SRi
         As[k], Gs[k] = A - K @ C, K
         Ef[k], Lf[k] = np.eye(n) - Kf @ C, Kf
-        P = A @ P @ A.T + Q - K @ Sy @ K.T
-        P = (P + P.T) / 2
+        P = kalman.predict(Pf, Abar, Qbar)
     return LinearFilter("naive_kf", As, Gs, np.eye(n), Ef, Lf, np.asarray(x0, float).copy(), np.eye(n),
                         {"assumed_pred": tp, "assumed_filt": tf})
 
@@ -240,7 +304,7 @@ def mode_second_moments(model: AugmentedModel, T: np.ndarray, pi0: np.ndarray, M
 
 
 def lmmse_filter(model: AugmentedModel, T: np.ndarray, pi0: np.ndarray, x0: np.ndarray, P0: np.ndarray,
-                 horizon: int) -> LinearFilter:
+                 horizon: int, base: str = "paper") -> LinearFilter:
     """Exact LMMSE filter for the Markov-jump model with unobserved modes (module docstring).
 
     With ``Q_i(k)``, ``π_i(k)`` from :func:`mode_second_moments` and ``p_ij = ρ_{j/i}``:
@@ -254,7 +318,7 @@ def lmmse_filter(model: AugmentedModel, T: np.ndarray, pi0: np.ndarray, x0: np.n
     """
     N, d, n, m = N_MODES, model.d, model.n, model.m
     r = N * d
-    xbar, cov = model.initial_moments(np.asarray(x0, float), np.asarray(P0, float))
+    xbar, cov = model.prior_moments(np.asarray(x0, float), np.asarray(P0, float), base)
     M0 = cov + np.outer(xbar, xbar)
     pis, Qs = mode_second_moments(model, T, pi0, M0, horizon)
     F, G, H, J, Sig = model.F, model.G, model.H, model.J, model.Sigma
@@ -305,7 +369,7 @@ def lmmse_filter(model: AugmentedModel, T: np.ndarray, pi0: np.ndarray, x0: np.n
 
 
 def exact_mse(model: AugmentedModel, filt: LinearFilter, T: np.ndarray, pi0: np.ndarray,
-              x0: np.ndarray, P0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+              x0: np.ndarray, P0: np.ndarray, base: str = "paper") -> tuple[np.ndarray, np.ndarray]:
     """Exact E‖x(k) − x̂(k|k−1)‖² and E‖x(k) − x̂(k|k)‖², k = 0..K−1, for any LinearFilter.
 
     Second moments of the joint Markov-jump system η = [ξ; s]:
@@ -316,7 +380,7 @@ def exact_mse(model: AugmentedModel, filt: LinearFilter, T: np.ndarray, pi0: np.
     N, d, n = N_MODES, model.d, model.n
     K, r = filt.horizon, filt.As.shape[1]
     D = d + r
-    xbar, cov = model.initial_moments(np.asarray(x0, float), np.asarray(P0, float))
+    xbar, cov = model.prior_moments(np.asarray(x0, float), np.asarray(P0, float), base)
     eta0 = np.concatenate([xbar, filt.s0])
     M0 = np.outer(eta0, eta0)
     M0[:d, :d] += cov
@@ -376,53 +440,6 @@ def plant_step(model: AugmentedModel, xi: np.ndarray, eps: np.ndarray, mode: np.
     return y, xi_next
 
 
-class ModeAwareKF:
-    """Time-varying KF on ξ for a receiver that knows θ(k) (per run, batched; ``P`` is (runs, d, d)).
-
-    With F, G, H, J of the current mode: Σ_y = H P Hᵀ + J Σ Jᵀ,
-    K = (F P Hᵀ + G Σ Jᵀ) Σ_y⁺, ξ̂⁺ = F ξ̂ + K (y − H ξ̂), P⁺ = F P Fᵀ + G Σ Gᵀ − K Σ_y Kᵀ;
-    filtered K_f = P Hᵀ Σ_y⁺. Σ_y⁺ treats (numerically) zero innovation variance as no
-    information (a held packet, or a delayed packet whose content is already known).
-    """
-
-    name = "mode_aware_kf"
-
-    def __init__(self, model: AugmentedModel, runs: int, xhat0: np.ndarray, P0: np.ndarray):
-        self.model = model
-        mean, cov = model.initial_moments(np.asarray(xhat0, float), np.asarray(P0, float))
-        self.xi = np.repeat(mean[None], runs, axis=0)
-        self.P = np.repeat(cov[None], runs, axis=0)
-        m = model
-        self.GSG = np.einsum("iap,pq,ibq->iab", m.G, m.Sigma, m.G)
-        self.GSJ = np.einsum("iap,pq,ibq->iab", m.G, m.Sigma, m.J)
-        self.JSJ = np.einsum("iap,pq,ibq->iab", m.J, m.Sigma, m.J)
-        self.scale = np.trace(m.Sigma)
-
-    def predicted(self) -> tuple[np.ndarray, np.ndarray]:
-        n = self.model.n
-        return self.xi[:, :n], np.trace(self.P[:, :n, :n], axis1=1, axis2=2)
-
-    def step(self, y: np.ndarray, mode: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Update with y(k) in mode θ(k); returns x̂(k|k) and tr P_x(k|k); moves to k+1."""
-        md = self.model
-        n = md.n
-        F, H = md.F[mode], md.H[mode]
-        P, xi = self.P, self.xi
-        PHt = P @ np.swapaxes(H, 1, 2)
-        Sy = H @ PHt + self.JSJ[mode]
-        scale = self.scale + np.trace(P, axis1=1, axis2=2)
-        Syi = pinv_psd(Sy, scale)
-        innov = y - np.einsum("rmd,rd->rm", H, xi)
-        Kf = PHt @ Syi
-        K = (F @ PHt + self.GSJ[mode]) @ Syi
-        xf = xi[:, :n] + np.einsum("rdm,rm->rd", Kf[:, :n], innov)
-        Pf_x = P[:, :n, :n] - Kf[:, :n] @ Sy @ np.swapaxes(Kf[:, :n], 1, 2)
-        self.xi = np.einsum("rab,rb->ra", F, xi) + np.einsum("rdm,rm->rd", K, innov)
-        Pn = F @ P @ np.swapaxes(F, 1, 2) + self.GSG[mode] - K @ Sy @ np.swapaxes(K, 1, 2)
-        self.P = (Pn + np.swapaxes(Pn, 1, 2)) / 2
-        return xf, np.trace(Pf_x, axis1=1, axis2=2)
-
-
 def run_linear(filt: LinearFilter, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Run a LinearFilter on y (horizon, runs, m); returns x̂(k|k−1), x̂(k|k), each (horizon, runs, n)."""
     K, runs = ys.shape[0], ys.shape[1]
@@ -435,138 +452,10 @@ def run_linear(filt: LinearFilter, ys: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return xp, xf
 
 
-# --------------------------------------------------------------------------- scenario block
-class MarkovLMIEstimator(EstimatorModel):
-    """``kind: markov_lmi`` — the paper's LMI filter design (Sec. III) and its comparison filters.
-
-    ``rho`` are the mode marginals the design uses (the paper's printed ρ_q; ``stationary`` =
-    computed from the channel). ``design: closed_form`` (default) solves each per-step LMI problem
-    through its normal equations (the same convex quadratic; the SDP optimum matches it within the
-    solver tolerance) and solves the SDP itself at ``sdp_check`` steps as a check; ``design: sdp``
-    solves every step's SDP with cvxpy (≈ 10 s for 100 steps).
-
-    Generic metrics (``covariances``): ``filter`` picks the filter whose per-run error covariance is
-    reported — the LMI filter, the naive KF (fixed gains: the conditional second moment given the
-    mode path, a Joseph-type recursion) or the mode-aware KF (its own P). Model used there: zero
-    cross-covariance S, E x(0) = 0, P0 = system.P0 (0 when absent); the filtered estimate x̂(k|k).
-    """
-
-    accepts: ClassVar[frozenset[str]] = frozenset({"mode"})
-    quantity: ClassVar[str] = "P_{k|k}"
-
-    kind: Literal["markov_lmi"]
-    rho: Literal["stationary"] | list[NonNegFloat] = Field(
-        "stationary", description="design marginals ρ_1..ρ_4 (sum 1) or 'stationary'")
-    design: Literal["sdp", "closed_form"] = Field("closed_form", description="how the per-step LMI problem "
-                                                  "(eqs 34/34a, 37/37a) is solved: closed_form (normal equations) or sdp (cvxpy)")
-    sdp_check: NonNegInt = Field(3, description="with design: closed_form, the number of steps at which the SDP is "
-                                               "also solved and compared (0: none)")
-    solver: Literal["CLARABEL", "SCS"] = Field("CLARABEL", description="SDP solver used through cvxpy")
-    solver_tol: PositiveFloat = Field(1e-8, description="solver feasibility/gap tolerance (Clarabel tol_gap_abs, "
-                                                       "tol_gap_rel, tol_feas; SCS eps_abs, eps_rel)")
-    eps: PositiveFloat = Field(1e-5, description="ε of eqs (33a)/(34a)/(37a) (relative to the block size) and of "
-                                               "eq. (35) (variance of x_s(0) around its value)")
-    precedence: bool = Field(True, description="use the precedence rule of eq. (34) for q = 2 (exclude j = 1 in Φ_2)")
-    backend: Literal["auto", "numpy", "numba"] = Field(
-        "auto", description="mode-aware KF in the Monte Carlo: auto = numba when importable and m = 1, else numpy "
-                            "(the reference; the compiled step equals it to rounding)")
-    filter: Literal["lmi", "mode_aware", "naive", "lmmse"] = Field(
-        "lmi", description="filter whose per-run error covariance P_{k|k} the generic metrics see (the markov_filters "
-                           "analysis always compares all four)")
-
-    def check(self, system, channel) -> None:
-        """Refuse what has no per-run covariance or no model: the LMMSE's P is an expectation."""
-        if self.filter == "lmmse":
-            raise ConfigError.at("estimator.filter", "the exact LMMSE's error covariance is an expectation over all mode "
-                                 "paths (Costa's construction), not a per-run quantity, so per-run metrics cannot use it; "
-                                 "use analysis kind markov_filters (exact MSE and Monte Carlo) or filter: lmi | naive | "
-                                 "mode_aware")
-        if self.rho != "stationary":
-            if len(self.rho) != N_MODES:
-                raise ConfigError.at("estimator.rho", f"needs 4 marginals ρ_1..ρ_4, got {len(self.rho)}")
-            if abs(sum(self.rho) - 1) > 1e-9:
-                raise ConfigError.at("estimator.rho", f"must sum to 1, got {sum(self.rho):.12g}")
-
-    def _model(self, system):
-        n = np.atleast_2d(np.asarray(system.A, float)).shape[0]
-        P0 = getattr(system, "P0", None)
-        P0 = np.zeros((n, n)) if P0 is None or isinstance(P0, str) else np.atleast_2d(np.asarray(P0, float))
-        return AugmentedModel.build(system.A, system.C, system.Q, system.R), np.zeros(n), P0
-
-    def covariances(self, system, trace, steps):
-        """Yield ``(k, P_k)`` (n, n, runs): error covariance of x̂(k−1|k−1) given the mode path in ``trace.mode``."""
-        self.check(system, None)
-        if trace.mode is None:
-            raise ConfigError.at("channel.kind", "markov_lmi needs a mode trace (channel kind markov_modes)")
-        model, x0, P0 = self._model(system)
-        steps = sorted(int(k) for k in steps)
-        if not steps:
-            return
-        modes = np.asarray(trace.mode, dtype=np.int64)
-        if self.filter == "mode_aware":
-            cls = ModeAwareKFNumba if resolve_backend(self.backend, model.m) == "numba" else ModeAwareKFTr
-            kf = cls(model, trace.runs, x0, P0, states=False)
-            want = set(steps)
-            for t in range(steps[-1]):
-                _, _, Pfx = kf.step(None, modes[t], want_cov=(t + 1) in want)
-                if t + 1 in want:
-                    yield t + 1, Pfx
-            return
-        K = steps[-1]
-        if self.filter == "naive":
-            filt = naive_filter(model, x0, P0, K)
-        else:
-            from netkf_cli.estimators.markov_lmi import lmi_design
-
-            if self.rho == "stationary":
-                rho = np.asarray(trace.meta.get("rho"), float) if trace.meta.get("rho") is not None else None
-                if rho is None:
-                    raise ConfigError.at("estimator.rho", "the trace carries no mode marginals; give rho explicitly")
-            else:
-                rho = np.asarray(self.rho, float)
-            try:
-                filt = lmi_design(model, rho, x0, P0, K, design=self.design, solver=self.solver, tol=self.solver_tol,
-                                  eps=self.eps, precedence=self.precedence, sdp_check=0).filter
-            except RuntimeError as e:
-                raise ConfigError.at("estimator", f"{e}; try `solver: SCS`, a larger `eps` or `design: closed_form`") from None
-        yield from linear_filter_covariances(model, filt, modes, x0, P0, steps, "filtered")
-
-
 # =========================================================================== run-innermost layout
 # Everything below keeps the run axis innermost (design.md): states (d, runs), covariances
 # (d, d, runs), traces (horizon, runs). Per-mode constant matrices are applied to the runs of
-# that mode as one BLAS product (runs grouped by mode at each step), so there is no Python loop
-# over runs and no per-run matrix stacks.
-
-
-def _pinv_small_tr(S: np.ndarray, scale: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
-    """Pseudo-inverse of PSD (m, m, runs) with the zero-variance rule of :func:`pinv_psd`."""
-    if S.shape[0] == 1:
-        s = S[0, 0]
-        ok = s > rtol * scale
-        return np.where(ok, 1.0 / np.where(ok, s, 1.0), 0.0)[None, None, :]
-    return np.moveaxis(pinv_psd(np.moveaxis(S, -1, 0), scale), 0, -1)
-
-
-def _lm(A: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """A X for a constant A (p, a) and X (a, b, runs) as one GEMM."""
-    a, b, r = X.shape
-    return (A @ X.reshape(a, b * r)).reshape(A.shape[0], b, r)
-
-
-def _cong(A: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """A X Aᵀ for a constant A and symmetric X (a, a, runs): two GEMMs and one transpose copy."""
-    Y = _lm(A, X)  # (p, a, r): Y[i, j] = (A X)_{ij}
-    Z = _lm(A, np.ascontiguousarray(Y.transpose(1, 0, 2)))  # Z[k, i] = Σ_j A_kj (AX)_ij = (A X Aᵀ)_{ik}
-    return 0.5 * (Z + Z.transpose(1, 0, 2))
-
-
-def _pmul(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Per-run product X_r Y_r for X (a, b, runs), Y (b, c, runs) (small inner dimension b)."""
-    out = X[:, :1, :] * Y[None, 0, :, :]
-    for j in range(1, X.shape[1]):
-        out = out + X[:, j : j + 1, :] * Y[None, j, :, :]
-    return out
+# that mode together (runs grouped by mode at each step) with the Kalman core's primitives.
 
 
 class ModeGroups:
@@ -588,33 +477,47 @@ class ModeGroups:
 
 
 class ModeAwareKFTr:
-    """The mode-aware KF of :class:`ModeAwareKF` with the run axis innermost: ξ̂ (d, runs), P (d, d, runs).
+    """Time-varying KF on ξ for a receiver that knows θ(k), run axis innermost: ξ̂ (d, runs), P (d, d, runs).
 
-    Same equations (Σ_y = H P Hᵀ + J Σ Jᵀ, K = (F P Hᵀ + G Σ Jᵀ) Σ_y⁺, P⁺ = F P Fᵀ + G Σ Gᵀ − K Σ_y Kᵀ,
-    K_f = P Hᵀ Σ_y⁺), the runs of each mode updated together with that mode's constant matrices.
+    Written on the Kalman core, in filtered form. ``P`` is the prior P(k|k−1) of ξ. Step k in mode q:
+
+        P(k|k)   = ``kalman.update_pinv``(P, H_q, R_q)   (R_q = J_q Σ J_qᵀ; zero-variance innovations —
+                   a held packet, a delayed one whose value is known — get no gain)
+        P(k+1|k) = ``kalman.predict``(P(k|k), F̄_q, Q̄_q)  (the correlated noise decorrelated,
+                   :meth:`AugmentedModel.decorrelated`);  ξ̂(k+1|k) = F̄_q ξ̂(k|k) + D_q y(k)
+
+    Mode 3 (noise only: H_3 = 0) leaves P(k|k) = P(k|k−1). The x block of a mode-1 / mode-3 step goes
+    through the plain KF's overflow policy ``kalman.Rescue.of(C, R)`` (flag on tr P_x(k|k−1), redo
+    in information form): with only modes 1 and 3 the x block is ``kalman.Filter`` with γ = 1{θ = 1}
+    step for step. ``base``: which initial condition ``P0`` is (:meth:`AugmentedModel.prior_moments`).
     ``states=False`` propagates the covariances only (the generic ``covariances()`` path).
     """
 
-    def __init__(self, model: AugmentedModel, runs: int, xhat0: np.ndarray, P0: np.ndarray, states: bool = True):
+    def __init__(self, model: AugmentedModel, runs: int, xhat0: np.ndarray, P0: np.ndarray, states: bool = True,
+                 base: str = "paper"):
         self.model = md = model
-        mean, cov = model.initial_moments(np.asarray(xhat0, float), np.asarray(P0, float))
+        mean, cov = model.prior_moments(np.asarray(xhat0, float), np.asarray(P0, float), base)
         self.xi = np.repeat(mean[:, None], runs, axis=1) if states else None
         self.P = np.repeat(cov[:, :, None], runs, axis=2)
-        self.GSG = np.einsum("iap,pq,ibq->iab", md.G, md.Sigma, md.G)
-        self.GSJ = np.einsum("iap,pq,ibq->iab", md.G, md.Sigma, md.J)
-        self.JSJ = np.einsum("iap,pq,ibq->iab", md.J, md.Sigma, md.J)
+        self.Rq = md.Rq
+        self.Fb, self.D, self.Qb = md.decorrelated()
         self.scale = float(np.trace(md.Sigma))
+        self.rescue = kalman.Rescue.of(md.C, md.R)
 
     def predicted(self) -> tuple[np.ndarray | None, np.ndarray]:
         n = self.model.n
-        return (None if self.xi is None else self.xi[:n]), np.einsum("iir->r", self.P[:n, :n])
+        return (None if self.xi is None else self.xi[:n]), batched.trace(self.P[:n, :n])
+
+    def floor(self, P: np.ndarray) -> np.ndarray:
+        """(runs,) innovation variance at or below which a direction carries no information."""
+        return ZERO_INNOVATION_RTOL * (self.scale + batched.trace(P))
 
     def step(self, y: np.ndarray | None, mode: np.ndarray, groups: ModeGroups | None = None,
              want_cov: bool = False):
         """Update with y(k) (m, runs) in mode θ(k) (runs,); returns (x̂(k|k) (n, runs) or None,
         tr P_x(k|k) (runs,), and P_x(k|k) (n, n, runs) if ``want_cov``); moves to k+1."""
         md = self.model
-        n, d = md.n, md.d
+        n = md.n
         groups = groups or ModeGroups(mode)
         runs = mode.size
         trf = np.empty(runs)
@@ -626,42 +529,47 @@ class ModeAwareKFTr:
             idx = groups.idx[q]
             full = groups.all_one[q]
             P = self.P if full else self.P[:, :, idx]
-            F, H = md.F[q], md.H[q]
-            PHt = np.ascontiguousarray(_lm(H, P).transpose(1, 0, 2))  # (d, m, r) = P Hᵀ (P symmetric)
-            Sy = _lm(H, PHt) + self.JSJ[q][:, :, None]
-            Syi = _pinv_small_tr(Sy, self.scale + np.einsum("iir->r", P))
-            Kf = _pmul(PHt, Syi)  # (d, m, r)
-            K = _pmul(_lm(F, PHt) + self.GSJ[q][:, :, None], Syi)
-            KfS = _pmul(Kf[:n], Sy)
-            corr_x = _pmul(KfS, Kf[:n].transpose(1, 0, 2))
-            Pfx_q = P[:n, :n] - corr_x
-            tr_q = np.einsum("iir->r", Pfx_q)
-            Pn = _cong(F, P) + self.GSG[q][:, :, None] - _pmul(_pmul(K, Sy), K.transpose(1, 0, 2))
-            Pn = 0.5 * (Pn + Pn.transpose(1, 0, 2))
+            xi = None if self.xi is None else (self.xi if full else self.xi[:, idx])
+            yq = None if y is None else (y if full else y[:, idx])
+            with np.errstate(over="ignore", invalid="ignore"):
+                if q == 2:  # noise only: nothing about ξ(k) (v(k) enters through D_3 in the time update)
+                    Pf, dx = P, None
+                else:
+                    e = None if xi is None else yq - md.H[q] @ xi
+                    Pf, dx = kalman.update_pinv(P, md.H[q], self.Rq[q], self.floor(P), e)
+                if q in (0, 2):  # the plain KF's overflow policy on the x block (a mode-1 / mode-3 step is its γ = 1 / 0)
+                    flagged = self.rescue.flag(P[:n, :n])
+                    if flagged.any():
+                        rows = np.full((md.m, P.shape[-1]), q == 0)
+                        Pf = Pf.copy()
+                        Pf[:n, :n] = self.rescue.apply(Pf[:n, :n], P[:n, :n], flagged, rows)
+                Pn = kalman.predict(Pf, self.Fb[q], self.Qb[q])
+            tr_q = batched.trace(Pf[:n, :n])
             if full:
                 Pn_all, trf = Pn, tr_q
                 if want_cov:
-                    Pfx = Pfx_q
+                    Pfx = np.ascontiguousarray(Pf[:n, :n])
             else:
                 Pn_all[:, :, idx] = Pn
                 trf[idx] = tr_q
                 if want_cov:
-                    Pfx[:, :, idx] = Pfx_q
-            if self.xi is not None:
-                xi = self.xi if full else self.xi[:, idx]
-                yq = y if full else y[:, idx]
-                innov = yq - H @ xi
-                xf_q = xi[:n] + np.einsum("dmr,mr->dr", Kf[:n], innov)
-                xin = F @ xi + np.einsum("dmr,mr->dr", K, innov)
+                    Pfx[:, :, idx] = Pf[:n, :n]
+            if xi is not None:
+                xfq = xi if dx is None else xi + dx
+                xin = self.Fb[q] @ xfq + self.D[q] @ yq
                 if full:
-                    xf, xin_all = xf_q, xin
+                    xf, xin_all = xfq[:n], xin
                 else:
-                    xf[:, idx] = xf_q
+                    xf[:, idx] = xfq[:n]
                     xin_all[:, idx] = xin
         self.P = Pn_all
         if self.xi is not None:
             self.xi = xin_all
         return xf, trf, Pfx
+
+
+ModeAwareKF = ModeAwareKFTr
+"""(former per-run layout; the one mode-aware filter is :class:`ModeAwareKFTr`)"""
 
 
 def plant_outputs_tr(model: AugmentedModel, xi: np.ndarray, eps: np.ndarray, mode: np.ndarray) -> np.ndarray:
@@ -729,8 +637,6 @@ class MarkovMSEKernel:
         xi = xbar[:, None] + psd_sqrt(cov) @ rng.standard_normal((md.d, nr))
         eps = np.einsum("pq,kqr->kpr", md.Lsig, rng.standard_normal((K, md.p, nr)))
         states = {f: np.repeat(F.s0[:, None], nr, axis=1) for f, F in self.linear.items()}
-        mak_cls = ModeAwareKFNumba if self.backend == "numba" else ModeAwareKFTr
-        mak = mak_cls(md, nr, self.x0, self.P0) if "mode_aware_kf" in self.filters else None
         st: dict = {}
         win = {(f, e): np.zeros(nr) for f in self.filters for e in self.ESTIMATES}
         for f in self.filters:
@@ -741,34 +647,49 @@ class MarkovMSEKernel:
         for e in self.ESTIMATES:
             st[f"sum_trP_{e}"] = np.zeros(K)
             st[f"sq_trP_{e}"] = np.zeros(K)
-        trp = trf = np.zeros(nr)
-        for k in range(K):
-            mode = modes[k]
+        mak = "mode_aware_kf" in self.filters
+        ys = np.empty((K, md.m, nr)) if mak else None
+        xs = np.empty((K, n, nr)) if mak else None
+
+        def accumulate(k, f, e, se):
+            st[f"sum_{f}_{e}"][k] = se.sum()
+            st[f"sq_{f}_{e}"][k] = (se * se).sum()
+            if k >= burn:
+                win[(f, e)] += se
+
+        for k in range(K):  # the plant and the fixed-gain filters
             x = xi[:n]
-            y = plant_outputs_tr(md, xi, eps[k], mode)
-            err = {}
+            y = plant_outputs_tr(md, xi, eps[k], modes[k])
+            if mak:
+                ys[k], xs[k] = y, x
             for f, F in self.linear.items():
                 s = states[f]
-                err[(f, "predicted")] = x - F.Ep @ s
-                err[(f, "filtered")] = x - (F.Ef[k] @ s + F.Lf[k] @ y)
+                ep = x - F.Ep @ s
+                ef = x - (F.Ef[k] @ s + F.Lf[k] @ y)
+                accumulate(k, f, "predicted", np.einsum("ir,ir->r", ep, ep))
+                accumulate(k, f, "filtered", np.einsum("ir,ir->r", ef, ef))
                 states[f] = F.As[k] @ s + F.Gs[k] @ y
-            if mak is not None:
-                xp, trp = mak.predicted()
-                err[("mode_aware_kf", "predicted")] = x - xp
-                xf, trf, _ = mak.step(y, mode, ModeGroups(mode))
-                err[("mode_aware_kf", "filtered")] = x - xf
-            for (f, e), ev in err.items():
-                se = np.einsum("ir,ir->r", ev, ev)
-                st[f"sum_{f}_{e}"][k] = se.sum()
-                st[f"sq_{f}_{e}"][k] = (se * se).sum()
-                if k >= burn:
-                    win[(f, e)] += se
-            for e, tr in (("predicted", trp), ("filtered", trf)):
-                st[f"sum_trP_{e}"][k] = tr.sum()
-                st[f"sq_trP_{e}"][k] = (tr * tr).sum()
-                if k >= burn:
-                    winP[e] += tr
             xi = plant_next_tr(md, xi, eps[k], y)
+        if mak:  # the mode-aware KF on the same outputs: numpy step by step, or compiled run by run
+            if self.backend == "numba":
+                kf = ModeAwareCompiled(md, nr, self.x0, self.P0)
+                _, (se_p, se_f, trp, trf) = kf.advance(modes, 0, K, ys, xs)
+            else:
+                kf = ModeAwareKFTr(md, nr, self.x0, self.P0)
+                se_p, se_f, trp, trf = (np.empty((K, nr)) for _ in range(4))
+                for k in range(K):
+                    xp, trp[k] = kf.predicted()
+                    xf, trf[k], _ = kf.step(ys[k], modes[k], ModeGroups(modes[k]))
+                    se_p[k] = np.einsum("ir,ir->r", xs[k] - xp, xs[k] - xp)
+                    se_f[k] = np.einsum("ir,ir->r", xs[k] - xf, xs[k] - xf)
+            for k in range(K):
+                accumulate(k, "mode_aware_kf", "predicted", se_p[k])
+                accumulate(k, "mode_aware_kf", "filtered", se_f[k])
+                for e, tr in (("predicted", trp[k]), ("filtered", trf[k])):
+                    st[f"sum_trP_{e}"][k] = tr.sum()
+                    st[f"sq_trP_{e}"][k] = (tr * tr).sum()
+                    if k >= burn:
+                        winP[e] += tr
         L = K - burn
         for (f, e), v in win.items():
             v = v / L
@@ -795,70 +716,70 @@ class MarkovMSEKernel:
 
 
 def linear_filter_covariances(model: AugmentedModel, filt: LinearFilter, modes: np.ndarray, x0, P0, steps,
-                              estimate: str = "filtered"):
-    """Per-run error second moment of a fixed-gain filter given its mode path: yield (k, P_k) (n, n, runs).
+                              quantities=("filtered",), base: str = "paper"):
+    """Per-run error covariances of a fixed-gain filter given its mode path: yield (k, {quantity: P}).
 
-    ζ = [ξ; s] (dimension D = d + r); given θ(0..k) the conditional second moment
-    M(k) = E[ζζᵀ | θ] follows the Joseph-type recursion M(k+1) = 𝒜_q M 𝒜_qᵀ + ℬ_q Σ ℬ_qᵀ with
-    𝒜_q = [[F_q, 0], [G_s H_q, A_s]], ℬ_q = [[G_q], [G_s J_q]] (eq. 29 with the filter's gains),
-    M(0) = E ζ(0)ζ(0)ᵀ. Step t = k − 1 of the trace carries y(t): P_k is the error of x̂(t|t)
-    (``estimate='filtered'``: (E_x − L_f H_q) ξ − E_f s − L_f J_q ε) or of x̂(t|t−1)
-    (``'predicted'``: E_x ξ − E_p s). Exact for any gains (no Gaussianity needed).
+    ζ = [ξ; s] (dimension D = d + r); given θ the conditional second moment M = E[ζζᵀ | θ] follows the
+    Lyapunov (Joseph-type, any gain) recursion M⁺ = 𝒜_q M 𝒜_qᵀ + ℬ_q Σ ℬ_qᵀ, 𝒜_q = [[F_q, 0],
+    [G_s H_q, A_s]], ℬ_q = [[G_q], [G_s J_q]] (eq. 29 with the filter's gains; Costa, Fragoso & Marques
+    2005, Prop. 3.35) — ``kalman.predict``(M, 𝒜_q, ℬ_q Σ ℬ_qᵀ) on the runs of each mode. Trace step
+    t = k − 1 carries the k-th measurement: ``filtered`` P_{k|k} = C_q M C_qᵀ + L_f J_q Σ J_qᵀ L_fᵀ with
+    C_q = [E_x − L_f H_q, −E_f] (the error of x̂(k|k)), ``predicted`` P_{k+1|k} = [E_x, −E_p] M⁺ [·]ᵀ
+    (the error of the next x̂(·|·−1) = E_p s). Exact for any gains (no Gaussianity needed).
     """
     d, n = model.d, model.n
     r = filt.As.shape[1]
     D = d + r
     K, runs = modes.shape
-    xbar, cov = model.initial_moments(np.asarray(x0, float), np.asarray(P0, float))
+    xbar, cov = model.prior_moments(np.asarray(x0, float), np.asarray(P0, float), base)
     z0 = np.concatenate([xbar, filt.s0])
     M0 = np.outer(z0, z0)
     M0[:d, :d] += cov
     M = np.repeat(M0[:, :, None], runs, axis=2)
-    Ex = model.Ex
     want = sorted(int(k) for k in steps)
     last = want[-1] if want else 0
     wset = set(want)
     Sig = model.Sigma
+    Cp = np.concatenate([model.Ex, -filt.Ep], axis=1)
+    zero_n = np.zeros((n, n))
     for t in range(min(K, last)):
         groups = ModeGroups(modes[t])
-        if t + 1 in wset:
-            out = np.empty((n, n, runs))
-            for q in groups.order:
-                idx = groups.idx[q]
-                Mq = M if groups.all_one[q] else M[:, :, idx]
-                if estimate == "filtered":
-                    Cq = np.concatenate([Ex - filt.Lf[t] @ model.H[q], -filt.Ef[t]], axis=1)
-                    LJ = filt.Lf[t] @ model.J[q]
-                    val = _cong(Cq, Mq) + (LJ @ Sig @ LJ.T)[:, :, None]
-                else:
-                    Cq = np.concatenate([Ex, -filt.Ep], axis=1)
-                    val = _cong(Cq, Mq)
-                if groups.all_one[q]:
-                    out = val.copy()
-                else:
-                    out[:, :, idx] = val
-            yield t + 1, out
-        if t + 1 >= last:
-            return
+        report = t + 1 in wset
+        out = {q: np.empty((n, n, runs)) for q in quantities} if report else None
         Mn = np.empty_like(M)
         for q in groups.order:
             idx = groups.idx[q]
+            Mq = M if groups.all_one[q] else M[:, :, idx]
             Aq = np.zeros((D, D))
             Aq[:d, :d] = model.F[q]
             Aq[d:, :d] = filt.Gs[t] @ model.H[q]
             Aq[d:, d:] = filt.As[t]
             Bq = np.concatenate([model.G[q], filt.Gs[t] @ model.J[q]], axis=0)
-            Mq = M if groups.all_one[q] else M[:, :, idx]
-            val = _cong(Aq, Mq) + (Bq @ Sig @ Bq.T)[:, :, None]
+            val = kalman.predict(Mq, Aq, Bq @ Sig @ Bq.T)
             if groups.all_one[q]:
                 Mn = val
             else:
                 Mn[:, :, idx] = val
+            if report:
+                got = {}
+                if "filtered" in quantities:
+                    Cq = np.concatenate([model.Ex - filt.Lf[t] @ model.H[q], -filt.Ef[t]], axis=1)
+                    LJ = filt.Lf[t] @ model.J[q]
+                    got["filtered"] = kalman.predict(Mq, Cq, LJ @ Sig @ LJ.T)
+                if "predicted" in quantities:
+                    got["predicted"] = kalman.predict(val, Cp, zero_n)
+                for qn, v in got.items():
+                    if groups.all_one[q]:
+                        out[qn] = v.copy()
+                    else:
+                        out[qn][:, :, idx] = v
         M = Mn
+        if report:
+            yield t + 1, out
 
 
 # =========================================================================== compiled mode-aware KF
-_NB_STEP = None
+_NB_KERNEL = None
 
 
 def numba_available() -> bool:
@@ -869,154 +790,166 @@ def numba_available() -> bool:
     return True
 
 
-def resolve_backend(backend: str, m: int) -> str:
-    """``auto`` → ``numba`` when numba imports and m = 1 (closed-form scalar innovation), else ``numpy``."""
+def resolve_backend(backend: str, m: int | None = None) -> str:
+    """``auto`` → ``numba`` when numba imports (measured faster for every m: see the module docstring),
+    else ``numpy``; ``numba`` without numba is a ConfigError. ``m`` is accepted for compatibility."""
     if backend == "auto":
-        return "numba" if (m == 1 and numba_available()) else "numpy"
-    if backend == "numba":
-        if not numba_available():
-            raise ConfigError.at("estimator.backend", "numba is not installed: pip install 'netkf[fast]' or use numpy")
-        if m != 1:
-            raise ConfigError.at("estimator.backend", f"the compiled mode-aware KF handles one output (m = 1), got m = {m}")
+        return "numba" if numba_available() else "numpy"
+    if backend == "numba" and not numba_available():
+        raise ConfigError.at("estimator.backend", "numba is not installed: pip install 'netkf[fast]' or use numpy")
     return backend
 
 
-def _numba_step():
-    """Compile (once, cached on disk) the per-run mode-aware KF step for m = 1."""
-    global _NB_STEP
-    if _NB_STEP is not None:
-        return _NB_STEP
+def _numba_kernel():
+    """Compile (once, cached on disk) the run-outer, time-inner mode-aware KF on kalman_numba's primitives."""
+    global _NB_KERNEL
+    if _NB_KERNEL is not None:
+        return _NB_KERNEL
     import numba
 
-    @numba.njit(cache=True, fastmath=False, nogil=True)
-    def step(P, xi, y, mode, rowptr, cols, vals, H, GSG, GSJ, JSJ, scale, n, has_x, xf, trf, trp):  # pragma: no cover
-        # F_q in CSR form (rowptr[q], cols[q], vals[q]): F = [[A,0,0,0],[I,0,0,0],[H_q],[0]] is mostly zeros
-        R = P.shape[0]  # P is (runs, d, d) here: one run's covariance is contiguous
-        d = P.shape[1]
+    from netkf_cli import kalman_numba as kn
+
+    @numba.njit(cache=True, nogil=True)
+    def run(P, xi, ys, xs, modes, t0, t1, H, Rq, Fb, D, Qb, scale, rtol, n, has_x, limit,
+            Pfx, se_p, se_f, trp, trf, flag):  # pragma: no cover - compiled
+        # P (d, d, runs) = P(t0|t0−1) in, P(t1|t1−1) out; xi (d, runs) likewise; Pfx (n, n, runs) = P_x(t1−1|t1−1)
+        d = P.shape[0]
+        runs = P.shape[2]
+        m = H.shape[1]
         Pl = np.empty((d, d))
-        FP = np.empty((d, d))
-        PHt = np.empty(d)
-        K = np.empty(d)
+        Pf = np.empty((d, d))
+        tmp = np.empty((d, d))
+        S = np.empty((m, m))
+        X = np.empty((m, d))
+        e = np.empty(m)
+        dx = np.empty(d)
         xl = np.empty(d)
-        for r in range(R):
-            q = mode[r]
-            tr = 0.0
+        xfl = np.empty(d)
+        for r in range(runs):
             for i in range(d):
                 for j in range(d):
-                    Pl[i, j] = P[r, i, j]
-                tr += Pl[i, i]
-            t = 0.0
-            for i in range(n):
-                t += Pl[i, i]
-            trp[r] = t
-            # P Hᵀ, Σ_y = H P Hᵀ + J Σ Jᵀ (m = 1)
-            Sy = JSJ[q, 0, 0]
-            for a in range(d):
-                s = 0.0
-                for b in range(d):
-                    s += Pl[a, b] * H[q, 0, b]
-                PHt[a] = s
-                Sy += H[q, 0, a] * s
-            Syi = 1.0 / Sy if Sy > 1e-9 * (scale + tr) else 0.0
-            innov = 0.0
-            if has_x:
-                innov = y[0, r]
-                for a in range(d):
-                    xl[a] = xi[a, r]
-                    innov -= H[q, 0, a] * xl[a]
-            # gains: K_f = P Hᵀ Σ_y⁺, K = (F P Hᵀ + G Σ Jᵀ) Σ_y⁺
-            t = 0.0
-            for i in range(n):
-                kf = PHt[i] * Syi
-                t += Pl[i, i] - kf * kf * Sy
+                    Pl[i, j] = P[i, j, r]
                 if has_x:
-                    xf[i, r] = xl[i] + kf * innov
-            trf[r] = t
-            for a in range(d):
-                s = GSJ[q, a, 0]
-                for kk in range(rowptr[q, a], rowptr[q, a + 1]):
-                    s += vals[q, kk] * PHt[cols[q, kk]]
-                K[a] = s * Syi
-            if has_x:
-                for a in range(d):
-                    s = K[a] * innov
-                    for kk in range(rowptr[q, a], rowptr[q, a + 1]):
-                        s += vals[q, kk] * xl[cols[q, kk]]
-                    xi[a, r] = s
-            # P⁺ = F P Fᵀ + G Σ Gᵀ − K Σ_y Kᵀ, symmetrized
-            for a in range(d):
-                for b in range(d):
+                    xl[i] = xi[i, r]
+            for t in range(t0, t1):
+                q = modes[t, r]
+                trx = 0.0
+                tra = 0.0
+                for i in range(d):
+                    tra += Pl[i, i]
+                    if i < n:
+                        trx += Pl[i, i]
+                if (q == 0 or q == 2) and not (trx <= limit):
+                    flag[r] = True  # the plain KF's overflow policy applies: numpy redoes this run
+                if has_x:
+                    trp[t, r] = trx
                     s = 0.0
-                    for kk in range(rowptr[q, a], rowptr[q, a + 1]):
-                        s += vals[q, kk] * Pl[cols[q, kk], b]
-                    FP[a, b] = s
-            for a in range(d):
-                for b in range(a, d):
-                    s1 = 0.0
-                    for kk in range(rowptr[q, b], rowptr[q, b + 1]):
-                        s1 += FP[a, cols[q, kk]] * vals[q, kk]
-                    s2 = 0.0
-                    for kk in range(rowptr[q, a], rowptr[q, a + 1]):
-                        s2 += FP[b, cols[q, kk]] * vals[q, kk]
-                    v = 0.5 * (s1 + s2) + 0.5 * (GSG[q, a, b] + GSG[q, b, a]) - K[a] * K[b] * Sy
-                    P[r, a, b] = v
-                    P[r, b, a] = v
+                    for i in range(n):
+                        v = xs[t, i, r] - xl[i]
+                        s += v * v
+                    se_p[t, r] = s
+                if q == 2:
+                    for i in range(d):
+                        dx[i] = 0.0
+                        for j in range(d):
+                            Pf[i, j] = Pl[i, j]
+                else:
+                    for a in range(m):
+                        acc = 0.0
+                        if has_x:
+                            acc = ys[t, a, r]
+                            for b in range(d):
+                                acc -= H[q, a, b] * xl[b]
+                        e[a] = acc
+                    kn.update_pinv(Pl, H[q], Rq[q], rtol * (scale + tra), e, Pf, dx, S, X)
+                if has_x:
+                    s = 0.0
+                    tf = 0.0
+                    for i in range(d):
+                        xfl[i] = xl[i] + dx[i]
+                    for i in range(n):
+                        v = xs[t, i, r] - xfl[i]
+                        s += v * v
+                        tf += Pf[i, i]
+                    se_f[t, r] = s
+                    trf[t, r] = tf
+                    for i in range(d):
+                        acc = 0.0
+                        for j in range(d):
+                            acc += Fb[q, i, j] * xfl[j]
+                        for a in range(m):
+                            acc += D[q, i, a] * ys[t, a, r]
+                        xl[i] = acc
+                if t == t1 - 1:
+                    for i in range(n):
+                        for j in range(n):
+                            Pfx[i, j, r] = Pf[i, j]
+                kn.predict(Pf, Fb[q], Qb[q], Pl, tmp)
+            for i in range(d):
+                for j in range(d):
+                    P[i, j, r] = Pl[i, j]
+                if has_x:
+                    xi[i, r] = xl[i]
 
-    _NB_STEP = step
-    return step
+    _NB_KERNEL = run
+    return run
 
 
-class ModeAwareKFNumba(ModeAwareKFTr):
-    """:class:`ModeAwareKFTr` with the per-run step compiled by numba (m = 1): same inputs and outputs,
-    equal to the numpy reference to rounding (tested). Internally P is kept as (runs, d, d) — a per-run
-    loop wants each run's covariance contiguous (the run-innermost layout would touch d² pages per run)."""
+class ModeAwareCompiled:
+    """The mode-aware KF of :class:`ModeAwareKFTr` compiled (numba, kalman_numba's inlined
+    ``update_pinv`` / ``predict``): a run-outer, time-inner loop on one run's d×d covariance at a time,
+    the (d, d, runs) layout in and out. Equal to the numpy path to rounding (tested); a run whose
+    x block trips the plain KF's overflow flag (``kalman.Rescue``) is redone by the numpy path."""
 
-    def __init__(self, model: AugmentedModel, runs: int, xhat0, P0, states: bool = True):
-        if model.m != 1:
-            raise ValueError("the compiled mode-aware KF needs m = 1")
-        super().__init__(model, runs, xhat0, P0, states)
-        self.P = np.ascontiguousarray(np.moveaxis(self.P, -1, 0))
-        self._fn = _numba_step()
-        md = model
-        self._H = np.ascontiguousarray(md.H)
-        nnz = int(max((md.F[q] != 0).sum() for q in range(N_MODES)))
-        d = md.d
-        self._rowptr = np.zeros((N_MODES, d + 1), np.int64)
-        self._cols = np.zeros((N_MODES, max(nnz, 1)), np.int64)
-        self._vals = np.zeros((N_MODES, max(nnz, 1)))
-        for q in range(N_MODES):
-            k = 0
-            for a in range(d):
-                for c in range(d):
-                    if md.F[q, a, c] != 0.0:
-                        self._cols[q, k], self._vals[q, k] = c, md.F[q, a, c]
-                        k += 1
-                self._rowptr[q, a + 1] = k
-        self._dummy_x = np.zeros((md.d, 1))
-        self._dummy_y = np.zeros((1, 1))
+    def __init__(self, model: AugmentedModel, runs: int, xhat0, P0, states: bool = True, base: str = "paper"):
+        self.ref = ModeAwareKFTr(model, runs, xhat0, P0, states, base)
+        self.model = model
+        self._fn = _numba_kernel()
+        self._args = (np.ascontiguousarray(model.H), np.ascontiguousarray(self.ref.Rq),
+                      *(np.ascontiguousarray(a) for a in (self.ref.Fb, self.ref.D, self.ref.Qb)))
 
-    def predicted(self):
-        n = self.model.n
-        return (None if self.xi is None else self.xi[:n].copy()), np.einsum("rii->r", self.P[:, :n, :n])
+    @property
+    def P(self):
+        return self.ref.P
 
-    def step(self, y, mode, groups=None, want_cov: bool = False):
-        md = self.model
-        n, R = md.n, mode.size
-        has_x = self.xi is not None
-        Pfx = None
-        if want_cov:  # P_x(k|k) = P_xx − K_f,x Σ_y K_f,xᵀ from the current (runs, d, d) P, vectorized (m = 1)
-            P = self.P
-            Hr = md.H[mode][:, 0, :]  # (runs, d)
-            PHt = np.einsum("rab,rb->ra", P, Hr)
-            Sy = np.einsum("ra,ra->r", Hr, PHt) + self.JSJ[mode][:, 0, 0]
-            ok = Sy > 1e-9 * (self.scale + np.einsum("rii->r", P))
-            Syi = np.where(ok, 1.0 / np.where(ok, Sy, 1.0), 0.0)
-            Kx = PHt[:, :n] * Syi[:, None]
-            Pfx = np.moveaxis(P[:, :n, :n] - Kx[:, :, None] * Kx[:, None, :] * Sy[:, None, None], 0, -1)
-        xf = np.empty((n, R)) if has_x else np.empty((n, 1))
-        trf, trp = np.empty(R), np.empty(R)
-        self._fn(self.P, self.xi if has_x else self._dummy_x, y if has_x else self._dummy_y,
-                 np.ascontiguousarray(mode, dtype=np.int64), self._rowptr, self._cols, self._vals, self._H,
-                 self.GSG, self.GSJ, self.JSJ,
-                 self.scale, n, has_x, xf, trf, trp)
-        return (xf if has_x else None), trf, Pfx
+    def advance(self, modes: np.ndarray, t0: int, t1: int, ys=None, xs=None):
+        """Run steps t0 … t1−1 (``modes`` (K, runs)); returns P_x(t1−1|t1−1) (n, n, runs) and, with
+        states (``ys`` (K, m, runs), ``xs`` (K, n, runs) the true x), (se_p, se_f, trp, trf) each (K, runs)
+        filled on t0 … t1−1 (squared errors of x̂(t|t−1), x̂(t|t) and the traces of P_x)."""
+        md, ref = self.model, self.ref
+        n, runs = md.n, modes.shape[1]
+        has_x = ref.xi is not None and ys is not None
+        K = modes.shape[0]
+        P0, xi0 = ref.P.copy(), (ref.xi.copy() if has_x else None)
+        P = np.ascontiguousarray(ref.P)
+        xi = np.ascontiguousarray(ref.xi) if has_x else np.zeros((md.d, 1))
+        Pfx = np.empty((n, n, runs))
+        arr = (lambda: np.zeros((K, runs))) if has_x else (lambda: np.zeros((1, 1)))
+        se_p, se_f, trp, trf = arr(), arr(), arr(), arr()
+        flag = np.zeros(runs, dtype=np.bool_)
+        self._fn(P, xi, ys if has_x else np.zeros((1, 1, 1)), xs if has_x else np.zeros((1, 1, 1)),
+                 np.ascontiguousarray(modes, dtype=np.int64), int(t0), int(t1), *self._args, ref.scale,
+                 ZERO_INNOVATION_RTOL, n, has_x, ref.rescue.limit, Pfx, se_p, se_f, trp, trf, flag)
+        if flag.any():  # the overflow policy: these runs through the numpy reference
+            idx = np.flatnonzero(flag)
+            sub = ModeAwareKFTr.__new__(ModeAwareKFTr)
+            sub.__dict__.update(ref.__dict__)
+            sub.P = P0[:, :, idx]
+            sub.xi = xi0[:, idx] if has_x else None
+            for t in range(t0, t1):
+                if has_x:
+                    xp, trp[t, idx] = sub.predicted()
+                    se_p[t, idx] = ((xs[t][:, idx] - xp) ** 2).sum(axis=0)
+                xf, tr_f, pf = sub.step(ys[t][:, idx] if has_x else None, modes[t, idx], want_cov=t == t1 - 1)
+                if has_x:
+                    trf[t, idx] = tr_f
+                    se_f[t, idx] = ((xs[t][:, idx] - xf) ** 2).sum(axis=0)
+                if t == t1 - 1:
+                    Pfx[:, :, idx] = pf
+            P[:, :, idx] = sub.P
+            if has_x:
+                xi[:, idx] = sub.xi
+        ref.P = P
+        if has_x:
+            ref.xi = xi
+        return Pfx, (se_p, se_f, trp, trf)

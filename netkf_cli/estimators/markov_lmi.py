@@ -47,16 +47,27 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import ClassVar, Literal
 
 import numpy as np
+from pydantic import Field
 
+from netkf_cli import kalman
+from netkf_cli.errors import ConfigError
 from netkf_cli.estimators.markov_filters import (
     N_MODES,
     AugmentedModel,
     LinearFilter,
+    ModeAwareCompiled,
+    ModeAwareKFTr,
+    linear_filter_covariances,
+    naive_filter,
     pinv_psd,
     psd_sqrt,
+    resolve_backend,
 )
+from netkf_cli.riccati import initial_covariance
+from netkf_cli.spec import EstimatorModel, NonNegFloat, NonNegInt, PositiveFloat
 
 
 def design_weights(rho: np.ndarray, precedence: bool = True) -> np.ndarray:
@@ -257,7 +268,7 @@ def sdp_check_steps(horizon: int, count: int) -> list[int]:
 
 def lmi_design(model: AugmentedModel, rho, x0, P0, horizon: int, *, design: str = "sdp",
                solver: str = "CLARABEL", tol: float = 1e-8, eps: float = 1e-5,
-               precedence: bool = True, progress=None, sdp_check: int = 0) -> LMIDesign:
+               precedence: bool = True, progress=None, sdp_check: int = 0, base: str = "paper") -> LMIDesign:
     """Gains A_s(k), G_s(k), L(k), k = 0..horizon−1, by the conceptual algorithm of Sec. III-C.
 
     Initialization (eq. 35, with the prior mean x̂0 = E x(0) instead of 0):
@@ -266,12 +277,15 @@ def lmi_design(model: AugmentedModel, rho, x0, P0, horizon: int, *, design: str 
     same convex quadratic's normal equations: the SDP optimum matches it to the solver's tolerance);
     with ``sdp_check = c > 0`` the SDPs are still solved at c steps (:func:`sdp_check_steps`) on the
     same Φ_q, as a check recorded in the diagnostics (their gains are not used).
+    ``base``: the initial condition ξ(0) of the design (:meth:`AugmentedModel.prior_moments`: the
+    paper's eq. 35, or netkf's P0 = P_{0|0} with the first measurement one step later).
     """
     rho = np.asarray(rho, float)
     blocks = _Blocks(model)
     n, m, d, D = blocks.n, blocks.m, blocks.d, blocks.D
     x0 = np.asarray(x0, float)
-    xbar, cov = model.initial_moments(x0, np.asarray(P0, float))
+    xbar, cov = model.prior_moments(x0, np.asarray(P0, float), base)
+    x0 = xbar[:n]  # the design's x_s(0) = E x at the first measurement
     zbar = np.concatenate([xbar, x0])
     Lam0 = np.outer(zbar, zbar)
     Lam0[:d, :d] += cov
@@ -339,3 +353,138 @@ def _record(diag, blocks, rho, val, status, dt, Lam_sdp, Lam_exact, best, gain_d
     diag["solve_seconds"] += dt
     diag["solves"] += 1
     diag["statuses"].add(status)
+
+
+# =========================================================================== scenario block
+def _modes_of(trace) -> np.ndarray:
+    """(horizon, runs) 0-based modes: the trace's mode path, or — for a one-stream arrival trace — mode 1
+    where the packet arrived and mode 3 (noise only: nothing about x) where it did not."""
+    if trace.mode is not None:
+        return np.asarray(trace.mode, dtype=np.int64)
+    if trace.arrival is not None and trace.arrival.shape[0] == 1:
+        return np.where(np.asarray(trace.arrival[0], bool), 0, 2).astype(np.int64)
+    raise ConfigError.at("channel.kind", "markov_lmi needs a mode trace (channel kind markov_modes) or a one-stream "
+                                         "arrival trace (a lost packet is mode 3, noise only)")
+
+
+class MarkovLMIEstimator(EstimatorModel):
+    """``kind: markov_lmi`` — the paper's LMI filter design (Sec. III) and its comparison filters.
+
+    ``rho`` are the mode marginals the design uses (the paper's printed ρ_q; ``stationary`` =
+    computed from the channel). ``design: closed_form`` (default) solves each per-step LMI problem
+    through its normal equations (the same convex quadratic; the SDP optimum matches it within the
+    solver tolerance) and solves the SDP itself at ``sdp_check`` steps as a check; ``design: sdp``
+    solves every step's SDP with cvxpy (≈ 10 s for 100 steps).
+
+    Generic metrics (``covariances``): ``filter`` picks the filter whose per-run error covariance is
+    reported — the LMI filter or the naive KF (fixed gains: the conditional second moment given the
+    mode path, :func:`linear_filter_covariances`) or the mode-aware KF (its own P, on the Kalman core).
+    netkf's time base: P0 = P_{0|0} = ``riccati.initial_covariance(system)``, E x_0 = 0, zero
+    cross-covariance; step k is the update with y_k in mode θ_k (trace step k − 1). Quantities:
+    ``filtered`` P_{k|k} (the error of x̂(k|k)) and ``predicted`` P_{k+1|k} (of x̂(k+1|k)). With only
+    mode 1 (or modes 1 and 3) the mode-aware KF is ``kind: kf`` with γ_k = 1{θ_k = 1}, step for step.
+    """
+
+    accepts: ClassVar[frozenset[str]] = frozenset({"mode"})
+    quantities: ClassVar[tuple[str, ...]] = ("filtered", "predicted")
+
+    kind: Literal["markov_lmi"]
+    rho: Literal["stationary"] | list[NonNegFloat] = Field(
+        "stationary", description="design marginals ρ_1..ρ_4 (sum 1) or 'stationary'")
+    design: Literal["sdp", "closed_form"] = Field("closed_form", description="how the per-step LMI problem "
+                                                  "(eqs 34/34a, 37/37a) is solved: closed_form (normal equations) or sdp (cvxpy)")
+    sdp_check: NonNegInt = Field(3, description="with design: closed_form, the number of steps at which the SDP is "
+                                               "also solved and compared (0: none)")
+    solver: Literal["CLARABEL", "SCS"] = Field("CLARABEL", description="SDP solver used through cvxpy")
+    solver_tol: PositiveFloat = Field(1e-8, description="solver feasibility/gap tolerance (Clarabel tol_gap_abs, "
+                                                       "tol_gap_rel, tol_feas; SCS eps_abs, eps_rel)")
+    eps: PositiveFloat = Field(1e-5, description="ε of eqs (33a)/(34a)/(37a) (relative to the block size) and of "
+                                               "eq. (35) (variance of x_s(0) around its value)")
+    precedence: bool = Field(True, description="use the precedence rule of eq. (34) for q = 2 (exclude j = 1 in Φ_2)")
+    backend: Literal["auto", "numpy", "numba"] = Field(
+        "auto", description="mode-aware KF: auto = numba when importable (compiled run by run on kalman_numba's "
+                            "primitives, measured faster), else numpy (the reference; equal to rounding)")
+    filter: Literal["lmi", "mode_aware", "naive", "lmmse"] = Field(
+        "lmi", description="filter whose per-run error covariances the generic metrics see (the markov_filters "
+                           "analysis always compares all four)")
+
+    def check(self, system, channel) -> None:
+        """Refuse what has no per-run covariance or no model: the LMMSE's P is an expectation."""
+        if self.filter == "lmmse":
+            raise ConfigError.at("estimator.filter", "the exact LMMSE's error covariance is an expectation over all mode "
+                                 "paths (Costa's construction), not a per-run quantity, so per-run metrics cannot use it; "
+                                 "use analysis kind markov_filters (exact MSE and Monte Carlo) or filter: lmi | naive | "
+                                 "mode_aware")
+        if self.rho != "stationary":
+            if len(self.rho) != N_MODES:
+                raise ConfigError.at("estimator.rho", f"needs 4 marginals ρ_1..ρ_4, got {len(self.rho)}")
+            if abs(sum(self.rho) - 1) > 1e-9:
+                raise ConfigError.at("estimator.rho", f"must sum to 1, got {sum(self.rho):.12g}")
+        if channel is not None:
+            from netkf_cli.estimators.kf import channel_streams
+
+            S = channel_streams(channel)
+            if S is not None and S != 1:
+                raise ConfigError.at("estimator.kind", f"markov_lmi models one packet per step carrying all of y_k "
+                                     f"(its mode says what the packet holds); the channel has {S} arrival streams — "
+                                     f"use channel kind markov_modes, or kind: kf for per-sensor arrivals")
+            kalman.stream_rows(system, 1, "estimator.kind")
+
+    def conventions(self, system, channel) -> dict[str, str]:
+        return {"packet": "one packet per step carries y_k; mode 1 on time, 2 one-step delayed z_{k-1}, 3 noise only, "
+                          "4 held copy of y_{k-1}",
+                "filter": {"lmi": "LMI-designed fixed gains (Sec. III)", "naive": "KF assuming mode 1 always",
+                           "mode_aware": "KF knowing the mode", "lmmse": "exact LMMSE"}[self.filter],
+                "start": "P0 = P_{0|0}; before the start the held/delayed content is noise (eq. 35 one step later)"}
+
+    def _model(self, system):
+        n = np.atleast_2d(np.asarray(system.A, float)).shape[0]
+        return AugmentedModel.build(system.A, system.C, system.Q, system.R), np.zeros(n), initial_covariance(system)
+
+    def covariances(self, system, trace, steps, quantities=("filtered",)):
+        """Yield ``(k, {quantity: P_k})`` (n, n, runs) given the mode path of the trace (netkf's time base)."""
+        qs = kalman.check_quantities(quantities, self.quantities, "markov_lmi")
+        self.check(system, None)
+        modes = _modes_of(trace)
+        model, x0, P0 = self._model(system)
+        steps = sorted({int(k) for k in steps})
+        if not steps:
+            return
+        if self.filter == "mode_aware":
+            yield from self._mode_aware(model, x0, P0, modes, steps, qs)
+            return
+        K = steps[-1]
+        if self.filter == "naive":
+            prior_x = model.prior_moments(x0, P0, "contract")[1][: model.n, : model.n]
+            filt = naive_filter(model, x0, prior_x, K)
+        else:
+            if self.rho == "stationary":
+                rho = np.asarray(trace.meta.get("rho"), float) if trace.meta.get("rho") is not None else None
+                if rho is None:
+                    raise ConfigError.at("estimator.rho", "the trace carries no mode marginals; give rho explicitly")
+            else:
+                rho = np.asarray(self.rho, float)
+            try:
+                filt = lmi_design(model, rho, x0, P0, K, design=self.design, solver=self.solver, tol=self.solver_tol,
+                                  eps=self.eps, precedence=self.precedence, sdp_check=0, base="contract").filter
+            except RuntimeError as e:
+                raise ConfigError.at("estimator", f"{e}; try `solver: SCS`, a larger `eps` or `design: closed_form`") from None
+        yield from linear_filter_covariances(model, filt, modes, x0, P0, steps, qs, base="contract")
+
+    def _mode_aware(self, model, x0, P0, modes, steps, qs):
+        runs = modes.shape[1]
+        A, Q = np.asarray(model.A, float), np.asarray(model.Q, float)
+        if resolve_backend(self.backend, model.m) == "numba":
+            kf = ModeAwareCompiled(model, runs, x0, P0, states=False, base="contract")
+            t = 0
+            for k in steps:
+                Pfx, _ = kf.advance(modes, t, k)
+                t = k
+                yield k, kalman.report(Pfx, qs, A, Q)
+            return
+        kf = ModeAwareKFTr(model, runs, x0, P0, states=False, base="contract")
+        want = set(steps)
+        for t in range(steps[-1]):
+            _, _, Pfx = kf.step(None, modes[t], want_cov=(t + 1) in want)
+            if t + 1 in want:
+                yield t + 1, kalman.report(Pfx, qs, A, Q)

@@ -30,21 +30,20 @@ from pydantic import Field
 
 from netkf_cli.channels.markov_modes import MODE_NAMES, N_MODES, MarkovModesChannel
 from netkf_cli.errors import ConfigError, Problem
+from netkf_cli.engine import heavy_tail_flag
 from netkf_cli.estimators.markov_filters import (
     AugmentedModel,
-    MarkovLMIEstimator,
     MarkovMSEKernel,
-    resolve_backend,
-    ModeAwareKF,
+    ModeAwareKFTr,
     draw_initial,
     draw_noise,
     exact_mse,
     lmmse_filter,
     naive_filter,
     plant_step,
+    resolve_backend,
 )
-from netkf_cli.estimators.fusion import heavy_tail_flag  # (a montecarlo-level primitive; to be hoisted)
-from netkf_cli.estimators.markov_lmi import lmi_design
+from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator, lmi_design
 from netkf_cli.montecarlo import mean_and_stderr, run_chunked
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, Matrix, NonNegInt
@@ -247,7 +246,7 @@ def _trajectory(rng, model, ch, linear, x0, P0, xs0, K) -> pd.DataFrame:
     eps = draw_noise(model, rng, 1, K)
     n = model.n
     states = {f: F.s0[None].copy() for f, F in linear.items()}
-    mak = ModeAwareKF(model, 1, xs0, P0)
+    mak = ModeAwareKFTr(model, 1, xs0, P0)
     rows = []
     for k in range(K):
         mode = modes[:, k]
@@ -260,9 +259,9 @@ def _trajectory(rng, model, ch, linear, x0, P0, xs0, K) -> pd.DataFrame:
             est[(f, "filtered")] = (s @ F.Ef[k].T + y @ F.Lf[k].T)[0]
             states[f] = s @ F.As[k].T + y @ F.Gs[k].T
         xp, _ = mak.predicted()
-        est[("mode_aware_kf", "predicted")] = xp[0].copy()
-        xf, _ = mak.step(y, mode)
-        est[("mode_aware_kf", "filtered")] = xf[0]
+        est[("mode_aware_kf", "predicted")] = xp[:, 0].copy()
+        xf, _, _ = mak.step(y.T, np.asarray(mode))
+        est[("mode_aware_kf", "filtered")] = xf[:, 0]
         for i in range(n):
             rows.append((k, i + 1, "true", "true", float(x[i])))
             for (f, e), v in est.items():
@@ -282,8 +281,8 @@ def _tables(stats, exact, exact_xs0, linear, runs, K, burn, ch, rho):
             m, s = mean_and_stderr(stats[f"sum_{f}_{e}"], stats[f"sq_{f}_{e}"], runs)
             mt += [(int(k), f, e, "mc", float(a), float(b), runs) for k, a, b in zip(ks, m, s)]
             wm, ws = mean_and_stderr(stats[f"win_{f}_{e}"], stats[f"winsq_{f}_{e}"], runs)
-            ht = heavy_tail_flag(stats[f"win_{f}_{e}"], stats[f"winsq_{f}_{e}"], stats[f"win3_{f}_{e}"],
-                                 stats[f"win4_{f}_{e}"], runs)
+            _, _, ht = heavy_tail_flag(stats[f"win_{f}_{e}"], stats[f"winsq_{f}_{e}"], stats[f"win3_{f}_{e}"],
+                                       stats[f"win4_{f}_{e}"], runs, stats[f"nonfinite_{f}"])
             mw.append((f, e, "mc", float(wm), float(ws), runs, window, int(ht)))
             if f in exact:
                 ex = exact[f][ie]

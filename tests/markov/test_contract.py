@@ -10,17 +10,18 @@ import scipy.linalg
 
 from netkf_cli.channels.markov_modes import MarkovModesChannel
 from netkf_cli.errors import ConfigError
+from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.markov_filters import (
     AugmentedModel,
-    MarkovLMIEstimator,
     MarkovMSEKernel,
-    ModeAwareKF,
     ModeAwareKFTr,
     exact_mse,
     lmmse_filter,
     naive_filter,
+    pinv_psd,
 )
-from netkf_cli.estimators.markov_lmi import lmi_design
+from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator, lmi_design
+from netkf_cli.trace import Trace
 from netkf_cli.system import LinearSystem
 
 EX2 = LinearSystem.create([[0.8, 0], [0.9, 0.2]], [[1, 1]], [[0.36, 0.30], [0.30, 0.25]], 0.25, P0=[[0, 0], [0, 0]])
@@ -49,27 +50,72 @@ def test_perfect_channel_mode_aware_gives_the_dare_steady_state():
     perfect = _ch([[1.0, 0, 0, 0]] * 4)
     tr = perfect.sample_trace(np.random.default_rng(1), 3, 200)
     est = MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware")
-    P = dict(est.covariances(EX2, tr, [200]))[200]
+    P = dict(est.covariances(EX2, tr, [200]))[200]["filtered"]
     Pp = scipy.linalg.solve_discrete_are(EX2.A.T, EX2.C.T, EX2.Q, EX2.R)
     Pf = Pp - Pp @ EX2.C.T @ np.linalg.solve(EX2.C @ Pp @ EX2.C.T + EX2.R, EX2.C @ Pp)
     for r in range(3):
         np.testing.assert_allclose(P[:, :, r], Pf, rtol=1e-8, atol=1e-10)
 
 
-def test_mode_aware_run_innermost_equals_the_per_run_layout():
-    md = AugmentedModel.build(EX2.A, EX2.C, EX2.Q, EX2.R)
+def test_mode_aware_states_equal_the_textbook_predictor_form_per_run():
+    # the core's filtered form (update_pinv, then the decorrelated time update) against the textbook
+    # predictor form with correlated noise, run by run: Σ_y = H P Hᵀ + J Σ Jᵀ, K = (F P Hᵀ + G Σ Jᵀ) Σ_y⁺,
+    # ξ̂⁺ = F ξ̂ + K (y − H ξ̂), P⁺ = F P Fᵀ + G Σ Gᵀ − K Σ_y Kᵀ; filtered x̂ = ξ̂ + P Hᵀ Σ_y⁺ (y − H ξ̂).
+    md = AugmentedModel.build(EX2.A, EX2.C, EX2.Q, EX2.R, [[0.12], [0.10]])  # v = 0.2 w₀ + …: S = 0.2 g
     rng = np.random.default_rng(2)
-    R, K = 300, 30
+    R, K = 40, 30
     modes = _ch().sample_trace(rng, R, K).mode
     ys = rng.standard_normal((K, 1, R))
-    a = ModeAwareKF(md, R, np.zeros(2), np.eye(2))
     b = ModeAwareKFTr(md, R, np.zeros(2), np.eye(2))
+    mean, cov = md.initial_moments(np.zeros(2), np.eye(2))
+    xs = [mean.copy() for _ in range(R)]
+    Ps = [cov.copy() for _ in range(R)]
+    Sg = md.Sigma
     for k in range(K):
-        xa, ta = a.step(ys[k].T.copy(), modes[k])
         xb, tb, Pb = b.step(ys[k], modes[k], want_cov=True)
-        np.testing.assert_allclose(xb, xa.T, rtol=1e-9, atol=1e-12)
-        np.testing.assert_allclose(tb, ta, rtol=1e-9, atol=1e-12)
+        for r in range(R):
+            q = modes[k, r]
+            F, G, H, J = md.F[q], md.G[q], md.H[q], md.J[q]
+            P, x, y = Ps[r], xs[r], ys[k][:, r]
+            Sy = H @ P @ H.T + J @ Sg @ J.T
+            Si = pinv_psd(Sy, np.trace(Sg) + np.trace(P))
+            innov = y - H @ x
+            Kf = P @ H.T @ Si
+            np.testing.assert_allclose(xb[:, r], (x + Kf @ innov)[:2], rtol=1e-9, atol=1e-10)
+            np.testing.assert_allclose(Pb[:, :, r], (P - Kf @ Sy @ Kf.T)[:2, :2], rtol=1e-9, atol=1e-10)
+            Kg = (F @ P @ H.T + G @ Sg @ J.T) @ Si
+            xs[r] = F @ x + Kg @ innov
+            Pn = F @ P @ F.T + G @ Sg @ G.T - Kg @ Sy @ Kg.T
+            Ps[r] = (Pn + Pn.T) / 2
         np.testing.assert_allclose(np.trace(Pb), tb, rtol=1e-12)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+@pytest.mark.parametrize("sysname", ["ex2", "overflow", "3x2"])
+def test_mode_aware_with_only_modes_1_and_3_is_the_kf_step_for_step(backend, sysname):
+    # modes 1 (on time) and 3 (noise only) are the kf's γ = 1 and γ = 0: same P0 = P_{0|0}, same step k,
+    # filtered and predicted, relative 1e-12 (the x block goes through the same primitive sequence and the
+    # same kalman.Rescue — A = diag(1e6, 0.5) overflows in the standard form and is rescued alike).
+    if backend == "numba":
+        pytest.importorskip("numba")
+    S = {"ex2": EX2,
+         "overflow": LinearSystem.create([[1e6, 0], [0, 0.5]], [[1, 0]], np.eye(2), 1.0),
+         "3x2": LinearSystem.create([[1.1, 0.2, 0], [0, 0.9, 0.1], [0, 0, 0.7]], [[1, 0, 1], [0, 1, 0]], np.eye(3),
+                                    [[1, 0.3], [0.3, 2]])}[sysname]
+    rng = np.random.default_rng(0)
+    R, K = 50, 40
+    arr = rng.random((1, K, R)) < 0.7
+    tr = Trace(runs=R, horizon=K, mode=np.where(arr[0], 0, 2).astype(np.int8), arrival=arr, meta={})
+    ks = range(1, K + 1)
+    kf = dict(KalmanFilterEstimator(kind="kf").covariances(S, tr, ks, ("filtered", "predicted")))
+    est = MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware", backend=backend)
+    ma = dict(est.covariances(S, tr, ks, ("filtered", "predicted")))
+    for k in ks:
+        for q in ("filtered", "predicted"):
+            a, b = ma[k][q], kf[k][q]
+            np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
+            fin = np.isfinite(b)
+            assert np.abs(a - b)[fin].max() <= 1e-12 * np.abs(b[fin]).max(), (k, q)
 
 
 @pytest.mark.parametrize("which", ["lmi", "naive"])
@@ -81,11 +127,14 @@ def test_fixed_gain_covariances_average_to_the_exact_mse(which):
     R, K = 4000, 40
     tr = ch.sample_trace(np.random.default_rng(3), R, K)
     est = MarkovLMIEstimator(kind="markov_lmi", filter=which)
-    got = dict(est.covariances(EX2, tr, [5, 20, 40]))
+    # netkf's time base: P0 = P_{0|0}, first measurement y_1 (exact_mse / the design with base="contract")
+    got = {k: v["filtered"] for k, v in est.covariances(EX2, tr, [5, 20, 40])}
     md = AugmentedModel.build(EX2.A, EX2.C, EX2.Q, EX2.R)
     x0, P0 = np.zeros(2), np.zeros((2, 2))
-    filt = naive_filter(md, x0, P0, K) if which == "naive" else lmi_design(md, ch.rho, x0, P0, K, design="closed_form").filter
-    ex = exact_mse(md, filt, ch.T, ch.pi0, x0, P0)[1]
+    prior_x = md.prior_moments(x0, P0, "contract")[1][:2, :2]
+    filt = (naive_filter(md, x0, prior_x, K) if which == "naive"
+            else lmi_design(md, ch.rho, x0, P0, K, design="closed_form", base="contract").filter)
+    ex = exact_mse(md, filt, ch.T, ch.pi0, x0, P0, base="contract")[1]
     for k, P in got.items():
         trP = np.trace(P)
         assert np.all(trP > 0)
@@ -138,7 +187,7 @@ def test_backend_auto_picks_numba_when_present_and_numpy_when_hidden(monkeypatch
 
     if mf.numba_available():
         assert mf.resolve_backend("auto", 1) == "numba"
-    assert mf.resolve_backend("auto", 2) == "numpy"  # the compiled step handles m = 1 only
+        assert mf.resolve_backend("auto", 2) == "numba"  # the compiled filter handles any m
     monkeypatch.setitem(sys.modules, "numba", None)  # import numba now raises ImportError
     assert not mf.numba_available()
     assert mf.resolve_backend("auto", 1) == "numpy"
@@ -151,16 +200,22 @@ def test_batched_covariances_equal_a_per_run_loop(which):
     # issue 12: batched == per-run loop on the same trace. The loop is the textbook recursion one run
     # at a time: for fixed gains M⁺ = 𝒜_q M 𝒜_qᵀ + ℬ_q Σ ℬ_qᵀ on ζ = [ξ; x_s], error of x̂(k|k) read off
     # M; for the mode-aware KF the plain Riccati step with Σ_y⁺ (zero-variance innovations get no gain).
-    from netkf_cli.estimators.markov_filters import pinv_psd
-
+    # netkf's time base: P0 = P_{0|0}; ξ at the first measurement y_1 is ξ(1) = [A x_0 + w_0; x_0; v_0; v_0].
     ch = _ch()
     R, K = 7, 18
     tr = ch.sample_trace(np.random.default_rng(4), R, K)
     est = MarkovLMIEstimator(kind="markov_lmi", filter=which)
-    got = dict(est.covariances(EX2, tr, range(1, K + 1)))
+    got = {k: v["filtered"] for k, v in est.covariances(EX2, tr, range(1, K + 1), ("filtered", "predicted"))}
+    pred = {k: v["predicted"] for k, v in est.covariances(EX2, tr, range(1, K + 1), ("filtered", "predicted"))}
     md = AugmentedModel.build(EX2.A, EX2.C, EX2.Q, EX2.R)
     x0, P0, n, d = np.zeros(2), np.zeros((2, 2)), 2, md.d
-    xbar, cov = md.initial_moments(x0, P0)
+    c0 = np.zeros((d, d))
+    c0[:2, :2] = EX2.A @ P0 @ EX2.A.T + EX2.Q
+    c0[:2, 2:4] = EX2.A @ P0
+    c0[2:4, :2] = P0 @ EX2.A.T
+    c0[2:4, 2:4] = P0
+    c0[4:, 4:] = EX2.R
+    xbar, cov = np.zeros(d), c0
     Sg = md.Sigma
     if which == "mode_aware":
         for r in range(R):
@@ -175,8 +230,10 @@ def test_batched_covariances_equal_a_per_run_loop(which):
                 Kg = (F @ P @ H.T + G @ Sg @ J.T) @ Si
                 P = F @ P @ F.T + G @ Sg @ G.T - Kg @ Sy @ Kg.T
                 P = (P + P.T) / 2
+                np.testing.assert_allclose(pred[t + 1][:, :, r], P[:n, :n], rtol=1e-8, atol=1e-10)
         return
-    filt = naive_filter(md, x0, P0, K) if which == "naive" else lmi_design(md, ch.rho, x0, P0, K, design="closed_form").filter
+    filt = (naive_filter(md, x0, c0[:2, :2], K) if which == "naive"
+            else lmi_design(md, ch.rho, x0, P0, K, design="closed_form", base="contract").filter)
     for r in range(R):
         z0 = np.concatenate([xbar, filt.s0])
         M = np.outer(z0, z0)
@@ -190,12 +247,21 @@ def test_batched_covariances_equal_a_per_run_loop(which):
             Aq = np.block([[md.F[q], np.zeros((d, filt.As.shape[1]))], [filt.Gs[t] @ md.H[q], filt.As[t]]])
             Bq = np.vstack([md.G[q], filt.Gs[t] @ md.J[q]])
             M = Aq @ M @ Aq.T + Bq @ Sg @ Bq.T
+            Cp = np.concatenate([md.Ex, -filt.Ep], axis=1)
+            np.testing.assert_allclose(pred[t + 1][:, :, r], Cp @ M @ Cp.T, rtol=1e-9, atol=1e-12)
 
 
-def test_mode_aware_covariances_compiled_equal_numpy():
+@pytest.mark.parametrize("m", [1, 2])
+def test_mode_aware_covariances_compiled_equal_numpy(m):
+    # the compiled run-outer filter (kalman_numba's inlined update_pinv / predict) against the numpy core on
+    # the same trace, every mode, m = 1 and m = 2 (two outputs: the pivoted pseudo-inverse update)
     pytest.importorskip("numba")
+    S = EX2 if m == 1 else LinearSystem.create(EX2.A, [[1, 1], [0, 1]], EX2.Q, [[0.25, 0.05], [0.05, 0.5]])
     tr = _ch().sample_trace(np.random.default_rng(12), 300, 30)
-    a = dict(MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware", backend="numpy").covariances(EX2, tr, [1, 7, 30]))
-    b = dict(MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware", backend="numba").covariances(EX2, tr, [1, 7, 30]))
+    qs = ("filtered", "predicted")
+    a = dict(MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware", backend="numpy").covariances(S, tr, [1, 7, 30], qs))
+    b = dict(MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware", backend="numba").covariances(S, tr, [1, 7, 30], qs))
+    assert sorted(a) == sorted(b) == [1, 7, 30]
     for k in a:
-        np.testing.assert_allclose(b[k], a[k], rtol=1e-9, atol=1e-12)
+        for q in qs:
+            np.testing.assert_allclose(b[k][q], a[k][q], rtol=1e-9, atol=1e-12)

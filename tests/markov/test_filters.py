@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from netkf_cli.channels.markov_modes import stationary_distribution
 from netkf_cli.estimators.markov_filters import (
     AugmentedModel,
-    ModeAwareKF,
+    ModeAwareKFTr,
     draw_initial,
     draw_noise,
     exact_mse,
@@ -102,20 +102,20 @@ def test_random_systems(seed, n, m):
 
 
 def test_mode_aware_batched_equals_loop(example):
-    # The batched KF (P as (runs, d, d)) against a textbook per-run loop with np.linalg.pinv on
-    # the innovation covariance (same zero-variance threshold), on a few runs.
+    # The core-based KF (run axis innermost, filtered form) against a textbook per-run loop in predictor
+    # form with the pseudo-inverse of the innovation covariance (same zero-variance threshold), a few runs.
     md, ch = example["model"], example["ch"]
     rng = np.random.default_rng(5)
     R, K, n = 4, 25, md.n
     modes = ch.sample(rng, R, K)
     xi0 = draw_initial(md, rng, R, example["x0"], example["P0"])
     eps = draw_noise(md, rng, R, K)
-    kf = ModeAwareKF(md, R, example["xs0"], example["P0"])
+    kf = ModeAwareKFTr(md, R, example["xs0"], example["P0"])
     xi, ys, out = xi0, [], []
     for k in range(K):
         y, xi = plant_step(md, xi, eps[k], modes[:, k])
         ys.append(y)
-        out.append(kf.step(y, modes[:, k])[0])
+        out.append(kf.step(y.T, modes[:, k])[0].T)
     mean, cov = md.initial_moments(example["xs0"], example["P0"])
     Sg = md.Sigma
     for r in range(R):
