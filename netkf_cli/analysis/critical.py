@@ -722,6 +722,74 @@ def degenerate_second_order(A, C) -> ExactCase | None:
                      "expected covariance enumerated over every arrival sequence)", basis="derived")
 
 
+@dataclass(frozen=True)
+class LowerBound:
+    """A proven lower bound on λ_c above λ_min: the decided λ_c of a decoupled modal sub-system."""
+
+    value: float
+    sub_key: str
+    eigenvalues: tuple[complex, ...]
+    why: str
+
+    def as_json(self) -> dict:
+        return {"value": self.value, "subsystem_case": self.sub_key,
+                "eigenvalues": [[z.real, z.imag] for z in self.eigenvalues], "why": self.why}
+
+
+def modal_subsystem(A, C, group_moduli: tuple[float, float]) -> tuple[np.ndarray, np.ndarray] | None:
+    """(A_a, C_a) of the modes whose |σ| lies in [lo, hi], decoupled from the rest.
+
+    Ordered real Schur form puts the group first, x = Z z, A_z = [[T11, T12], [0, T22]]; with X solving the
+    Sylvester equation T11 X − X T22 = −T12 (disjoint spectra), ξ₁ = z₁ − X z₂ obeys ξ₁⁺ = T11 ξ₁ + noise and the
+    output is y = C Z₁ ξ₁ + (terms in ξ₂) + v. None when the reordering fails.
+    """
+    A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
+    lo, hi = group_moduli
+    gtol = group_tolerance(A)
+    sel = lambda x, y: lo - gtol / 2 <= math.hypot(x, y) <= hi + gtol / 2  # noqa: E731
+    T, Z, k = scipy.linalg.schur(A, output="real", sort=sel)
+    if k == 0 or k == A.shape[0]:
+        return (T, C @ Z) if k else None
+    expect = int(np.sum((np.abs(np.linalg.eigvals(A)) >= lo - gtol / 2) & (np.abs(np.linalg.eigvals(A)) <= hi + gtol / 2)))
+    if k != expect:
+        return None
+    return T[:k, :k], C @ Z[:, :k]
+
+
+def subsystem_lower_bound(A, C) -> LowerBound | None:
+    """max over quasi-equiblocks of the decided λ_c of the decoupled two-state sub-system, if it exceeds λ_min.
+
+    Why it is a lower bound (a genie argument): a filter that is also told the other modal coordinates ξ₂ (and
+    their noise) exactly, at every step, has a smaller error covariance than the Kalman filter, and for it the
+    group's coordinates ξ₁ form the system (T11, C Z₁) with the same arrivals (y − (terms in ξ₂) is known) and a
+    process noise of covariance Q₁|₂ ≻ 0 (the conditional covariance given ξ₂'s noise). So E[P] bounded ⇒ the
+    sub-system's E[P] bounded: λ_c(A, C) ≥ λ_c(T11, C Z₁). Useful for a degenerate 2×2 block inside a larger system
+    (e.g. diag(2, −2, 1.5), C = [1 1 1]: λ_c ≥ 0.9375 > λ_min = 0.75).
+    """
+    A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
+    if A.shape[0] <= 2:
+        return None
+    nd = nondegeneracy(A, C)
+    best = None
+    lmin = lambda_min(A)
+    for g in nd.groups:
+        if g.dim != 2 or g.one_step_observable:
+            continue
+        mods = [abs(z) for z in g.eigenvalues]
+        sub = modal_subsystem(A, C, (min(mods), max(mods)))
+        if sub is None:
+            continue
+        ec = degenerate_second_order(*sub)
+        if ec is None or ec.value is None or ec.value <= lmin + 1e-12:
+            continue
+        if best is None or ec.value > best.value:
+            best = LowerBound(ec.value, ec.key, g.eigenvalues,
+                              f"the modes |σ| = {g.modulus:.6g} form a degenerate 2×2 sub-system ({ec.key}: {ec.condition}); "
+                              "a filter told the other modes exactly does better, so λ_c ≥ its λ_c (genie argument, "
+                              "experiments/critical/README.md)")
+    return best
+
+
 def tail_exponent(A, C, *, loss_stay: float, channel: str = "bernoulli") -> tuple[float | None, str]:
     """Decay exponent φ of Pr[tr P_k > M] ~ M^φ and where it comes from.
 
@@ -1062,6 +1130,12 @@ class CriticalReport:
     channel: dict = field(default_factory=dict)
     certificate: Certificate | None = None
     nondegeneracy: NonDegeneracy | None = None
+    lower_bound: LowerBound | None = None
+
+    @property
+    def lower(self) -> float:
+        """The best proven lower bound on λ_c: λ_min, or a decoupled degenerate sub-system's λ_c."""
+        return max(self.lam_min, self.lower_bound.value if self.lower_bound is not None else 0.0)
 
     @property
     def proven(self) -> bool:
@@ -1074,9 +1148,14 @@ class CriticalReport:
         if e is not None:
             return f"{'derived closed form' if e.basis == 'derived' else 'theorem'} ({e.key}): {e.source}"
         c = self.certificate
+        lo_txt = ("λ_min" if self.lower_bound is None else
+                  f"{self.lower:.6g} (a degenerate 2×2 sub-system, {self.lower_bound.sub_key})")
         if c is not None and math.isfinite(c.hi) and c.hi < self.lam_max.hi:
-            return (f"numerical certificate: λ_min ≤ λ_c ≤ {c.hi:.6g} (L = {c.L}-step averaged Riccati map over every "
+            return (f"numerical certificate: {lo_txt} ≤ λ_c ≤ {c.hi:.6g} (L = {c.L}-step averaged Riccati map over every "
                     f"arrival pattern, ± {c.tol:g}); no theorem decides λ_c for this degenerate system")
+        if self.lower_bound is not None:
+            return (f"interval: {lo_txt} ≤ λ_c ≤ λ_max = {self.lam_max.hi:.6g}; no theorem decides λ_c for this "
+                    "degenerate system")
         return "interval only: λ_min ≤ λ_c ≤ λ_max (Sinopoli et al. 2004, Thms 3–5); no theorem decides λ_c"
 
     @property
@@ -1097,10 +1176,12 @@ class CriticalReport:
         lm = self.lam_max
         c = self.certificate
         if c is not None and math.isfinite(c.hi) and c.hi < lm.hi:
-            return (f"λ_c is bounded by a numerical certificate: {self.lam_min:.6g} = λ_min ≤ λ_c ≤ {c.hi:.6g} "
-                    f"(tighter than Sinopoli's λ_max ≤ {lm.hi:.6g}; {c.L}-step averaged Riccati map, bisection ± {c.tol:g}). "
-                    f"The system is degenerate and no theorem decides λ_c; λ ≤ {self.lam_min:.6g} is proven insufficient, "
-                    f"λ > {c.hi:.6g} certified sufficient; in between it is not decided.")
+            lo_txt = ("λ_min" if self.lower_bound is None else
+                      f"the λ_c of its degenerate 2×2 sub-system ({self.lower_bound.sub_key}, proven lower bound)")
+            return (f"λ_c is bounded by a numerical certificate: {self.lower:.6g} = {lo_txt} ≤ λ_c ≤ {c.hi:.6g} "
+                    f"(tighter than Sinopoli's λ_min = {self.lam_min:.6g} ≤ λ_c ≤ λ_max ≤ {lm.hi:.6g}; {c.L}-step averaged "
+                    f"Riccati map, bisection ± {c.tol:g}). No theorem decides λ_c for this degenerate system; "
+                    f"λ ≤ {self.lower:.6g} is insufficient, λ > {c.hi:.6g} certified sufficient; in between it is not decided.")
         return (f"λ_c is only bounded: {self.lam_min:.6g} = λ_min ≤ λ_c ≤ λ_max ≤ {lm.hi:.6g} "
                 f"(no exactness condition holds). λ > {lm.hi:.6g} is proven sufficient for bounded E[P_k]; "
                 f"λ ≤ {self.lam_min:.6g} proven insufficient; in between it is not decided.")
@@ -1119,7 +1200,8 @@ class CriticalReport:
             "condition": None if e is None else e.key,
             "condition_text": "none of the exactness conditions holds: only the interval is proven" if e is None else e.condition,
             "source": None if e is None else e.source,
-            "interval": [self.lam_min, None if math.isinf(self.upper) else self.upper],
+            "interval": [self.lower, None if math.isinf(self.upper) else self.upper],
+            "lower_bound": None if self.lower_bound is None else self.lower_bound.as_json(),
             "basis": None if e is None else e.basis,
             "decided_by": self.decided_by,
             "certificate": None if self.certificate is None else self.certificate.as_json(),
@@ -1145,8 +1227,10 @@ def critical_report(A, C, *, tol: float = DEFAULT_BISECTION_TOL, solver: str = "
         # the exact case does not need the LMI: report λ_max as not computed (hi = ∞ is never a claim)
         lm = LambdaMax(lambda_min(A), math.inf, tol, 0, solver, ("not solved: " + str(exc)[:120],))
     cert = None
+    lower = subsystem_lower_bound(A, C) if exact is None else None
     if exact is None and certificate and A.shape[0] <= 6:
-        cert = lambda_c_certificate(A, C, Q, R, L=block, tol=certificate_tol, lo=lambda_min(A),
+        cert = lambda_c_certificate(A, C, Q, R, L=block, tol=certificate_tol,
+                                    lo=lower.value if lower is not None else lambda_min(A),
                                     hi=min(1.0, lm.hi + certificate_tol) if math.isfinite(lm.hi) else 1.0)
     return CriticalReport(A.shape[0], C.shape[0], spectral_radius(A), lambda_min(A), lm, exact, certificate=cert,
-                          nondegeneracy=nd)
+                          nondegeneracy=nd, lower_bound=lower)

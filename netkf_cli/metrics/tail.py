@@ -389,7 +389,7 @@ class TailMetric(AnalysisModel):
 
     def plot(self, tables, scenario):
         t, fit = tables["main"], tables.get("fit")
-        fig, ax = new_figure(width=7.6, height=4.8)
+        fig, ax = new_figure(width=7.6, height=5.4)
         X = r"\mathrm{tr}\,P_k" if self.of == "trace" else r"\lambda_{\max}(P_k)"
         for j, (lab, g) in enumerate(t.groupby("estimator", sort=False)):
             sty = series_style(j)
@@ -424,7 +424,7 @@ class TailMetric(AnalysisModel):
         ax.set_ylabel(rf"$\Pr[{X} > M]$ (log scale)")
         what = self.title or rf"tail of ${X}$: power law $M^{{\varphi}}$"
         ax.set_title(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
-        legend_outside(ax, loc="below", ncol=1)
+        legend_outside(ax, loc="below", ncol=1, bbox_to_anchor=(0.5, -0.2))
         n = int(t.n.max()) if len(t) else 0
         footnote(fig, f"n = {n:,} runs; theory (Mo & Sinopoli 2012): φ = log s / (2 log ρ(A)), s = 1 − λ "
                       f"(i.i.d.) or 1 − q (Gilbert–Elliott); importance weights ≤ number of mixture components")

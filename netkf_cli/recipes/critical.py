@@ -107,7 +107,8 @@ def judge_rate(lam: float, lam_min: float, lam_max_hi: float, exact: cr.ExactCas
     if certificate is not None and math.isfinite(certificate) and certificate < lam_max_hi:
         lam_max_hi = certificate
     if lam <= lam_min:
-        return f"λ = {lam:.6g} ≤ λ_min = {lam_min:.6g}: E[P_k] unbounded for some P0 (proven, Thm 3)", False
+        return (f"λ = {lam:.6g} ≤ {lam_min:.6g} ≤ λ_c (λ_min, Thm 3, or a degenerate 2×2 sub-system's λ_c): E[P_k] "
+                f"unbounded for some P0", False)
     return (f"λ = {lam:.6g} lies in [λ_min, upper bound] = [{lam_min:.6g}, {lam_max_hi:.6g}]: not decided by the known "
             f"bounds", None)
 
@@ -147,10 +148,12 @@ class CriticalAnswer:
         if nd is not None and nd.groups:
             lines.append(f"  non-degeneracy (Mo & Sinopoli 2012): {'yes' if nd.non_degenerate else 'no'} — {nd.summary()}")
         c = r.certificate
+        if r.lower_bound is not None:
+            lines.append(f"  lower:      λ_c ≥ {r.lower_bound.value:.6g} — {r.lower_bound.why}")
         if e is None and c is not None and math.isfinite(c.hi) and c.hi < lm.hi:
             lines.append(f"  certified:  λ_c ≤ {c.hi:.6g}  (numerical certificate: {c.L}-step averaged Riccati map over all "
                          f"2^{c.L} arrival patterns, bisection ± {c.tol:g}; tighter than λ_max)")
-            lines.append("  decided:    no theorem decides λ_c for this degenerate system: λ_min ≤ λ_c ≤ the certificate")
+            lines.append(f"  decided:    no theorem decides λ_c for this degenerate system: {r.lower:.6g} ≤ λ_c ≤ {c.hi:.6g}")
         elif e is None:
             lines.append("  proven:     only the interval λ_min ≤ λ_c ≤ λ_max — none of the exactness conditions holds")
             lines.append("              (scalar; C invertible on the observable subspace; non-degenerate; degenerate 2×2 "
@@ -186,7 +189,7 @@ def channel_answer(s: LinearSystem, channel, report: cr.CriticalReport, *, solve
     if channel is None:
         return {}
     kind = getattr(channel, "kind", None)
-    lmin, lhi, e = report.lam_min, report.lam_max.hi, report.exact
+    lmin, lhi, e = report.lower, report.lam_max.hi, report.exact
     cert = report.certificate.hi if report.certificate is not None else None
     if kind == "bernoulli":
         lam = float(channel.arrival)
@@ -347,6 +350,7 @@ class CriticalAnalysis(AnalysisModel):
             dict(quantity="certificate_upper", value=np.nan if rep.certificate is None or not math.isfinite(rep.certificate.hi)
                  else rep.certificate.hi),
             dict(quantity="non_degenerate", value=np.nan if rep.nondegeneracy is None else float(rep.nondegeneracy.non_degenerate)),
+            dict(quantity="lambda_c_lower", value=rep.lower),
         ])
         cert = rep.certificate
         rates["condition"] = (e.key if e is not None else
@@ -455,8 +459,10 @@ class CriticalAnalysis(AnalysisModel):
             word = "derived closed form" if basis == "derived" else "theorem"
             ax.axvline(lc, color=PALETTE[2], lw=1.6, ls=":", label=rf"$\lambda_c$ = {lc:.4g}, exact: {word} ({cond.replace('_', ' ')})")
         elif np.isfinite(cert) and cert < lhi:
-            ax.axvspan(lmin, cert, color="0.85", alpha=0.6, lw=0,
-                       label=rf"$\lambda_c \in$ [{lmin:.4g}, {cert:.4g}]: numerical certificate (no theorem)")
+            low = r.get("lambda_c_lower", lmin)
+            low = lmin if not np.isfinite(low) else low
+            ax.axvspan(low, cert, color="0.85", alpha=0.6, lw=0,
+                       label=rf"$\lambda_c \in$ [{low:.4g}, {cert:.4g}]: numerical certificate (no theorem)")
         elif np.isfinite(lhi) and lhi > lmin:
             ax.axvspan(lmin, lhi, color="0.85", alpha=0.6, lw=0, label=r"$\lambda_c$ undecided")
         ax.set_yscale("log")

@@ -63,10 +63,15 @@ def test_undecided_system_gets_a_numerical_certificate(tmp_path):
     assert js["proven"] is False and js["lambda_c"] is None
     c = js["certificate"]
     assert c is not None and 0.9375 - 1e-3 <= c["upper"] < js["lambda_max"]["upper"] - 0.02
-    assert js["interval"] == [pytest.approx(0.75), pytest.approx(c["upper"])]
+    # lower end: the (2, −2) block alone needs λ > 0.9375 (genie argument), far above λ_min = 0.75
+    assert js["lambda_min"] == pytest.approx(0.75) and js["lower_bound"]["value"] == pytest.approx(0.9375)
+    assert js["interval"] == [pytest.approx(0.9375), pytest.approx(c["upper"])]
     assert "numerical certificate" in js["decided_by"]
     assert js["channel"]["bounded"] is True and "certificate" in js["channel"]["verdict"]
     js = json.loads(runner.invoke(app, ["critical", "--config", str(cfg), "--arrival", "0.9", "--json"]).stdout)
+    assert js["channel"]["bounded"] is False  # 0.9 < 0.9375: proven unbounded through the sub-system
+    mid = 0.5 * (0.9375 + c["upper"])
+    js = json.loads(runner.invoke(app, ["critical", "--config", str(cfg), "--arrival", f"{mid:.6f}", "--json"]).stdout)
     assert js["channel"]["bounded"] is None and "not decided" in js["channel"]["verdict"]
 
 

@@ -136,6 +136,14 @@ def test_numerical_certificate_for_an_undecided_system():
     assert c is not None and rep.lam_min <= c.hi < rep.lam_max.hi - 0.02
     assert c.hi >= 0.9375 - c.tol   # the (2, −2) subsystem alone needs λ > 0.9375
     assert "numerical certificate" in rep.decided_by and "numerical certificate" in rep.verdict()
+    # the proven lower end: the decoupled (2, −2) block's derived λ_c (genie argument), also after a change of basis
+    assert rep.lower_bound is not None and rep.lower == pytest.approx(0.9375, abs=1e-12)
+    M = np.random.default_rng(1).normal(size=(3, 3))
+    lb = cr.subsystem_lower_bound(M @ A @ np.linalg.inv(M), C @ np.linalg.inv(M))
+    assert lb is not None and lb.value == pytest.approx(0.9375, abs=1e-9)
+    assert rep.lower <= c.hi  # a bracket, never empty
+    # a non-degenerate 3-state system has no such sub-system bound (λ_c = λ_min is decided anyway)
+    assert cr.subsystem_lower_bound(np.diag([2.0, 1.7, 1.5]), np.array([[1.0, 1.0, 1.0]])) is None
 
 
 # ---------------------------------------------------------------------------------------------
