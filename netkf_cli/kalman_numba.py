@@ -186,33 +186,47 @@ def information_update(Pm, info, out, W, Y):
 
 
 @nb.njit(**_opts)
-def smooth(Ps, Pf, Pp, A, out, Jt, D, W):
-    """out = Pf + J (Ps − Pp) Jᵀ, J = Pf Aᵀ Pp⁻¹: one Rauch–Tung–Striebel step,
-    :func:`netkf_cli.kalman.smooth_step` for one run (Ps = P_{t+1|T}, Pf = P_{t|t}, Pp = P_{t+1|t}).
-    ``out`` may not alias the inputs; work arrays Jt, D, W (n, n)."""
+def smooth(Ps, Pf, A, Q, info, limit, out, J, Xn, Sn, PCt, W, Y):
+    """out = P_{t|t, x_{t+1}} + J Ps Jᵀ: one RTS step in conditioning form for one run,
+    :class:`netkf_cli.kalman.SmoothStep` (Ps = P_{t+1|T}, Pf = P_{t|t}; J = Pf Aᵀ (A Pf Aᵀ + Q)⁻¹ and
+    P_{t|t, x_{t+1}} = the update of Pf by x_{t+1} = A x_t + w_t, redone in information form
+    (Pf⁻¹ + ``info``)⁻¹, ``info`` = AᵀQ⁻¹A, when tr Pf > ``limit``; ``limit`` = inf: no rescue). A
+    non-finite result is inf. ``out`` may not alias the inputs; work arrays J, W, Y (n, n), Xn (n, n),
+    Sn (n, n), PCt (n, n)."""
     n = Pf.shape[0]
+    gain(Pf, A, Q, J, Sn, Xn)
+    update(Pf, A, Q, 1.0, out, PCt, Sn, Xn)
+    tr = 0.0
     for i in range(n):
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += A[i, k] * Pf[k, j]
-            Jt[i, j] = acc  # A Pf
-            W[i, j] = Pp[i, j]
-            D[i, j] = Ps[i, j] - Pp[i, j]
-    solve_inplace(W, Jt)  # Jᵀ = Pp⁻¹ A Pf
+        tr += Pf[i, i]
+    if not (tr <= limit):
+        finite = True
+        for i in range(n):
+            for j in range(n):
+                if not np.isfinite(Pf[i, j]):
+                    finite = False
+        if finite:
+            information_update(Pf, info, out, W, Y)
     for a in range(n):
         for j in range(n):
             acc = 0.0
             for b in range(n):
-                acc += D[a, b] * Jt[b, j]
-            W[a, j] = acc  # (Ps − Pp) Jᵀ
+                acc += Ps[a, b] * J[j, b]
+            W[a, j] = acc  # Ps Jᵀ
+    bad = False
     for i in range(n):
         for j in range(n):
             acc = 0.0
             for a in range(n):
-                acc += Jt[a, i] * W[a, j]
-            out[i, j] = Pf[i, j] + acc
+                acc += J[i, a] * W[a, j]
+            out[i, j] += acc
+            if not np.isfinite(out[i, j]):
+                bad = True
     sym(out)
+    if bad:
+        for i in range(n):
+            for j in range(n):
+                out[i, j] = np.inf
 
 
 # ----------------------------------------------------------------------------------------------

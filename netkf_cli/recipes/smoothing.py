@@ -12,8 +12,17 @@
 * ``kind: smoothing_burstiness`` — the Table I experiment under Gilbert–Elliott loss with the same
   stationary loss rate: exact and Monte Carlo P(P_{k|k+N} ≤ M) against the mean burst length.
 
-Monte Carlo: every kernel is a module-level class of :mod:`netkf_cli.estimators.smoother`; every
-independent Monte Carlo computation of an artefact has its own ``stream`` of
+Time base (the Kalman core's): P0 = P_{0|0} = P̄ (``P0: steady``), so P_{1|0} = P*; step k carries
+y_k. A column is a named quantity of an estimator at a step (:func:`netkf_cli.estimators.smoother.column_request`):
+P_{k|k−1} = kf's ``predicted`` at step k − 1, P_{k|k} = ``filtered`` at k, P_{k|k+N} = the lag-N
+smoother's ``smoothed`` at k + N. The Monte Carlo sample is at k = burn_in + 1 (burn_in Riccati
+steps from P*).
+
+Monte Carlo: Table I, the critical rate and the burstiness sweeps run the generic engine
+(:func:`netkf_cli.engine.simulate`, the channel's own sampler) with :class:`ColumnReducer`; the
+retransmission schemes (an arrival pattern that is not a channel) run
+:class:`netkf_cli.estimators.smoother.RetransmissionKernel`, on the same core. Every independent
+Monte Carlo computation of an artefact has its own ``stream`` of
 :func:`netkf_cli.montecarlo.run_chunked` (chunk i of stream s draws from SeedSequence(seed,
 spawn_key=(s, i))); lags compared with each other share one trace (common random numbers).
 Proportions carry a Wilson 95 % interval (``ci_low``, ``ci_high``).
@@ -31,16 +40,17 @@ from matplotlib.ticker import NullFormatter
 from pydantic import Field, model_validator
 from scipy import stats
 
-from netkf_cli import riccati
+from netkf_cli import engine, riccati
 from netkf_cli.analysis import smoothing as sm
 from netkf_cli.channels.bernoulli import BernoulliChannel
-from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
+from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel, markov_chain_of
 from netkf_cli.errors import ConfigError
+from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.smoother import (
     PRED,
     RetransmissionKernel,
     SmootherEstimator,
-    SmootherMCKernel,
+    covariance_stats,
     fixed_lag_smoother,
     lag_key,
     paper_way_indicators,
@@ -106,25 +116,73 @@ def _check_lags(values: list[int], limit: int = MAX_EXACT_LAG) -> None:
 
 
 def _bernoulli_chain(lam: float) -> tuple[np.ndarray, np.ndarray]:
-    return np.array([[1 - lam, lam], [1 - lam, lam]]), np.array([1 - lam, lam])
+    """(T, π) of i.i.d. loss, from the channel's own chain (:func:`markov_chain_of`)."""
+    return markov_chain_of(BernoulliChannel(kind="bernoulli", arrival=lam))
 
 
-def _ge_chain(lam: float, burst: float) -> tuple[np.ndarray, np.ndarray, float, float]:
-    p_bg = 1.0 / burst
-    p_gb = (1 - lam) * p_bg / lam
-    if p_gb > 1 + 1e-12:
-        raise ConfigError.at("analysis.mean_bursts", f"mean burst {burst:g} too short for loss rate {1 - lam:.4g} (needs ≥ {(1 - lam) / lam:.4g})")
-    p_gb = min(p_gb, 1.0)
-    T = np.array([[1 - p_bg, p_bg], [p_gb, 1 - p_gb]])
-    return T, np.array([1 - lam, lam]), p_gb, p_bg
+def _ge_channel(lam: float, burst: float) -> GilbertElliottChannel:
+    """The Gilbert–Elliott channel at stationary arrival rate λ and mean loss burst L_B (its own
+    parameterisation: p_bg = 1/L_B, p_gb = π_B p_bg/(1 − π_B))."""
+    try:
+        return GilbertElliottChannel(kind="gilbert_elliott", loss_rate=1.0 - lam, mean_burst=burst)
+    except ValueError as e:
+        raise ConfigError.at("analysis.mean_bursts", f"mean burst {burst:g} too short for loss rate {1 - lam:.4g} "
+                                                     f"(needs ≥ {(1 - lam) / lam:.4g})") from e
 
 
 def _backend(scenario) -> str:
-    """The smoother backend: the scenario's ``estimator: {kind: smoother, backend: …}`` if given, else auto."""
+    """The smoother backend: the scenario's ``estimator: {kind: smoother, backend: …}`` if given, else auto
+    (auto stays auto: the smoother picks the compiled kernel only where it is measured faster)."""
     for es in scenario.estimator_list():
         if isinstance(es, SmootherEstimator):
-            return resolve_backend(es.backend)
-    return resolve_backend("auto")
+            resolve_backend(es.backend)
+            return es.backend
+    return "auto"
+
+
+def sample_step(mc) -> int:
+    """The time k of the Monte Carlo sample: burn_in + 1 (burn_in Riccati steps from P_{1|0} = P*)."""
+    return int(mc.burn_in) + 1
+
+
+class ColumnReducer:
+    """Engine reducer: estimator j's covariance at its own step ``steps[j]`` → the additive statistics
+    of :func:`netkf_cli.estimators.smoother.covariance_stats` under key ``keys[j]`` (count ≤ M in the
+    PSD order, Σ tr, Σ tr², non-finite runs)."""
+
+    def __init__(self, keys: list[str], steps: list[int], M: np.ndarray | None):
+        self.keys, self.steps, self.M = list(keys), [int(k) for k in steps], M
+
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
+        if w is not None:
+            raise ValueError("ColumnReducer counts unweighted samples (no variance-reduced estimator here)")
+        if k == self.steps[j]:
+            stats.update(covariance_stats(P, self.M, self.keys[j]))
+
+
+def columns_monte_carlo(system, channel, codes, k: int, M, *, runs: int, mc, stream: int, backend: str = "auto",
+                        progress=None, label: str = "") -> dict:
+    """Monte Carlo statistics of the columns ``codes`` (−1 = P_{k|k−1}, N ≥ 0 = P_{k|k+N}) at time k,
+    through :func:`netkf_cli.engine.simulate` on ``channel``'s traces: the predictor is kf's ``predicted``
+    at step k − 1, the others the lag-N smoothers' ``smoothed`` at k + N. Both engine calls draw the same
+    traces (same seed, stream, chunking and horizon k + max N): every column on common random numbers."""
+    horizon = k + max(max(codes), 0)
+    st: dict = {}
+    groups = [("predicted", [c for c in codes if c == PRED]), ("smoothed", [c for c in codes if c >= 0])]
+    last = [q for q, cs in groups if cs][-1]
+    for q, cs in groups:
+        if not cs:
+            continue
+        if q == "predicted":
+            ests, steps = [KalmanFilterEstimator(kind="kf")], [k - 1]
+        else:
+            ests = [SmootherEstimator(kind="smoother", lag=c, backend=backend) for c in cs]
+            steps = [k + c for c in cs]
+        red = ColumnReducer([lag_key(c) for c in cs], steps, M)
+        st.update(engine.simulate(system, channel, ests, red, steps=sorted(set(steps)), runs=runs, horizon=horizon,
+                                  seed=mc.seed, chunk=mc.chunk, stream=stream, progress=progress if q == last else None,
+                                  label=label, quantity=q))
+    return st
 
 
 def _z(p: float, exact: float, n: int) -> float:
@@ -207,9 +265,8 @@ class Table1(AnalysisModel):
         # --- high precision: independent runs, one sample each; column c is Monte Carlo stream c
         exact = []
         for c, (lag, lam) in enumerate(zip(lags, lams)):
-            kern = SmootherMCKernel(system=s, channel=BernoulliChannel(kind="bernoulli", arrival=lam), k=mc.burn_in,
-                                    lags=(_code(lag),), M=M, backend=backend)
-            st = run_chunked(kern, runs, mc.chunk, mc.seed, stream=c, progress=ctx.progress, label=label(lag))
+            st = columns_monte_carlo(s, BernoulliChannel(kind="bernoulli", arrival=lam), [_code(lag)], sample_step(mc), M,
+                                     runs=runs, mc=mc, stream=c, backend=backend, progress=ctx.progress, label=label(lag))
             n = int(st["n"])
             key = lag_key(_code(lag))
             count = int(st[f"leq_{key}"])
@@ -239,7 +296,9 @@ class Table1(AnalysisModel):
                           "stderr": "batch means over consecutive blocks (the indicator is autocorrelated)",
                           "ci": "Wilson 95 % at the effective sample size p(1−p)/stderr²",
                           "seed": f"SeedSequence({mc.seed}, spawn_key=(10000,))"},
-            "monte_carlo": {"runs": runs, "sample": f"one sample per run at k = burn_in = {mc.burn_in} from P*",
+            "time_base": "P0 = P_{0|0} = P̄, P_{1|0} = P*; P_k|k-1 = predicted at step k-1, P_k|k+N = smoothed (lag N) at step k+N",
+            "monte_carlo": {"runs": runs, "sample": f"one sample per run at k = burn_in + 1 = {sample_step(mc)} "
+                                                    f"({mc.burn_in} Riccati steps from P_{{1|0}} = P*), engine.simulate",
                             "streams": "column c (in the order of `lags`) is stream c",
                             "stderr": "binomial sqrt(p(1-p)/n); ci_low/ci_high: Wilson 95 %"},
             "exact": {"method": "backward enumeration of the recent arrival pattern, certified bracket (stderr column = half-width)",
@@ -403,9 +462,9 @@ class CriticalRate(AnalysisModel):
                                  series="lemma1_lower", value=lb, stderr=0.0, n=np.nan, reliable=1.0, heavy_tail=0.0))
             if self.monte_carlo:
                 # all lags on one trace (common random numbers); grid point i is Monte Carlo stream i
-                kern = SmootherMCKernel(system=s, channel=BernoulliChannel(kind="bernoulli", arrival=float(lam)),
-                                        k=mc.burn_in, lags=tuple(_code(l) for l in lags), M=None, backend=backend)
-                st = run_chunked(kern, runs, mc.chunk, mc.seed, stream=i, progress=ctx.progress, label=f"λ={lam:.3f}")
+                st = columns_monte_carlo(s, BernoulliChannel(kind="bernoulli", arrival=float(lam)), [_code(l) for l in lags],
+                                         sample_step(mc), None, runs=runs, mc=mc, stream=i, backend=backend,
+                                         progress=ctx.progress, label=f"λ={lam:.3f}")
                 n = int(st["n"])
                 for lag in lags:
                     key = lag_key(_code(lag))
@@ -429,7 +488,8 @@ class CriticalRate(AnalysisModel):
                 "reliable": "Monte Carlo means are flagged heavy_tail = 1, reliable = 0 for λ ≤ 1 − 1/ρ(A)⁴ where E[P²] = ∞: "
                             "the sample mean has no finite standard error there; they are not plotted",
                 "value": "trace of the stationary mean; exact = midpoint of a certified bracket (stderr = half-width)",
-                "monte_carlo": {"runs": runs, "sample": f"one sample per run at k = {mc.burn_in} from P*",
+                "monte_carlo": {"runs": runs, "sample": f"one sample per run at k = burn_in + 1 = {sample_step(mc)} "
+                                                        f"({mc.burn_in} Riccati steps from P_{{1|0}} = P*), engine.simulate",
                                 "streams": "grid point i (in the order of `lambdas`) is stream i; all lags share its traces"}}
         return Artefact(table, meta=meta)
 
@@ -539,9 +599,10 @@ class Retransmission(AnalysisModel):
         runs = ctx.mc_runs(scenario)
         backend = _backend(scenario)
         N = self.N
-        k = mc.burn_in  # well before the end: late retransmissions are complete by then
-        if k < 12:
-            raise ConfigError.at("montecarlo.burn_in", f"must be ≥ 12 (the effective rate is measured over steps 10 … burn_in − 1), got {k}")
+        if mc.burn_in < 12:
+            raise ConfigError.at("montecarlo.burn_in", f"must be ≥ 12 (the effective rate is measured over y_11 … y_burn_in), "
+                                                       f"got {mc.burn_in}")
+        k = sample_step(mc)  # well before the end: late retransmissions are complete by then
         xs = self._grid(s, lam)
         kern = RetransmissionKernel(system=s, lam=lam, N=N, ps=tuple(float(p) for p in self.p), k=k, M=float(self.M),
                                     grid=xs, backend=backend)
@@ -579,7 +640,7 @@ class Retransmission(AnalysisModel):
             ones, pairs, cnt = (int(st[f"{q}_{sc}"]) for q in ("ones", "pairs", "slots"))
             summ.append(dict(quantity="effective_arrival_rate", scheme=sc, versus="lambda", value=ones / cnt, p_value=np.nan,
                              critical=np.nan, stderr=np.nan, **NO_CI, n=cnt))
-            summ.append(dict(quantity="effective_P11", scheme=sc, versus="lambda^2", value=pairs / (cnt * (k - 11) / (k - 10)),
+            summ.append(dict(quantity="effective_P11", scheme=sc, versus="lambda^2", value=pairs / (cnt * (k - 12) / (k - 11)),
                              p_value=np.nan, critical=np.nan, stderr=np.nan, **NO_CI, n=cnt))
         for sc in schemes:
             c_ = int(st[f"leq_{sc}"])
@@ -729,11 +790,12 @@ class Burstiness(AnalysisModel):
         ctx.total(runs * len(points))
         res = {}
         for (lam, L), group in points.items():
-            T, pi, p_gb, p_bg = _ge_chain(lam, L)
-            ch = GilbertElliottChannel(kind="gilbert_elliott", p_gb=p_gb, p_bg=p_bg)
-            kern = SmootherMCKernel(system=s, channel=ch, k=mc.burn_in, lags=tuple(_code(l) for l in group), M=M, backend=backend)
-            st = run_chunked(kern, runs, mc.chunk, mc.seed, stream=stream_of[L], progress=ctx.progress,
-                             label=f"λ={lam:.3f} L_B={L:g}")
+            ch = _ge_channel(lam, L)
+            T, pi = markov_chain_of(ch)
+            p_gb, p_bg = ch.transition
+            st = columns_monte_carlo(s, ch, [_code(l) for l in group], sample_step(mc), M, runs=runs, mc=mc,
+                                     stream=stream_of[L], backend=backend, progress=ctx.progress,
+                                     label=f"λ={lam:.3f} L_B={L:g}")
             for lag in group:
                 res[(lag, L)] = (T, pi, p_gb, p_bg, int(st[f"leq_{lag_key(_code(lag))}"]), int(st["n"]))
         rows = []
@@ -751,7 +813,7 @@ class Burstiness(AnalysisModel):
         meta = {"paper": PAPER + ", Table I under Gilbert–Elliott loss (extension)", "k1": k1, "backend": backend,
                 "channel": "two-state Markov (Gilbert): γ is the state; P(loss→arrival) = 1/L_B; stationary arrival rate fixed",
                 "arrival_rate": "each column's eq. (8) rate" if self.common_rate is None else self.common_rate,
-                "monte_carlo": {"runs": runs, "sample": f"one per run at k = burn_in = {mc.burn_in}, chain started stationary",
+                "monte_carlo": {"runs": runs, "sample": f"one per run at k = burn_in + 1 = {sample_step(mc)}, chain started stationary, engine.simulate",
                                 "streams": "stream i = the i-th smallest burst length; columns at one (rate, burst) share traces",
                                 "ci": "Wilson 95 %"}}
         return Artefact(table, meta=meta)

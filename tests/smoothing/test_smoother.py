@@ -1,4 +1,6 @@
-"""The fixed-lag smoother under loss (eqs 3–4) against brute-force Gaussian conditioning and identities."""
+"""The fixed-lag smoother under loss (eqs 3–4) against brute-force Gaussian conditioning and identities,
+through the historical interface :func:`fixed_lag_smoother` (index t = measurement t, prior P0 = P_{0|−1};
+on the core's time base index t is step t + 1)."""
 
 from __future__ import annotations
 
@@ -32,7 +34,7 @@ def test_matches_batch_gaussian_conditioning(seed, n, m, lam):
     s = random_system(rng, n, m)
     T, lag, runs = 9, 3, 2
     g = rng.random((runs, T)) < lam
-    res = fixed_lag_smoother(s, g, lag)
+    res = fixed_lag_smoother(s, g, lag, P0=s.P0)  # x_0 ~ N(·, P0), y_0 the first measurement
     for r in range(runs):
         for j, t in enumerate(res.times):
             ref = batch_posterior_covariance(s, g[r], t, t - 1, s.P0)
@@ -47,7 +49,7 @@ def test_lag0_is_the_filter_and_lags_are_nonincreasing():
     rng = np.random.default_rng(3)
     s = random_system(rng, 3, 2)
     g = rng.random((50, 40)) < 0.6
-    res = fixed_lag_smoother(s, g, 4)
+    res = fixed_lag_smoother(s, g, 4, P0=s.P0)
     # the filter recursion written independently with the spine's maps: P_{k|k} = g̃(P_{k|k-1}) if γ_k
     for r in range(0, 50, 7):
         P = s.P0
@@ -92,20 +94,22 @@ def test_lost_packet_propagates_the_previous_estimate_covariance():
     assert res.smooth[1, 3, 0, 0, 0] < res.smooth[1, 2, 0, 0, 0]  # γ_4 = 1
 
 
-def test_overflow_is_inf_never_nan_and_an_arrival_recovers():
+def test_overflow_is_inf_never_nan_and_a_huge_prior_is_rescued():
+    """The one rescue policy (kalman.Rescue): a prior that overflowed stays inf (never NaN); a huge but
+    finite prior (900⁹⁹ ≈ 1e292) is updated in information form, exact: P_{k|k} = 1/(1/Σ + 1) = 1."""
     s = LinearSystem.create(30.0, 1, 1, 1, 1.0)
     g = np.zeros((3, 260), bool)
-    g[1, 200] = True  # an arrival after the overflow: P_{k|k} = r / (c² + r/∞) = r/c² = 1 exactly
+    g[1, 100] = True  # after 100 losses (prior finite)
+    g[2, 200] = True  # after 200 losses (prior overflowed)
     with np.errstate(all="raise"):
-        res = fixed_lag_smoother(s, g, 2, times=[199, 200, 250])
+        res = fixed_lag_smoother(s, g, 2, times=[100, 150, 200, 250])
     assert not np.isnan(res.smooth).any() and not np.isnan(res.pred).any()
-    assert np.isinf(res.pred[:, :, :, [0, 2]]).all() and np.isinf(res.pred[0, 0, 0, 1])
-    assert res.filt[1, 0, 0, 1] == 1.0  # the overflowed prediction is forgotten at the arrival
+    assert res.filt[0, 0, 0, 1] == pytest.approx(1.0, rel=1e-12)  # the huge prediction is forgotten at the arrival
     x = 1.0
     for _ in range(50):  # then 50 losses: h⁵⁰(1) = 900⁵⁰ + …, finite (≈ 5e147)
         x = 900.0 * x + 1.0
-    np.testing.assert_allclose(res.pred[2, 0, 0, 1], x, rtol=1e-12)
-    assert not riccati.psd_leq(np.moveaxis(res.filt[2], -1, 0), np.array([[1e300]]))[[0, 2]].any()
+    np.testing.assert_allclose(res.pred[1, 0, 0, 1], x, rtol=1e-12)
+    assert np.isinf(res.pred[2:, :, :, [0, 2]]).all() and np.isinf(res.smooth[2:, :, :, :, [0, 2]]).all()
 
 
 def test_bad_input():
