@@ -440,11 +440,15 @@ def list_kinds(
         for k, e in entries.items():
             out.print(f"  {k:<22} {e['doc']}", highlight=False, markup=False)
             if fam == "channel":
-                out.print(f"  {'':<22} trace: {', '.join(e['trace']) or '—'}; estimators: {', '.join(e['estimators']) or '—'}",
-                          highlight=False, markup=False)
+                out.print(f"  {'':<22} trace: {', '.join(e['trace']) or '—'}; estimators: "
+                          f"{_with_conditions(e['estimators'], e.get('conditions', {}))}", highlight=False, markup=False)
             elif fam == "estimator":
-                out.print(f"  {'':<22} accepts: {', '.join(e['accepts']) or '—'}; channels: {', '.join(e['channels']) or '—'}",
-                          highlight=False, markup=False)
+                out.print(f"  {'':<22} accepts: {', '.join(e['accepts']) or '—'}; channels: "
+                          f"{_with_conditions(e['channels'], e.get('conditions', {}))}", highlight=False, markup=False)
+            if fam in ("channel", "estimator") and e.get("conditions") and (kind is not None or len(entries) == 1):
+                for other, cond in e["conditions"].items():
+                    a, b = (other, k) if fam == "channel" else (k, other)
+                    out.print(f"      {a} on {b}: {cond}", highlight=False, markup=False)
                 if e.get("quantities"):
                     out.print(f"  {'':<22} reports (analysis.quantity): {'; '.join(e['quantities'].values())}",
                               highlight=False, markup=False)
@@ -455,7 +459,12 @@ def list_kinds(
                     out.print(f"      {f['name']:<14} {f['type']:<28} default {f['default']:<14} {f['description']}",
                               highlight=False, markup=False)
     if kind is None:
-        out.print("`netkf list KIND` shows a kind's fields.", highlight=False)
+        out.print("* combines on some systems only; `netkf list KIND` shows a kind's fields and those conditions. "
+                  "(Computed by running the checks `netkf validate` makes on representative systems.)", highlight=False)
+
+
+def _with_conditions(kinds: list[str], conditions: dict) -> str:
+    return ", ".join(k + ("*" if k in conditions else "") for k in kinds) or "—"
 
 
 @app.command()

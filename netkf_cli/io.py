@@ -178,16 +178,86 @@ def _protected(final: Path) -> str | None:
     return None
 
 
-def make_parent(final: Path) -> None:
-    """Create ``final``'s parent folders; one :class:`OutputError` if that is impossible."""
+def make_parent(final: Path) -> list[Path]:
+    """Create ``final``'s parent folders; one :class:`OutputError` if that is impossible. Returns the
+    folders it created, outermost first (a failed run removes them again if they are still empty)."""
     parent = Path(final).parent
+    missing = []
+    p = parent
+    while not os.path.lexists(p) and p != p.parent:
+        missing.append(p)
+        p = p.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        for p in (parent, *parent.parents):
-            if os.path.lexists(p) and not p.is_dir():
-                raise OutputError(f"cannot write {final}: {p} is a file, not a folder") from None
+        for q in reversed(missing):  # whatever was made before the failure
+            try:
+                q.rmdir()
+            except OSError:
+                pass
+        for q in (parent, *parent.parents):
+            if os.path.lexists(q) and not q.is_dir():
+                raise OutputError(f"cannot write {final}: {q} is a file, not a folder") from None
         raise OutputError(f"cannot create {parent}: {exc.strerror or exc}") from None
+    return list(reversed(missing))
+
+
+NAME_MAX = 255
+_TMP_EXTRA = len(".existing.old-4194304-") + 20 + 1  # the longest temporary name netkf makes next to a folder
+
+
+def check_location(final: Path) -> None:
+    """Refuse, before any work, a result folder that cannot be written where it is: a name too long
+    for the file system, a mount point (netkf renames a finished folder into place, which a mount
+    point cannot take), a file in the way, a parent that cannot be written."""
+    final = Path(final)
+    existing = next((q for q in (final.parent, *final.parent.parents) if os.path.lexists(q)), Path("/"))
+    try:
+        name_max = os.pathconf(existing if existing.is_dir() else existing.parent, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = NAME_MAX
+    for part in final.parts[len(existing.parts):]:
+        if len(part.encode()) > name_max:
+            raise OutputError(f"cannot write {_short(final)}: the folder name {_short(Path(part))} is "
+                              f"{len(part.encode())} bytes, the file system allows {name_max}")
+    if len(final.name.encode()) + _TMP_EXTRA > name_max:
+        raise OutputError(f"cannot write {_short(final)}: the folder name is {len(final.name.encode())} bytes; "
+                          f"netkf needs at most {name_max - _TMP_EXTRA} (it writes a temporary folder "
+                          f"'.<name>.w.tmp-…' next to it). Choose a shorter --out")
+    if os.path.lexists(final) and final.is_dir() and os.path.ismount(final):
+        raise OutputError(f"{final} is a mount point: netkf writes a result next to it and renames it into place, "
+                          f"which a mount point cannot take. Use a folder inside it, e.g. --out {final / 'result'}")
+    if not existing.is_dir():
+        raise OutputError(f"cannot write {final}: {existing} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise OutputError(f"cannot write in {existing}: Permission denied")
+
+
+def _short(p: Path) -> str:
+    s = str(p)
+    return s if len(s) <= 80 else s[:40] + "…" + s[-30:]
+
+
+class KeepExisting(Exception):
+    """Raised inside :func:`atomic_folder` to keep the existing folder (byte-identical result)."""
+
+
+def same_files(final: Path, tmp: Path, scenario_hash: str) -> bool:
+    """True if ``final`` is netkf's result of this scenario hash and every file just written in
+    ``tmp`` is byte-identical to the one there (``manifest.json`` aside, which holds times)."""
+    final = Path(final)
+    if not final.is_dir() or final.is_symlink():
+        return False
+    man, _ = netkf_ownership(final)
+    if man is None or man.get("scenario_hash") != scenario_hash:
+        return False
+    new = sorted(p.name for p in Path(tmp).iterdir())
+    if sorted(set(man.get("files") or ()) - {MANIFEST}) != new:
+        return False
+    try:
+        return all((final / n).read_bytes() == (Path(tmp) / n).read_bytes() for n in new)
+    except OSError:
+        return False
 
 
 def check_target(final: Path, *, force: bool, scenario_hash: str | None = None,
@@ -415,7 +485,11 @@ def atomic_folder(final: Path, force: bool = False, scenario_hash: str | None = 
     except OSError as exc:
         raise OutputError(f"cannot write in {final.parent}: {exc.strerror or exc}") from None
     try:
-        yield tmp
+        try:
+            yield tmp
+        except KeepExisting:
+            _rmtree(tmp)
+            return
         replace = check_target(final, force=force, scenario_hash=scenario_hash, same=same)
         if replace:
             old = final.parent / f".{final.name}.existing.old-{os.getpid()}-{_token()}"

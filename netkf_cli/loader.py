@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -312,46 +313,314 @@ def _non_finite(data: Any, path: tuple):
             yield from _non_finite(v, path + (i,))
 
 
-def load_scenario_text(text: str, file: str | None = None, overrides: dict | None = None):
-    """Parse and validate; raise one :class:`ConfigError` with every problem found."""
-    data = parse_yaml(text, file)
+MAX_ENTRY = 1e50
+"""Largest magnitude of a system matrix entry: the Riccati recursions multiply up to about six
+such factors (A P Aᵀ, C P Cᵀ + R, their inverse …), and 1e50⁶ = 1e300 still fits a double
+(≤ 1.8e308); beyond it products overflow to inf and every answer would be meaningless."""
+
+
+def _system_magnitudes(sysdata: dict) -> list[Problem]:
+    """``system.A`` with entries near 1e308 (or ρ(A) = 1e200) is refused here, naming the matrix,
+    before any analysis squares it into an overflow."""
+    problems = []
+    for key in ("A", "C", "Q", "R", "P0"):
+        v = sysdata.get(key)
+        flat = list(_numbers(v))
+        if not flat:
+            continue
+        big = max(abs(x) for x in flat)
+        if big > MAX_ENTRY:
+            problems.append(Problem(f"system.{key}", f"entries must be at most {MAX_ENTRY:.0e} in magnitude, got "
+                                    f"{big:.3g}: products of such numbers overflow double precision (rescale the "
+                                    f"state or the output)"))
+    return problems
+
+
+def _numbers(v):
+    if isinstance(v, bool):
+        return
+    if isinstance(v, (int, float)):
+        yield float(v)
+    elif isinstance(v, list):
+        for x in v:
+            yield from _numbers(x)
+
+
+def validate_data(data: Any, file: str | None = None, index: dict | None = None, base_dir: str | None = None,
+                  overrides: "list[Override] | tuple" = ()):
+    """The one validation of a scenario, whatever it came from (a file, YAML text, a Python dict,
+    with or without overrides): schema, system semantics, cross-block checks. Raises one
+    :class:`ConfigError` with every problem found; a problem at an overridden field names the
+    override instead of a line of the file."""
+    index = index or {}
     if data is None:
         raise ConfigError([Problem("", "the file is empty; a scenario is a mapping with keys name, analysis, …", file, 1)])
     if not isinstance(data, dict):
         got = {list: "a list", str: "a single string"}.get(type(data), f"a {type(data).__name__}")
         raise ConfigError([Problem("", f"a scenario must be a mapping with keys name, analysis, …; this file holds {got}",
                                    file, 1)])
-    if overrides:
-        data = deep_merge(data, overrides)
-    index = line_index(text)
+    bad = list(_non_finite(data, ()))
+    if bad:
+        raise ConfigError(attribute([Problem(_dotted(path), f"must be a finite number, got {v!r}", file,
+                                             line_of(index, path)) for path, v in bad], overrides))
     Model = scenario_model()
     problems: list[Problem] = []
     scenario = None
     try:
-        base_dir = str(Path(file).resolve().parent) if file else None
         scenario = Model.model_validate(data, context={"base_dir": base_dir})
     except ValidationError as exc:
         problems.extend(validation_problems(exc, data, index, file))
-    # semantic checks of the system block (shapes, definiteness), reported with the others
+    # semantic checks of the system block (shapes, definiteness, magnitudes), reported with the others
     sysdata = data.get("system")
     if isinstance(sysdata, dict):
-        try:
-            SystemSpec.model_validate(sysdata).build()
-        except ValidationError:
-            pass  # already reported above
-        except ConfigError as exc:
-            for p in exc.problems:
-                problems.append(Problem(p.path, p.message, file, line_of(index, tuple(p.path.split(".")))))
+        sys_problems = _system_magnitudes(sysdata)
+        if not sys_problems:
+            try:
+                SystemSpec.model_validate(sysdata).build()
+            except ValidationError:
+                pass  # already reported above
+            except ConfigError as exc:
+                sys_problems = exc.problems
+        for p in sys_problems:
+            problems.append(Problem(p.path, p.message, file, line_of(index, _keys(p.path))))
     if problems:
-        raise ConfigError(problems)
+        raise ConfigError(attribute(problems, overrides))
     from netkf_cli.compat import check_scenario  # cross-block checks: channel × estimator × analysis
 
     try:
         check_scenario(scenario)
     except ConfigError as exc:
-        raise ConfigError([p if p.file else Problem(p.path, p.message, file, line_of(index, _keys(p.path)))
-                           for p in exc.problems]) from None
+        raise ConfigError(attribute([p if p.file else Problem(p.path, p.message, file, line_of(index, _keys(p.path)))
+                                     for p in exc.problems], overrides)) from None
     return scenario
+
+
+def load_scenario_text(text: str, file: str | None = None, overrides=None):
+    """Parse and validate (after applying ``overrides``); raise one :class:`ConfigError` with every
+    problem found."""
+    data = parse_yaml(text, file)
+    ovs = parse_overrides(overrides)
+    if ovs and isinstance(data, dict):  # (anything else is refused by validate_data, naming the file)
+        data = apply_overrides(data, ovs)
+    base_dir = str(Path(file).resolve().parent) if file else None
+    return validate_data(data, file, line_index(text), base_dir, ovs)
+
+
+# ---- command-line overrides: key=value with dotted paths (the Hydra / OmegaConf grammar) -----------
+
+OVERRIDE_FILE = "command line"
+_KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+@dataclass(frozen=True)
+class Override:
+    """One override: ``channel.arrival=0.6`` (set), ``+key=value`` / ``++key=value`` (set, also a
+    key the file does not have), ``~key`` (delete). ``text`` is how it was given."""
+
+    keys: tuple
+    value: Any
+    text: str
+    delete: bool = False
+    merge: bool = False  # a Python mapping given through the API: merged into a mapping already there
+
+    @property
+    def dotted(self) -> str:
+        return _dotted(self.keys)
+
+    def where(self) -> str:
+        return f"{OVERRIDE_FILE} ({self.text})"
+
+
+def _split_path(path: str, text: str) -> tuple:
+    """``a.b[0].c`` or ``a.b.0.c`` → ('a', 'b', 0, 'c'); under ``sweep`` the rest is one dotted key
+    (sweep axes are field paths themselves), except ``sweep.mode`` and ``sweep.plot.…``."""
+    def bad(why: str) -> ConfigError:
+        return ConfigError([Problem("", f"override {text!r}: {why}", OVERRIDE_FILE)])
+
+    if not path:
+        raise bad("expected key=value with a dotted key, e.g. channel.arrival=0.6")
+    if path.startswith("sweep.") and not path.startswith(("sweep.mode", "sweep.plot")):
+        return ("sweep", path.removeprefix("sweep."))
+    keys: list = []
+    for part in path.split("."):
+        m = re.fullmatch(r"([^\[\]]*)((?:\[\d+\])*)", part)
+        if not m or (not m[1] and not keys):
+            raise bad(f"{path!r} is not a dotted field path (names separated by dots, list items as [i] or .i)")
+        name, idx = m[1], [int(i) for i in re.findall(r"\[(\d+)\]", m[2])]
+        if name:
+            if name.isdigit():
+                keys.append(int(name))
+            elif _KEY.match(name):
+                keys.append(name)
+            else:
+                raise bad(f"{name!r} is not a field name (letters, digits and _)")
+        elif not idx:
+            raise bad(f"{path!r} has an empty part")
+        keys.extend(idx)
+    return tuple(keys)
+
+
+def parse_override(text: str) -> Override:
+    """One ``key=value`` string; the value is read with the scenario files' YAML 1.2 rules."""
+    if not isinstance(text, str):
+        raise ConfigError([Problem("", f"an override is a 'key=value' string, got {type(text).__name__} {text!r}",
+                                   OVERRIDE_FILE)])
+    s = text.strip()
+    if s.startswith("~"):
+        key = s[1:].split("=", 1)[0]
+        return Override(_split_path(key, text), None, text, delete=True)
+    if "=" not in s:
+        raise ConfigError([Problem("", f"override {text!r}: expected key=value (e.g. channel.arrival=0.6 or "
+                                       f"'system.A=[[1.1, 0], [0, 0.9]]'), or ~key to delete a key", OVERRIDE_FILE)])
+    key, value = s.split("=", 1)
+    key = key.lstrip("+")
+    keys = _split_path(key.strip(), text)
+    return Override(keys, parse_yaml(value, f"{OVERRIDE_FILE} ({text})"), text)
+
+
+def parse_overrides(items) -> list[Override]:
+    """Overrides from a list of ``key=value`` strings or a mapping ``{dotted.path: value}`` (Python
+    values, used as they are; a mapping value is merged into a mapping already there, as
+    ``load(d, overrides={"analysis": {"grid": 30}})`` always did)."""
+    if not items:
+        return []
+    if isinstance(items, Override):
+        return [items]
+    if isinstance(items, dict):
+        out = []
+        for k, v in items.items():
+            if not isinstance(k, str):
+                raise ConfigError([Problem("", f"override keys are dotted field paths (text), got {k!r}", OVERRIDE_FILE)])
+            out.append(Override(_split_path(k, f"{k}={v!r}"), _plain(v), f"{k}={_short(v)}", merge=True))
+        return out
+    if isinstance(items, str):
+        items = [items]
+    try:
+        seq = list(items)
+    except TypeError:
+        raise ConfigError([Problem("", f"overrides must be a list of 'key=value' strings or a dict "
+                                       f"{{dotted.path: value}}, got {type(items).__name__}", OVERRIDE_FILE)]) from None
+    return [o if isinstance(o, Override) else parse_override(o) for o in seq]
+
+
+def _short(v) -> str:
+    r = repr(v)
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
+def _plain(v):
+    """numpy scalars and arrays as plain Python numbers and lists (what YAML would have given)."""
+    try:
+        import numpy as np
+    except ImportError:  # pragma: no cover
+        return v
+    if isinstance(v, np.ndarray):
+        return _plain(v.tolist())
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v
+
+
+def apply_overrides(data: dict, overrides: list[Override]) -> dict:
+    """A copy of ``data`` with every override applied in order; impossible paths are one
+    :class:`ConfigError` naming each override."""
+    import copy
+
+    data = copy.deepcopy(data)
+    problems = []
+    for o in overrides:
+        cur: Any = data
+        ok = True
+        for i, k in enumerate(o.keys[:-1]):
+            nxt = o.keys[i + 1]
+            here = _dotted(o.keys[: i + 1])
+            if isinstance(k, int):
+                if not isinstance(cur, list) or k >= len(cur):
+                    problems.append(Problem(here, _index_problem(cur, k), o.where()))
+                    ok = False
+                    break
+                if not isinstance(cur[k], (dict, list)):
+                    cur[k] = {}
+                cur = cur[k]
+            else:
+                if not isinstance(cur, dict):
+                    problems.append(Problem(here, f"cannot set a field inside {_what(cur)}", o.where()))
+                    ok = False
+                    break
+                if k not in cur or cur[k] is None:
+                    if o.delete:
+                        problems.append(Problem(o.dotted, "is not in the scenario; nothing to delete", o.where()))
+                        ok = False
+                        break
+                    cur[k] = [] if isinstance(nxt, int) else {}
+                elif not isinstance(cur[k], (dict, list)):
+                    problems.append(Problem(here, f"holds {_what(cur[k])}, not a block of fields: cannot set "
+                                                  f"{o.dotted}", o.where()))
+                    ok = False
+                    break
+                cur = cur[k]
+        if not ok:
+            continue
+        last = o.keys[-1]
+        if isinstance(last, int):
+            if not isinstance(cur, list) or last >= len(cur):
+                problems.append(Problem(o.dotted, _index_problem(cur, last), o.where()))
+                continue
+        elif not isinstance(cur, dict):
+            problems.append(Problem(o.dotted, f"cannot set a field inside {_what(cur)}", o.where()))
+            continue
+        if o.delete:
+            if isinstance(last, int):
+                del cur[last]
+            elif last in cur:
+                del cur[last]
+            else:
+                problems.append(Problem(o.dotted, "is not in the scenario; nothing to delete", o.where()))
+            continue
+        old = cur[last] if (isinstance(last, int) or last in cur) else None
+        cur[last] = deep_merge(old, o.value) if (o.merge and isinstance(old, dict) and isinstance(o.value, dict)) \
+            else copy.deepcopy(o.value)
+    if problems:
+        raise ConfigError(problems)
+    return data
+
+
+def _index_problem(cur, k: int) -> str:
+    if not isinstance(cur, list):
+        return f"item [{k}] of {_what(cur)}: not a list"
+    return f"index {k} is out of range (the list has {len(cur)} item{'s' if len(cur) != 1 else ''})"
+
+
+def _what(v) -> str:
+    if isinstance(v, bool):
+        return "a boolean"
+    if isinstance(v, (int, float)):
+        return f"the number {v!r}"
+    if isinstance(v, str):
+        return f"the text {v!r}"
+    if isinstance(v, list):
+        return "a list"
+    return f"a {type(v).__name__}"
+
+
+def attribute(problems: list[Problem], overrides) -> list[Problem]:
+    """A problem at (or inside) an overridden field is the override's, not the file's: it names
+    ``command line (key=value)`` instead of a line of the file that no longer holds that value."""
+    if not overrides:
+        return problems
+    out = []
+    for p in problems:
+        hit = None
+        for o in overrides:
+            d = o.dotted
+            if p.path == d or p.path.startswith((d + ".", d + "[")):
+                hit = o
+        out.append(replace(p, file=hit.where(), line=None) if hit is not None else p)
+    return out
 
 
 def _keys(dotted: str) -> tuple:
@@ -388,7 +657,9 @@ def read_text(path: str | Path) -> str:
     return text
 
 
-def load_scenario(path: str | Path, overrides: dict | None = None):
+def load_scenario(path: str | Path, overrides=None):
+    """A validated Scenario from a YAML file, after ``overrides`` (``key=value`` strings or a
+    ``{dotted.path: value}`` mapping)."""
     return load_scenario_text(read_text(path), str(path), overrides)
 
 

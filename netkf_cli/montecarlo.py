@@ -189,8 +189,10 @@ def execution(executor: str = "serial", jobs: int = 1, scheduler: str | None = N
     """Run every :func:`run_chunked` inside this block on the given executor (and cache)."""
     if executor not in ("serial", "process", "dask"):
         raise ValueError(f"unknown executor {executor!r}")
-    if executor == "process" and jobs <= 1:
-        executor = "serial"
+    if executor == "process":
+        jobs = min(jobs, usable_cores())  # more processes than cores only add memory (each imports numpy …)
+        if jobs <= 1:
+            executor = "serial"
     ex = Execution(executor=executor, jobs=max(1, jobs), scheduler=scheduler,
                    cache_dir=Path(cache_dir) if cache_dir else None, progress=progress, add_total=add_total)
     token = _EXEC.set(ex)
@@ -199,6 +201,14 @@ def execution(executor: str = "serial", jobs: int = 1, scheduler: str | None = N
     finally:
         _EXEC.reset(token)
         ex.close()
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the system tells, else the CPU count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
 
 
 def _require_picklable(kernel, label: str) -> None:
@@ -234,9 +244,16 @@ def _store(path: Path | None, stats: dict) -> None:
         return
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    with open(tmp, "wb") as f:
-        np.savez(f, **stats)
-    tmp.replace(path)
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, **stats)
+        tmp.replace(path)
+    except BaseException:  # a full disk, an interrupt mid-write: no torn temporary file stays behind
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise
 
 
 def _describe(label: str, c: Chunk) -> str:

@@ -12,7 +12,7 @@ import hashlib
 import json
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -32,9 +32,15 @@ def default_out_dir(scenario) -> Path:
     return Path(scenario.output.dir) / scenario.name
 
 
+HASH_EXCLUDE = {"montecarlo": {"max_runs"}}
+"""Fields that cannot change a number (the run-count guard): not part of the scenario hash."""
+
+
 def scenario_hash(scenario, runs: int | None) -> str:
-    """Hash of the resolved scenario (and the run-size override): the resume key."""
-    blob = json.dumps({"scenario": scenario.model_dump(mode="json"), "runs": runs}, sort_keys=True)
+    """Hash of the resolved scenario (after overrides) and the run-size override: the resume key
+    and how a rerun of the same scenario is recognised."""
+    blob = json.dumps({"scenario": scenario.model_dump(mode="json", exclude=HASH_EXCLUDE), "runs": runs},
+                      sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -126,9 +132,16 @@ def _check_artefact(scenario, art) -> None:
 
 
 def write_result(scenario, art: Artefact, out: Path, *, force: bool, ctx: RunContext,
-                 source: str | Path | None, wall_time: float, execution: dict | None = None) -> Path:
+                 source: str | Path | None, wall_time: float, execution: dict | None = None,
+                 overrides: list[str] | None = None, started: float | None = None,
+                 info: dict | None = None) -> Path:
+    """Write the result folder atomically. A rerun of the same scenario whose files come out
+    byte-identical to the folder already there leaves that folder (and its manifest) untouched,
+    so reproducing a committed result leaves a clean checkout clean (``info["unchanged"]``)."""
     name = scenario.name
-    with io.atomic_folder(out, force=force, scenario_hash=scenario_hash(scenario, ctx.runs),
+    h = scenario_hash(scenario, ctx.runs)
+    unchanged = False
+    with io.atomic_folder(out, force=force, scenario_hash=h,
                           same=lambda man: same_scenario(man, scenario, ctx.runs)) as tmp:
         io.write_csv(art.table, tmp / f"{name}.csv")
         for key, df in art.extra_tables.items():
@@ -141,43 +154,180 @@ def write_result(scenario, art: Artefact, out: Path, *, force: bool, ctx: RunCon
         fig = sweep.plot(tables, scenario) if scenario.sweep is not None else scenario.analysis.plot(tables, scenario)
         save(fig, tmp / f"{name}.png", dpi=scenario.output.dpi, formats=scenario.output.formats)  # <name>.<fmt>
         mc = scenario.montecarlo
+        files = sorted(p.name for p in tmp.iterdir()) + ["manifest.json"]
+        if io.same_files(out, tmp, h):
+            unchanged = True
+            raise io.KeepExisting
         manifest = {
             "name": name,
             "written_by": io.WRITTEN_BY,
             "source": io.display_path(source),
+            "overrides": list(overrides or []),
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "wall_time_s": round(wall_time, 3),
             "scenario": scenario.model_dump(mode="json", by_alias=True),
-            "scenario_hash": scenario_hash(scenario, ctx.runs),
+            "scenario_hash": h,
             "montecarlo": {"runs": ctx.mc_runs(scenario), "runs_in_scenario": mc.runs, "seed": mc.seed,
                            "chunk": mc.chunk, "quick": ctx.quick,
-                           "stream_layout": "chunk i uses SeedSequence(seed, spawn_key=(i,))"},
+                           "stream_layout": "chunk i of stream s uses SeedSequence(seed, spawn_key=(s, i))"},
             "execution": execution or {"executor": "serial", "jobs": 1},
             "meta": art.meta,
-            "files": sorted(p.name for p in tmp.iterdir()) + ["manifest.json"],
+            "files": files,
             "versions": io.versions(),
             "git_commit": io.git_commit(),
         }
+        if started is not None:  # the whole command up to this write: what `netkf run` prints
+            manifest["command_time_s"] = round(max(time.perf_counter() - started, wall_time), 3)
         io.write_json(manifest, tmp / "manifest.json")
+    if info is not None:
+        info["unchanged"] = unchanged
     return out
 
 
 def result_paths(scenario, out_dir: str | Path | None = None, runs: int | None = None) -> tuple[Path, Path]:
-    """``(result folder, resume cache folder)`` of a run."""
+    """``(result folder, resume cache folder)`` of a run. The cache belongs to the result folder
+    (``<parent>/.netkf-cache/<folder name>/``), so the same scenario can run into two folders at once."""
     out = Path(out_dir) if out_dir is not None else default_out_dir(scenario)
-    return out, out.parent / CACHE_DIR / scenario_hash(scenario, runs)
+    return out, out.parent / CACHE_DIR / out.name
+
+
+def sweep_points(scenario) -> int:
+    if scenario.sweep is None:
+        return 1
+    sizes = [len(v) for v in scenario.sweep.axes.values()] or [1]
+    return max(sizes) if scenario.sweep.mode == "zip" else int(np.prod(sizes, dtype=float))
+
+
+def run_counts(scenario, runs: int | None = None, quick: bool = False) -> list[int]:
+    """The Monte Carlo run count of every point (a sweep may sweep ``montecarlo.runs``)."""
+    mc = scenario.montecarlo
+    base = int(runs or (mc.quick_size() if quick else mc.runs))
+    if runs is None and scenario.sweep is not None and "montecarlo.runs" in scenario.sweep.axes:
+        vals = [v for v in scenario.sweep.axes["montecarlo.runs"] if isinstance(v, (int, float))]
+        return [int(v) for v in vals] or [base]
+    return [base]
 
 
 def work_size(scenario, runs: int | None = None, quick: bool = False) -> int:
     """Rough size of a run in run-steps: Monte Carlo runs × horizon × sweep points (for the
     up-front warning on large runs; recipes with several series take a small multiple of it)."""
     mc = scenario.montecarlo
-    n = int(runs or (mc.quick_size() if quick else mc.runs))
-    points = 1
-    if scenario.sweep is not None:
-        sizes = [len(v) for v in scenario.sweep.axes.values()] or [1]
-        points = max(sizes) if scenario.sweep.mode == "zip" else int(np.prod(sizes, dtype=float))
-    return int(min(n * mc.horizon * points, 2**62))
+    n = max(run_counts(scenario, runs, quick))
+    return int(min(float(n) * mc.horizon * sweep_points(scenario), 2**62))
+
+
+LARGE_RUN_S = 120.0
+"""Runs expected to take longer than this say so (with an ETA) before they start."""
+RUN_STEPS_PER_S = 1e7
+"""Rough per-process speed of the covariance recursions, for the ETA only (the generic engine's
+KF on this machine; compiled estimators are faster)."""
+
+
+@dataclass
+class RunPlan:
+    """What a run will do, decided before any work (``netkf run --dry-run`` prints it)."""
+
+    scenario: object
+    out: Path
+    cache: Path
+    runs: int
+    points: int
+    run_steps: int
+    chunks: int
+    jobs: int
+    executor: str
+    replaces: bool
+    eta_s: float
+
+    def as_json(self) -> dict:
+        return {"folder": str(self.out), "resume_cache": str(self.cache), "runs": self.runs, "sweep_points": self.points,
+                "horizon": self.scenario.montecarlo.horizon, "run_steps": self.run_steps, "chunks": self.chunks,
+                "chunk": self.scenario.montecarlo.chunk, "executor": self.executor, "jobs": self.jobs,
+                "replaces_existing": self.replaces, "eta_s": round(self.eta_s, 1),
+                "scenario_hash": scenario_hash(self.scenario, None if self.runs == self.scenario.montecarlo.runs
+                                               else self.runs)}
+
+
+def plan_run(scenario, *, out_dir: str | Path | None = None, runs: int | None = None, quick: bool = False,
+             force: bool = False, executor: str = "serial", jobs: int = 1, yes: bool = False,
+             runs_option: str = "--runs") -> RunPlan:
+    """Every check that can be made before the Monte Carlo, with no side effect: the result folder
+    (replaceable, not a mount point, a valid name, creatable), the run count against
+    ``montecarlo.max_runs`` (``yes`` lifts it). Raises :class:`ConfigError` / :class:`OutputError`."""
+    from netkf_cli.errors import Problem
+
+    out, cache = result_paths(scenario, out_dir, runs)
+    replaces = io.check_target(out, force=force, scenario_hash=scenario_hash(scenario, runs),
+                               same=lambda man: same_scenario(man, scenario, runs))
+    io.check_location(out)
+    mc = scenario.montecarlo
+    counts = run_counts(scenario, runs, quick)
+    n, size, eta = check_run_count(scenario, runs, quick=quick, yes=yes, jobs=jobs, runs_option=runs_option)
+    points = sweep_points(scenario)
+    chunks = sum(-(-c // max(1, min(mc.chunk, c))) for c in counts) * (points if len(counts) == 1 else 1)
+    return RunPlan(scenario, out, cache, n, points, size, int(chunks), max(1, jobs), executor, replaces, eta)
+
+
+def check_run_count(scenario, runs: int | None = None, *, quick: bool = False, yes: bool = False, jobs: int = 1,
+                    runs_option: str = "--runs") -> tuple[int, int, float]:
+    """Refuse a run count above ``montecarlo.max_runs`` unless ``yes``; returns (runs, run-steps, ETA s)."""
+    from netkf_cli.errors import Problem
+
+    mc = scenario.montecarlo
+    counts = run_counts(scenario, runs, quick)
+    n = max(counts)
+    size = work_size(scenario, runs, quick)
+    eta = size / (RUN_STEPS_PER_S * max(1, jobs))
+    if n > mc.max_runs and not yes:
+        path = runs_option if runs else ("sweep.montecarlo.runs" if n != mc.runs else "montecarlo.runs")
+        raise ConfigError([Problem(path, f"{n:.3g} runs is above the limit montecarlo.max_runs = {mc.max_runs:.3g} "
+                                         f"(about {size:.2g} run-steps, rough ETA {duration(eta)} on {max(1, jobs)} "
+                                         f"process{'es' if jobs > 1 else ''}); lower it, or pass --yes (API: yes=True) "
+                                         f"or raise montecarlo.max_runs if you mean it")])
+    return n, size, eta
+
+
+def duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 2 * 86400:
+        return f"{seconds / 3600:.1f} h"
+    if seconds < 2 * 365 * 86400:
+        return f"{seconds / 86400:.0f} days"
+    return f"{seconds / (365 * 86400):.2g} years"
+
+
+CACHE_STAMP = "scenario.json"
+
+
+def _open_cache(cache: Path, h: str, resume: bool, scenario) -> dict:
+    """Prepare the resume cache of this run; returns what the manifest says about resuming.
+
+    Without ``resume`` an old cache is discarded. With it, the cache is reused only if its stamp
+    holds this scenario's hash; chunks of another scenario (an edited seed, runs, a field) are
+    never mixed in: they are discarded and the run says so."""
+    note = None
+    stamp = cache / CACHE_STAMP
+    if cache.exists():
+        try:
+            old = json.loads(stamp.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            old = {}
+        if resume and old.get("scenario_hash") != h:
+            n_old = sum(1 for _ in cache.rglob("*.npz"))
+            note = (f"--resume: the cache {cache}/ held {n_old} chunk{'s' if n_old != 1 else ''} of a different "
+                    f"scenario (hash {old.get('scenario_hash', 'unknown')}, this one is {h}); none reused, the run "
+                    f"starts from the beginning")
+        if not resume or note:
+            io._rmtree(cache)
+    elif resume:
+        note = f"--resume: no cache of an interrupted run in {cache}/; the run starts from the beginning"
+    cache.mkdir(parents=True, exist_ok=True)
+    if not stamp.exists():
+        stamp.write_text(json.dumps({"scenario_hash": h, "name": scenario.name}) + "\n", encoding="utf-8")
+    return {"requested": resume, "chunks_reused": 0, **({"note": note} if note else {})}
 
 
 def run_scenario(scenario, *, source: str | Path | None = None, out_dir: str | Path | None = None,
@@ -186,55 +336,78 @@ def run_scenario(scenario, *, source: str | Path | None = None, out_dir: str | P
                  set_total: Callable[[int], None] | None = None,
                  add_total: Callable[[int], None] | None = None,
                  executor: str = "serial", jobs: int = 1, scheduler: str | None = None,
-                 resume: bool = False) -> Path:
+                 resume: bool = False, yes: bool = True, overrides: list[str] | None = None,
+                 started: float | None = None, info: dict | None = None,
+                 notify: Callable[[str], None] | None = None) -> Path:
     """Compute and write one scenario. Finished Monte Carlo chunks are kept in
-    ``<out>/../.netkf-cache/<scenario hash>/`` until the result is written, so ``resume=True``
-    after an interruption reuses them and gives exactly the uninterrupted numbers.
+    ``<out>/../.netkf-cache/<out name>/`` until the result is written, so ``resume=True`` after an
+    interruption reuses them (only if the scenario is identical) and gives exactly the
+    uninterrupted numbers.
 
-    Before any work: the result folder must be writable and replaceable (:func:`io.check_target`:
-    an existing folder is replaced only if netkf wrote it and the scenario is the same, or with
-    ``force``); the folder and the cache are locked for the whole run (a concurrent run into the
-    same folder or cache gets :class:`BusyError`); leftovers of killed runs are cleaned.
+    Before any work, :func:`plan_run` checks everything that can be checked. The result folder
+    is locked for the whole run (a concurrent run into the same folder gets :class:`BusyError`);
+    leftovers of killed runs are cleaned. A run that fails for any reason but an interrupt leaves
+    nothing behind: no cache, no lock, no temporary file, no folder it created.
     """
+    info = {} if info is None else info
     ctx = RunContext(runs=runs, quick=quick, progress=progress, set_total=set_total)
-    out, cache = result_paths(scenario, out_dir, runs)
-    io.check_target(out, force=force, scenario_hash=scenario_hash(scenario, runs),
-                    same=lambda man: same_scenario(man, scenario, runs))
-    io.make_parent(out)
-    keep_cache = True
+    plan = plan_run(scenario, out_dir=out_dir, runs=runs, quick=quick, force=force, executor=executor, jobs=jobs,
+                    yes=yes)
+    out, cache = plan.out, plan.cache
+    h = scenario_hash(scenario, runs)
+    created = io.make_parent(out)
+    interrupted = False
     try:
-        with io.FileLock(out, "result folder"), io.FileLock(cache, "resume cache"):
+        with io.FileLock(out, "result folder"):
             io.clean_leftovers(out.parent)
-            if cache.exists() and not resume:
-                io._rmtree(cache)
+            resumed = _open_cache(cache, h, resume, scenario)
+            if resumed.get("note") and notify:
+                notify(resumed["note"])
             t0 = time.perf_counter()
-            try:
-                with montecarlo.execution(executor, jobs, scheduler, cache_dir=cache, progress=progress,
-                                          add_total=add_total) as ex:
-                    art = compute(scenario, ctx, source)
-                    where = ex.report()  # where the chunks really ran (tested: a promise in the manifest)
-                folder = write_result(scenario, art, out, force=force, ctx=ctx, source=source,
-                                      wall_time=time.perf_counter() - t0,
-                                      execution={"executor": executor, "jobs": jobs, "scheduler": scheduler,
-                                                 "resumed": resume, "chunks_ran": where})
-            except ConfigError:
-                keep_cache = False  # the scenario must change: its chunks can never be resumed
-                raise
-            keep_cache = False
+            with montecarlo.execution(executor, jobs, scheduler, cache_dir=cache, progress=progress,
+                                      add_total=add_total) as ex:
+                art = compute(scenario, ctx, source)
+                where = ex.report()  # where the chunks really ran (tested: a promise in the manifest)
+            resumed["chunks_reused"] = ex.chunks_cached
+            info["resume"] = resumed
+            folder = write_result(scenario, art, out, force=force, ctx=ctx, source=source,
+                                  wall_time=time.perf_counter() - t0,
+                                  execution={"executor": executor, "jobs": jobs, "scheduler": scheduler,
+                                             "resumed": resumed, "chunks_ran": where},
+                                  overrides=overrides, started=started, info=info)
+    except KeyboardInterrupt:
+        interrupted = True  # finished chunks stay for --resume
+        raise
     finally:
-        if not keep_cache and cache.exists():
-            io._rmtree(cache)
-        try:
-            cache.parent.rmdir()  # only if empty
-        except OSError:
-            pass
+        if not interrupted or not _has_chunks(cache):
+            if cache.exists():
+                io._rmtree(cache)
+            _rmdir_empty(cache.parent)
+            if not interrupted or not out.exists():
+                for d in reversed(created):  # folders this run created, if still empty
+                    _rmdir_empty(d)
     return folder
 
 
+def _has_chunks(cache: Path) -> bool:
+    return cache.is_dir() and any(cache.rglob("*.npz"))
+
+
+def _rmdir_empty(d: Path) -> None:
+    try:
+        d.rmdir()  # only if empty
+    except OSError:
+        pass
+
+
 def run_scenario_file(path: str | Path, *, out_dir: str | Path | None = None, runs: int | None = None,
-                      quick: bool = False, force: bool = False, overrides: dict | None = None,
+                      quick: bool = False, force: bool = False, overrides=None,
                       progress=None, set_total=None, **execution) -> Path:
-    """Load a scenario file and run it; returns the result folder."""
+    """Load a scenario file (with ``overrides``: ``key=value`` strings or ``{dotted.path: value}``)
+    and run it; returns the result folder."""
+    from netkf_cli.loader import parse_overrides
+
     scenario = load_scenario(path, overrides)
+    texts = [o.text for o in parse_overrides(overrides)]
     return run_scenario(scenario, source=path, out_dir=out_dir, runs=runs, quick=quick, force=force,
-                        progress=progress, set_total=set_total, **execution)
+                        progress=progress, set_total=set_total, overrides=texts, **execution)

@@ -75,10 +75,11 @@ class GilbertElliottChannel(ChannelModel):
 
     kind: Literal["gilbert_elliott"]
     # YAML key ``loss_rate`` (alias): the attribute name is free for the contract method :meth:`loss_rate`
-    pi_loss: float | None = Field(None, alias="loss_rate", gt=0.0, lt=1.0,
-                                  description="stationary loss rate π_B = P(γ_k = 0)")
+    pi_loss: float | None = Field(None, alias="loss_rate", ge=0.0, lt=1.0,
+                                  description="stationary loss rate π_B = P(γ_k = 0), in [0, 1) (0: no loss, "
+                                              "like bernoulli arrival: 1, so a loss sweep can start at 0)")
     mean_burst: float | None = Field(None, ge=1.0, description="mean length of a loss burst L_B = 1/p_bg (steps, ≥ 1)")
-    p_gb: float | None = Field(None, gt=0.0, le=1.0, description="P(loss at k+1 | arrival at k)")
+    p_gb: float | None = Field(None, ge=0.0, le=1.0, description="P(loss at k+1 | arrival at k) (0: never lose)")
     p_bg: float | None = Field(None, gt=0.0, le=1.0, description="P(arrival at k+1 | loss at k)")
 
     @model_validator(mode="after")

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import ClassVar, Literal
 
 import numpy as np
-from pydantic import Field, PrivateAttr, ValidationInfo, field_validator
+from pydantic import Field, PrivateAttr, ValidationInfo, field_validator, model_validator
 
 from netkf_cli.errors import ConfigError
 from netkf_cli.spec import ChannelModel, NonNegInt
@@ -40,9 +40,11 @@ def read_recording(path: Path, values: str) -> np.ndarray:
         raise ConfigError.at("channel.file", f"file not found: {path}") from None
     except UnicodeDecodeError:
         raise ConfigError.at("channel.file", f"{path} is not a UTF-8 text CSV file") from None
-    rows = [r for r in csv.reader(text.splitlines()) if r and any(c.strip() for c in r)]
-    if rows and not all(_is_value(c) for c in rows[0]):
-        rows = rows[1:]  # header
+    numbered = [(i + 1, r) for i, r in enumerate(csv.reader(text.splitlines())) if r and any(c.strip() for c in r)]
+    if numbered and not all(_is_value(c) for c in numbered[0][1]):
+        numbered = numbered[1:]  # header
+    lines = [n for n, _ in numbered]  # the file's line of each data row, for messages
+    rows = [r for _, r in numbered]
     if not rows:
         raise ConfigError.at("channel.file", f"{path} has no data rows")
     if len(rows) > MAX_ROWS:
@@ -56,21 +58,40 @@ def read_recording(path: Path, values: str) -> np.ndarray:
             c = c.strip().lower()
             if values == "arrival":
                 if c not in ("0", "1", "0.0", "1.0", "true", "false"):
-                    raise ConfigError.at("channel.file", f"{path} row {t + 1} column {s + 1}: expected 0 or 1, got {c!r}")
+                    raise ConfigError.at("channel.file", f"{path} line {lines[t]} column {s + 1}: expected 0 or 1, got {c!r}")
                 out[s, t] = 1 if c in ("1", "1.0", "true") else 0
             else:
-                if c in ("", "-1", "lost", "nan", "inf"):
+                if c in ("", "-1", "lost", "nan", "inf"):  # nan/inf: how some tools write "never arrived"
                     out[s, t] = LOST
                 else:
-                    try:
-                        v = int(float(c))
-                    except ValueError:
-                        raise ConfigError.at("channel.file", f"{path} row {t + 1} column {s + 1}: expected a delay "
-                                                             f"(integer ≥ 0, or empty/-1/lost), got {c!r}") from None
-                    if v < 0:
-                        raise ConfigError.at("channel.file", f"{path} row {t + 1}: delay must be ≥ 0, got {v}")
-                    out[s, t] = v
+                    out[s, t] = _delay_cell(c, path, lines[t], s)
     return out.astype(bool) if values == "arrival" else out.astype(np.int32)
+
+
+MAX_DELAY = 2**31 - 2
+"""Largest recorded delay in steps (int32 traces); a delay beyond any horizon is simply never usable."""
+
+
+def _delay_cell(c: str, path: Path, line: int, s: int) -> int:
+    """One delay cell: an integer number of steps ≥ 0 (``-1``, empty or ``lost`` mean lost, handled
+    by the caller); anything else is refused naming the file, the row and the column."""
+    where = f"{path} line {line} column {s + 1}"
+    try:
+        v = float(c)
+    except ValueError:
+        raise ConfigError.at("channel.file", f"{where}: expected a delay (integer ≥ 0, or empty/-1/lost), "
+                                             f"got {c!r}") from None
+    if not np.isfinite(v):
+        raise ConfigError.at("channel.file", f"{where}: a delay must be a finite number of steps (empty, -1 or "
+                                             f"'lost' for a lost packet), got {c!r}")
+    if v != int(v):
+        raise ConfigError.at("channel.file", f"{where}: a delay is a whole number of steps, got {c!r}")
+    if v < 0:
+        raise ConfigError.at("channel.file", f"{where}: a delay must be ≥ 0 (or -1 for a lost packet), got {c!r}")
+    if v > MAX_DELAY:
+        raise ConfigError.at("channel.file", f"{where}: delay {c} is beyond the largest supported delay "
+                                             f"({MAX_DELAY} steps); write -1 or 'lost' for a packet that never arrived")
+    return int(v)
 
 
 def _is_value(c: str) -> bool:
@@ -109,10 +130,34 @@ class TraceChannel(ChannelModel):
             p = Path(base) / p
         return str(p)
 
+    @model_validator(mode="after")
+    def _read_now(self):
+        """Read (and check) the recording at validation, so `netkf validate` refuses a bad file
+        naming it, its row and column — not the first Monte Carlo chunk."""
+        if self._data is None and not self.file.startswith("<"):
+            try:
+                self._data = read_recording(Path(self.file), self.values)
+            except ConfigError as exc:
+                raise ValueError("file: " + "; ".join(p.message for p in exc.problems)) from None
+        return self
+
     @classmethod
     def from_array(cls, data, values: str = "arrival", **kw) -> "TraceChannel":
         """A trace channel replaying ``data`` (shape (rows,) or (sensors, rows)) instead of a file."""
         arr = np.asarray(data)
+        if arr.ndim not in (1, 2) or arr.size == 0 or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+            raise ConfigError.at("channel", f"a recording is a non-empty numeric array of shape (rows,) or "
+                                            f"(sensors, rows), got {arr.dtype} of shape {arr.shape}")
+        a = arr.astype(float)
+        if values == "arrival":
+            bad = ~np.isin(a, (0.0, 1.0))
+            want = "0 or 1"
+        else:
+            bad = ~np.isfinite(a) | (a != np.round(a)) | (a < -1) | (a > MAX_DELAY)
+            want = f"integer delays 0…{MAX_DELAY} (or -1 for lost)"
+        if bad.any():
+            i = tuple(int(x) for x in np.argwhere(bad)[0])
+            raise ConfigError.at("channel", f"a recording of {values}s holds {want}, got {a[i]!r} at index {i}")
         arr = arr[None] if arr.ndim == 1 else arr
         ch = cls(kind="trace", file="<array>", values=values, **kw)
         ch._data = arr.astype(bool) if values == "arrival" else np.where(arr < 0, LOST, arr).astype(np.int32)
