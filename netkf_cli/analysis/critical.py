@@ -510,10 +510,11 @@ def exact_case_ge(A, C) -> ExactCase | None:
         return None
     if ec.key in ("non_degenerate", "c_invertible_observable"):
         return ExactCase(ec.key, ec.value, ec.condition,
-                         "Mo & Sinopoli 2012 (IEEE TAC 57(3)) treat the Gilbert–Elliott channel: for a non-degenerate "
-                         "system P_k ≤ α·(k − t)^β·ρ^{2(k − t)} with t the N-th most recent arrival, and fewer than N "
-                         "arrivals in L steps has probability ≤ poly(L)·(1 − q)^L; so E[P] < ∞ iff (1 − q)ρ(A)² < 1, "
-                         "whatever p (derivation and assumptions: experiments/critical/README.md)")
+                         "Mo & Sinopoli 2012 (IEEE TAC 57(3)): critical value of non-degenerate systems over the "
+                         "Gilbert–Elliott channel; netkf's derivation (P_k bounded through the time since the N-th most "
+                         "recent arrival, fewer than N arrivals in L steps has probability ≤ poly(L)·(1 − q)^L, so "
+                         "E[P] < ∞ iff (1 − q)ρ(A)² < 1 whatever p), its assumptions and the exact-recursion check: "
+                         "experiments/critical/README.md")
     return ec
 
 
