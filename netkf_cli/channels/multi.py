@@ -59,13 +59,23 @@ def sample_multi_trace_arrivals(rng: np.random.Generator, runs: int, horizon: in
     """
     loss = np.asarray(loss, dtype=float).reshape(-1)
     N = loss.size
-    raw = rng.bit_generator.random_raw(N * horizon * runs).reshape(N, horizon, runs)
     thr = _raw_threshold(1.0 - loss)
-    out = raw < thr[:, None, None]
-    full = loss <= 0.0
-    if full.any():
-        out[full] = True  # exactly: no draw can be ≥ 2⁶⁴
+    out = np.empty((N, horizon, runs), dtype=bool)
+    # the draws are consumed sensor by sensor, time by time, run by run (C order of (N, horizon, runs)):
+    # drawing them in blocks of whole time steps gives the same bits with O(block) raw memory.
+    block = max(1, min(horizon, RAW_BLOCK // max(runs, 1)))
+    for i in range(N):
+        for t0 in range(0, horizon, block):
+            t1 = min(horizon, t0 + block)
+            raw = rng.bit_generator.random_raw((t1 - t0) * runs).reshape(t1 - t0, runs)
+            np.less(raw, thr[i], out=out[i, t0:t1])
+        if loss[i] <= 0.0:
+            out[i] = True  # exactly: no draw can be ≥ 2⁶⁴
     return out
+
+
+RAW_BLOCK = 1 << 20
+"""Raw 64-bit draws held at once by :func:`sample_multi_trace_arrivals` (8 MB)."""
 
 
 def times_since_arrival_tr(arrival: np.ndarray) -> np.ndarray:

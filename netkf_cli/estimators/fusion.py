@@ -1,31 +1,35 @@
-"""MF, IBF and OLPEF estimators at a fusion centre fed by N lossy links (Chiuso & Schenato, Sec. II).
+"""MF, IBF and OLPEF at a fusion centre fed by N lossy links (Chiuso & Schenato, Sec. II), on the Kalman core.
 
-All three error covariances depend on the arrival trace γ (runs, T, N) only, so everything here
-is covariance-only and batched over runs (loop over time, runs vectorized).
+The sensors are the system's (``system.sensors``; :func:`netkf_cli.kalman.stream_rows`): arrival stream
+i of a ``multi`` channel carries sensor i's whole measurement y_k^i = C_i x_k + v_k^i; a channel with one
+stream carries all of y_k in one packet (one "sensor"). ``system.sensors: N`` = N identical sensors
+(C, R copied N times). Every error covariance depends on the arrival trace only (covariance-only mode),
+batched over runs (loop over time, run axis innermost).
 
-Time convention: measurements y_t^i at t = 0, 1, …, T−1; the prior of x_0 has covariance
-P_{0|−1} = P0 (``None`` → P_m, the steady state with all N sensors). Identical sensors:
-``C`` and ``R`` are ONE sensor's output matrix and noise covariance (the paper's C_i, R_ii).
+Time base (netkf's one): P0 = P_{0|0} = ``riccati.initial_covariance(system)`` (``system.P0``; unset =
+P̄ of the stacked system, i.e. P_{1|0} = P_m, the all-sensors steady state of the paper); step k = 1 …
+horizon is the time of the newest measurement y_k (trace step k − 1); quantities ``filtered`` P_{k|k}
+and ``predicted`` P_{k+1|k} = A P_{k|k} Aᵀ + Q (:func:`netkf_cli.kalman.report`).
 
-* MF (eqs (6)–(9)): P_{t|t} = Φ_f(P_{t|t−1}, ℓ_t), ℓ_t = Σ_i γ_t^i. With identical sensors the
-  pseudo-inverse update of eq. (7) with the received rows equals fusing their average, whose
-  noise is R/ℓ_t — eq. (14); ℓ_t = 0 leaves P unchanged.
-* IBF (Sec. II-B): sensor i has delivered y^i_{0..t−τ_i}, so at time s the centre holds the
-  measurements of ℓ_s^{(t)} = #{i : τ_i ≤ t − s} sensors, a count that grows going back in
-  time. P^IBF_{t|t} is the Riccati recursion with those counts from s = t − K (K = max_i τ_i,
-  before which every sensor contributes and the full-information recursion applies) to t.
-  Cost O(K) per evaluation time, vectorized over runs and evaluation times.
-* OLPEF (eqs (10)–(11)): the steady-state centralized gain L = [L^1 … L^N] is split into partial
-  estimates z^i; the centre sums A^{τ_i} z^i_{t−τ_i}. Its error is not a Riccati recursion, but given
-  the τ's it is a fixed linear combination of the jointly Gaussian, stationary process
-  (x_t, z^1_t, …, z^N_t); we precompute the lagged covariances of (x, z^a, z^b) once (a Lyapunov
-  equation, exchangeable sensors) and evaluate the exact error covariance per run as a quadratic
-  form in the histogram of τ. Assumption (documented): the sensors' partial-estimate filters run in
-  steady state since −∞ (we evaluate after burn-in only).
+* MF (eqs (6)–(9)): the Kalman filter with the sensors that arrived at step k — ``kalman.Filter``
+  itself (so MF with one sensor, or with N sensors, IS ``kf`` on the same trace); with N identical
+  sensors the update depends on the count ℓ_k = Σ_i γ_k^i only, eq. (14): ``kalman.update_counts``
+  (= ℓ_k sequential updates, tested), with the same ``kalman.Rescue`` as the Filter.
+* IBF (Sec. II-B): at step k sensor i has delivered every y^i_s up to its last arrival (τ_i steps ago),
+  so the centre runs the Riccati recursion with the sensors {i : τ_i ≤ k − s} at step s, from the
+  full-information P_{s|s} before the oldest gap. Cost O(max τ) per evaluated step, vectorized over runs
+  (rows grouped by how far back they reach).
+* OLPEF (eqs (10)–(11)): the steady-state centralized gain L = [L^1 … L^N] split into partial estimates
+  z^i; the centre sums A^{τ_i} z^i_{k−τ_i}. Given the τ's the error is a fixed linear combination of the
+  jointly Gaussian stationary (x, z^1, …, z^N), so its covariance is a quadratic form in the histogram
+  of τ over precomputed lagged covariances (identical sensors). Assumption (documented): the partial
+  filters run in steady state since −∞ (evaluate after a burn-in); a sensor with nothing received yet
+  contributes the estimate 0.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -33,189 +37,164 @@ import scipy.linalg
 from pydantic import Field
 
 from netkf_cli import batched as bt
-from netkf_cli.analysis.fusion_bounds import _as2d, p_m, phi_f
-from netkf_cli.channels.multi import times_since_arrival, times_since_arrival_tr
+from netkf_cli import kalman
+from netkf_cli.analysis.fusion_bounds import _as2d, p_m
+from netkf_cli.channels.multi import times_since_arrival, times_since_arrival_tr  # noqa: F401 (re-exported)
 from netkf_cli.errors import ConfigError
+from netkf_cli.estimators.kf import channel_streams
+from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
+from netkf_cli.system import LinearSystem
 
 Strategy = Literal["mf", "ibf", "olpef"]
 STRATEGIES: tuple[str, ...] = ("mf", "ibf", "olpef")
 
 
+def identical_sensors(A, C, Q, R, N: int, P0=None) -> LinearSystem:
+    """The system with N identical sensors (C, R) — what ``system.sensors: N`` builds (C stacked N
+    times, R block-diagonal); ``P0`` is P_{0|0} (None = P̄)."""
+    C1, R1 = _as2d(C), _as2d(R)
+    m = C1.shape[0]
+    return LinearSystem.create(A, np.vstack([C1] * N), Q, np.kron(np.eye(N), R1), P0,
+                               sensors=[tuple(range(i * m, (i + 1) * m)) for i in range(N)])
+
+
+@dataclass(frozen=True)
+class Sensors:
+    """The fusion centre's sensors: the core's :class:`~netkf_cli.kalman.Filter` over the channel's
+    streams, and (C1, R1) of one sensor when all N are identical and independent (else ``None``)."""
+
+    filt: kalman.Filter
+    C1: np.ndarray | None
+    R1: np.ndarray | None
+    N: int
+
+    @classmethod
+    def of(cls, system, streams: int, path: str = "estimator.kind") -> "Sensors":
+        f = kalman.Filter.of(system, streams, path)
+        N = len(f.groups)
+        C1 = R1 = None
+        if N == 1:
+            C1, R1 = f.C, f.R
+        elif f.sequential:
+            blocks = [(f.C[list(g)], f.R[np.ix_(g, g)]) for g in f.groups]
+            c0, r0 = blocks[0]
+            if all(c.shape == c0.shape and np.array_equal(c, c0) and np.array_equal(r, r0) for c, r in blocks):
+                C1, R1 = c0, r0
+        return cls(f, C1, R1, N)
+
+    @property
+    def identical(self) -> bool:
+        return self.C1 is not None
+
+    def correct(self, Pm: np.ndarray, arrived: np.ndarray) -> np.ndarray:
+        """P_{k|k} from P_{k|k−1} with the sensors ``arrived`` (N, runs) bool: the core's Filter, or for
+        N > 1 identical sensors the count update (eq. (14)) under the same Rescue."""
+        if self.N == 1 or not self.identical:
+            return self.filt.correct(Pm, arrived)
+        flagged = self.filt.rescue.flag(Pm)
+        P = kalman.update_counts(Pm, self.C1, self.R1, arrived.sum(axis=0))
+        if flagged.any():
+            P = self.filt.rescue.apply(P, Pm, flagged, kalman.row_mask(arrived, self.filt.groups, self.filt.C.shape[0]))
+        return P
+
+    def step(self, P: np.ndarray, arrived: np.ndarray) -> np.ndarray:
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self.correct(kalman.predict(P, self.filt.A, self.filt.Q), arrived)
+
+
 class FusionEstimator(EstimatorModel):
     """``kind: fusion`` — fusion-centre strategies of Chiuso & Schenato (MF, IBF, OLPEF).
 
-    Works from ``arrival`` traces of S sensors (``channel.kind: multi``); ``system.C``/``system.R``
-    are ONE sensor's (identical sensors). ``covariances`` reports P_{t|t} (fusion time t = k − 1:
-    trace step t carries the measurements of time t) of ``strategies[0]`` for any state dimension.
+    Works from ``arrival`` traces whose streams are the system's sensors (``channel.kind: multi`` with
+    ``system.sensors: N``). ``covariances`` reports ``strategies[0]``: ``filtered`` P_{k|k} and
+    ``predicted`` P_{k+1|k} on netkf's time base, any state dimension.
     """
 
     accepts: ClassVar[frozenset[str]] = frozenset({"arrival"})
-    quantity: ClassVar[str] = "P_{t|t}"
+    quantities: ClassVar[tuple[str, ...]] = ("filtered", "predicted")
 
     kind: Literal["fusion"]
     strategies: list[Strategy] = Field(default_factory=lambda: list(STRATEGIES), min_length=1,
                                        description="strategies to simulate: mf (measurement fusion, eqs 6–9), ibf "
                                                    "(infinite bandwidth), olpef (open-loop partial estimates, eqs 10–11); "
                                                    "the first one is what covariances() reports")
-    eval_block: int = Field(8, gt=0, description="IBF/OLPEF: evaluation times processed together (memory knob)")
 
     def check(self, system, channel) -> None:
-        """Refuse what cannot work: OLPEF's stationary tables need a stable A (eq. (11))."""
+        """The channel's streams must be the system's sensors; OLPEF needs identical sensors and a stable A."""
+        S = channel_streams(channel)
+        sens = Sensors.of(system, S, "estimator.kind") if S is not None else None
         if "olpef" in self.strategies:
-            A = _as2d(system.A)
-            rho = float(np.max(np.abs(np.linalg.eigvals(A))))
+            rho = float(np.max(np.abs(np.linalg.eigvals(_as2d(system.A)))))
             if rho >= 1.0:
                 raise ConfigError.at("estimator.strategies",
                                      f"olpef needs a stable A (its partial-estimate filters run in steady state); "
                                      f"spectral radius of system.A is {rho:.4g} ≥ 1 — use mf or ibf")
+            if sens is not None and not sens.identical:
+                raise ConfigError.at("estimator.strategies",
+                                     "olpef's tables assume identical, independent sensors (system.sensors: N copies "
+                                     "of one C, R); these sensors differ — use mf or ibf")
 
-    def covariances(self, system, trace, steps):
-        """Yield ``(k, P_{k−1|k−1})`` shaped (n, n, runs) of ``strategies[0]`` from ``trace.arrival``.
+    def conventions(self, system, channel) -> dict[str, str]:
+        return {"fusion": self.strategies[0],
+                "sensors": "channel stream i = sensor i's whole measurement (system.sensors)",
+                "P0": "P_{0|0} (system.P0; unset = P̄ of the stacked sensors)"}
 
-        Trace step t carries the N packets of fusion time t, so k = t + 1 ↔ P_{t|t}. Prior
-        P_{0|−1} = system.P0, or P_m (steady state with all N sensors) when P0 is not given.
-        """
+    def covariances(self, system, trace, steps, quantities=("filtered",)):
+        """Yield ``(k, {quantity: P})`` of ``strategies[0]``, P shaped (n, n, runs), for k in ``steps``."""
+        qs = kalman.check_quantities(quantities, self.quantities, "fusion")
         if trace.arrival is None:
             raise ConfigError.at("channel.kind", "fusion needs an arrival trace (channel kind multi)")
-        A, C, Q, R = (_as2d(M) for M in (system.A, system.C, system.Q, system.R))
-        N = trace.arrival.shape[0]
-        P0 = initial_prior(A, C, Q, R, N, getattr(system, "P0", None))
+        sens = Sensors.of(system, trace.arrival.shape[0], "estimator.kind")
+        P0 = initial_covariance(system)
         strat = self.strategies[0]
-        steps = [int(k) for k in steps]
-        want = set(steps)
+        want = sorted(set(int(k) for k in steps))
+        A, Q = sens.filt.A, sens.filt.Q
         if strat == "mf":
-            counts = trace.arrival.sum(axis=0, dtype=np.int64).astype(float)
-            for t, Pf, _ in mf_cov_iter(counts, A, C, Q, R, P0):
-                if t + 1 in want:
-                    yield t + 1, Pf
-                if t + 1 >= steps[-1]:
-                    return
+            if sens.N == 1 or not sens.identical:
+                yield from sens.filt.run(P0, trace.arrival, want, qs)  # exactly kf
+                return
+            yield from _mf_run(sens, P0, trace.arrival, want, qs)
             return
-        tau = times_since_arrival_tr(trace.arrival)  # (T, runs, N)
-        runs = trace.runs
-        if strat == "ibf":
-            Pfull = full_information_priors(A, C, Q, R, N, P0, trace.horizon)
+        if strat == "olpef":
+            if not sens.identical:
+                raise ConfigError.at("estimator.strategies", "olpef needs identical sensors (system.sensors: N)")
+            tables = OLPEFTables(A, sens.C1, Q, sens.R1, sens.N)
         else:
-            tables = OLPEFTables(A, C, Q, R, N)
-        for k in steps:
+            ibf = IBF(sens, P0)
+        for k, tau in _taus(trace.arrival, want):
             t = k - 1
-            rows_t = np.full(runs, t)
             if strat == "ibf":
-                Pf, _ = ibf_covariances_at(tau[t], rows_t, A, C, Q, R, Pfull, full=True)
+                P = ibf.at(tau, t)
             else:
-                Pf = tables.error_cov(tau[t], rows_t)
-            yield k, np.ascontiguousarray(np.moveaxis(Pf, 0, -1))
+                Pf = tables.error_cov(np.ascontiguousarray(tau.T), np.full(tau.shape[1], t))
+                P = np.ascontiguousarray(np.moveaxis(Pf, 0, -1))
+            yield k, kalman.report(P, qs, A, Q)
 
 
-def _trace(P: np.ndarray) -> np.ndarray:
-    return np.trace(P, axis1=-2, axis2=-1)
+def _mf_run(sens: Sensors, P0: np.ndarray, arrival: np.ndarray, want, qs):
+    """MF with N identical sensors: the count update, step k from trace step k − 1."""
+    runs = arrival.shape[-1]
+    P = np.repeat(np.asarray(P0, dtype=float)[:, :, None], runs, axis=2)
+    t = 0
+    for k in want:
+        while t < k:
+            P = sens.step(P, arrival[:, t])
+            t += 1
+        yield k, kalman.report(P, qs, sens.filt.A, sens.filt.Q)
 
 
-def initial_prior(A, C, Q, R, N: int, P0) -> np.ndarray:
-    """P_{0|−1}: P0 if given, else P_m (steady state with N sensors)."""
-    return p_m(A, C, Q, R, N) if P0 is None else _as2d(P0)
-
-
-# ----------------------------------------------------------------------------------------
-# MF
-# ----------------------------------------------------------------------------------------
-
-
-def mf_covariances(counts: np.ndarray, A, C, Q, R, P0) -> tuple[np.ndarray, np.ndarray]:
-    """MF error covariances, eqs (7)–(9), for ℓ_t = ``counts`` of shape (runs, T).
-
-    Returns (trace P_{t|t}, trace P_{t+1|t}), each (runs, T). Overflow → inf, never NaN.
-    """
-    A, C, Q, R, P0 = map(_as2d, (A, C, Q, R, P0))
-    runs, T = counts.shape
-    n = A.shape[0]
-    Pf_tr = np.empty((runs, T))
-    Pp_tr = np.empty((runs, T))
-    if n == 1 and C.shape[0] == 1:
-        a2, c2, q, r = A[0, 0] ** 2, C[0, 0] ** 2, Q[0, 0], R[0, 0]
-        p = np.full(runs, P0[0, 0])
-        with np.errstate(over="ignore", invalid="ignore"):
-            for t in range(T):
-                pf = p * r / (counts[:, t] * c2 * p + r)
-                pf = np.where(np.isinf(p), np.where(counts[:, t] > 0, r / np.maximum(counts[:, t] * c2, 1e-300), np.inf), pf)
-                Pf_tr[:, t] = pf
-                p = a2 * pf + q
-                Pp_tr[:, t] = p
-        return Pf_tr, Pp_tr
-    P = np.broadcast_to(P0, (runs, n, n)).copy()
-    for t in range(T):
-        Pf = phi_f(P, counts[:, t], C, R)
-        Pf_tr[:, t] = _trace(Pf)
-        P = A @ Pf @ A.T + Q
-        P = (P + np.swapaxes(P, -1, -2)) / 2
-        Pp_tr[:, t] = _trace(P)
-    return Pf_tr, Pp_tr
-
-
-def _phi_f_tr(P: np.ndarray, ell: np.ndarray, C: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """Φ_f(P, ℓ) = P − ℓ P Cᵀ (ℓ C P Cᵀ + R)⁻¹ C P, eq. (14), in the (n, n, runs) layout (ℓ per run).
-
-    Closed-form small solves through :mod:`netkf_cli.batched` (m ≤ 2); ℓ = 0 leaves P unchanged.
-    """
-    PCt = bt.right(P, C.T)  # (n, m, runs)
-    S = bt.left(C, PCt) * ell[None, None, :] + R[:, :, None]
-    with np.errstate(invalid="ignore", over="ignore"):
-        corr = bt.matmul(PCt, bt.solve_small(S, PCt.swapaxes(0, 1))) * ell[None, None, :]
-        return bt.sym(P - corr)
-
-
-def mf_cov_iter(counts: np.ndarray, A, C, Q, R, P0):
-    """MF covariances, eqs (7)–(9): yield ``(t, P_{t|t}, P_{t+1|t})`` each (n, n, runs), t = 0..T−1.
-
-    ``counts`` (T, runs) = ℓ_t (received packets at time t), run axis innermost.
-    """
-    A, C, Q, R, P0 = map(_as2d, (A, C, Q, R, P0))
-    T, runs = counts.shape
-    P = np.repeat(P0[:, :, None], runs, axis=2)
-    for t in range(T):
-        Pf = _phi_f_tr(P, counts[t], C, R)
-        with np.errstate(invalid="ignore", over="ignore"):
-            P = bt.riccati_h(Pf, A, Q)
-        yield t, Pf, P
-
-
-def mf_traces_tr(counts: np.ndarray, A, C, Q, R, P0) -> tuple[np.ndarray, np.ndarray]:
-    """(tr P_{t|t}, tr P_{t+1|t}), each (T, runs), for ℓ_t = ``counts`` (T, runs). Any n; scalar fast path."""
-    A, C, Q, R, P0 = map(_as2d, (A, C, Q, R, P0))
-    T, runs = counts.shape
-    Pf_tr = np.empty((T, runs))
-    Pp_tr = np.empty((T, runs))
-    if A.shape[0] == 1 and C.shape[0] == 1:
-        a2, c2, q, r = A[0, 0] ** 2, C[0, 0] ** 2, Q[0, 0], R[0, 0]
-        p = np.full(runs, P0[0, 0])
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            for t in range(T):
-                lc = counts[t] * c2
-                pf = p * r / (lc * p + r)
-                if not np.all(np.isfinite(p)):
-                    pf = np.where(np.isinf(p), np.where(lc > 0, r / np.where(lc > 0, lc, 1.0), np.inf), pf)
-                Pf_tr[t] = pf
-                p = a2 * pf + q
-                Pp_tr[t] = p
-        return Pf_tr, Pp_tr
-    for t, Pf, Pp in mf_cov_iter(counts, A, C, Q, R, P0):
-        Pf_tr[t] = bt.trace(Pf)
-        Pp_tr[t] = bt.trace(Pp)
-    return Pf_tr, Pp_tr
-
-
-def full_information_priors(A, C, Q, R, N: int, P0, T: int) -> np.ndarray:
-    """P_{s|s−1} for s = 0..T with all N sensors at every step, shape (T+1, n, n)."""
-    A, Q = _as2d(A), _as2d(Q)
-    out = np.empty((T + 1,) + A.shape)
-    P = _as2d(P0)
-    out[0] = P
-    for s in range(T):
-        P = A @ phi_f(P, np.float64(N), C, R) @ A.T + Q
-        P = (P + P.T) / 2
-        out[s + 1] = P
-    return out
+def _taus(arrival: np.ndarray, want):
+    """(k, τ) for k in ``want``: τ (N, runs) int32 = steps since each sensor's last arrival at trace step
+    k − 1 (k when nothing arrived yet: only P0 is known), updated incrementally (memory O(N · runs))."""
+    N, T, runs = arrival.shape
+    last = np.full((N, runs), -1, dtype=np.int32)
+    t = 0
+    for k in want:
+        while t < k:
+            np.copyto(last, np.int32(t), where=arrival[:, t])
+            t += 1
+        yield k, (k - 1) - last
 
 
 # ----------------------------------------------------------------------------------------
@@ -223,80 +202,47 @@ def full_information_priors(A, C, Q, R, N: int, P0, T: int) -> np.ndarray:
 # ----------------------------------------------------------------------------------------
 
 
-def ell_profiles(tau: np.ndarray, K: int) -> np.ndarray:
-    """ℓ^{(t)}_{t−k} = #{i : τ_i ≤ k} for k = 0..K, from τ of shape (rows, N) → (rows, K+1), int."""
-    rows, N = tau.shape
-    tc = np.minimum(tau, K + 1).astype(np.int64)
-    flat = (np.arange(rows, dtype=np.int64)[:, None] * (K + 2) + tc).ravel()
-    hist = np.bincount(flat, minlength=rows * (K + 2)).reshape(rows, K + 2)
-    return np.cumsum(hist[:, : K + 1], axis=1)
+class IBF:
+    """The infinite-bandwidth fusion centre on the core: P^IBF_{k|k} from the times since arrival τ."""
 
+    def __init__(self, sens: Sensors, P0: np.ndarray):
+        self.sens = sens
+        self.full = [np.asarray(P0, dtype=float)[:, :, None]]  # full-information P_{j|j}, j = 0, 1, …
 
-def ibf_covariances_at(tau: np.ndarray, t: np.ndarray, A, C, Q, R, Pfull: np.ndarray,
-                       full: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """IBF error covariance at evaluation times (see :func:`_ibf_core`), rows grouped by how far back
-    their recursion must start (most rows need a few steps, the largest reach in a block ~3× more), so
-    the work is ~Σ_rows reach instead of rows × max reach. Same numbers as one call (row-wise recursion)."""
-    rows = tau.shape[0]
-    reach = np.minimum(tau.max(axis=1), t) if rows else np.zeros(0, dtype=np.int64)
-    if rows < 2048:
-        return _ibf_core(tau, t, A, C, Q, R, Pfull, full)
-    edges = [-1, 4, 8, 16, int(reach.max())]
-    outs = None
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        if hi <= lo:
-            continue
-        sel = np.flatnonzero((reach > lo) & (reach <= hi))
-        if sel.size == 0:
-            continue
-        f, p = _ibf_core(tau[sel], t[sel], A, C, Q, R, Pfull, full)
-        if outs is None:
-            outs = (np.empty((rows,) + f.shape[1:]), np.empty((rows,) + p.shape[1:]))
-        outs[0][sel], outs[1][sel] = f, p
-    return outs
+    def _full(self, j: int) -> np.ndarray:
+        """P_{j|j} with every sensor at every step (one run)."""
+        ones = np.ones((self.sens.N, 1), dtype=bool)
+        while len(self.full) <= j:
+            self.full.append(self.sens.step(self.full[-1], ones))
+        return self.full[j]
 
+    def at(self, tau: np.ndarray, t: int) -> np.ndarray:
+        """P^IBF at step t + 1 (trace step t), (n, n, runs), from τ (N, runs): rows grouped by reach
+        (≤ 4, ≤ 8, ≤ 16, the rest) so the work is ~Σ_rows reach, not rows × max reach."""
+        runs = tau.shape[1]
+        reach = np.minimum(tau.max(axis=0), t + 1) if runs else np.zeros(0, dtype=np.int32)
+        top = int(reach.max()) if runs else 0
+        if runs < 2048:
+            return self._core(tau, t, top)
+        n = self.sens.filt.A.shape[0]
+        out = np.empty((n, n, runs))
+        lo = -1
+        for hi in (4, 8, 16, top):
+            if hi <= lo:
+                continue
+            sel = np.flatnonzero((reach > lo) & (reach <= hi))
+            if sel.size:
+                out[:, :, sel] = self._core(tau[:, sel], t, int(reach[sel].max()))
+            lo = hi
+        return out
 
-def _ibf_core(tau: np.ndarray, t: np.ndarray, A, C, Q, R, Pfull: np.ndarray,
-              full: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """IBF error covariance at evaluation times.
-
-    ``tau`` (rows, N): times since each sensor's last arrival at time ``t`` (rows,) (τ = t+1: nothing
-    received yet). ``Pfull`` (T+1, n, n): full-information priors P_{s|s−1}. Returns
-    (trace P^IBF_{t|t}, trace P^IBF_{t+1|t}), each (rows,); with ``full=True`` the matrices, each (rows, n, n).
-    """
-    A, C, Q, R = map(_as2d, (A, C, Q, R))
-    rows = tau.shape[0]
-    n = A.shape[0]
-    reach = np.minimum(tau.max(axis=1), t)  # how far back the recursion must start for this row
-    K = int(reach.max()) if rows else 0
-    ell = ell_profiles(tau, K)  # (rows, K+1)
-    start = np.maximum(t - K, 0)
-    P = Pfull[start].copy()  # (rows, n, n)
-    scalar = n == 1 and C.shape[0] == 1
-    if scalar:
-        a2, c2, q, r = A[0, 0] ** 2, C[0, 0] ** 2, Q[0, 0], R[0, 0]
-        p = P[:, 0, 0]
-        for k in range(K, -1, -1):
-            active = (t - k) >= 0
-            pf = p * r / (ell[:, k] * c2 * p + r)
-            if k == 0:
-                if full:
-                    return pf[:, None, None], (a2 * pf + q)[:, None, None]
-                return pf, a2 * pf + q
-            p = np.where(active, a2 * pf + q, p)
-    # vector states: the (n, n, rows) layout, closed-form small solves (netkf_cli.batched)
-    Pt = np.ascontiguousarray(np.moveaxis(P, 0, -1))
-    for k in range(K, -1, -1):
-        active = (t - k) >= 0
-        Pf = _phi_f_tr(Pt, ell[:, k].astype(float), C, R)
-        with np.errstate(invalid="ignore", over="ignore"):
-            Pn = bt.riccati_h(Pf, A, Q)
-        if k == 0:
-            if full:
-                return np.moveaxis(Pf, -1, 0), np.moveaxis(Pn, -1, 0)
-            return bt.trace(Pf), bt.trace(Pn)
-        Pt = np.where(active[None, None, :], Pn, Pt)
-    raise AssertionError("unreachable")
+    def _core(self, tau: np.ndarray, t: int, K: int) -> np.ndarray:
+        """From the full-information P at step t + 1 − K, K steps with the sensors {i : τ_i ≤ b},
+        b = K − 1 … 0 (trace steps t − b)."""
+        P = np.repeat(self._full(t + 1 - K), tau.shape[1], axis=2)
+        for b in range(K - 1, -1, -1):
+            P = self.sens.step(P, tau <= b)
+        return P
 
 
 # ----------------------------------------------------------------------------------------
@@ -399,144 +345,83 @@ class OLPEFTables:
 
 
 # ----------------------------------------------------------------------------------------
-# One chunk of runs → per-run time averages
+# Per-run time averages (the paper figures' Monte Carlo) and the recipe kernel
 # ----------------------------------------------------------------------------------------
 
 
-def fusion_run_averages(
-    gamma: np.ndarray,
-    A,
-    C,
-    Q,
-    R,
-    P0,
-    burn_in: int,
-    strategies=STRATEGIES,
-    eval_block: int = 8,
-    olpef_tables: OLPEFTables | None = None,
-) -> dict[str, np.ndarray]:
-    """Per-run averages over t ∈ [burn_in, T) of each strategy's error variance (trace), each (runs,).
-
-    Keys: ``mf_f`` (tr P_{t|t}), ``mf_p`` (tr P_{t+1|t}), ``ibf_f``, ``ibf_p``, ``olpef_f``.
-    """
-    runs, T, N = gamma.shape
-    if not 0 <= burn_in < T:
-        raise ConfigError.at("montecarlo.burn_in", f"must be in [0, horizon) = [0, {T}), got {burn_in}")
-    P0 = initial_prior(A, C, Q, R, N, P0)
-    out: dict[str, np.ndarray] = {}
-    if "mf" in strategies:
-        counts = gamma.sum(axis=2, dtype=np.int64).astype(float)
-        Pf, Pp = mf_covariances(counts, A, C, Q, R, P0)
-        out["mf_f"] = Pf[:, burn_in:].mean(axis=1)
-        out["mf_p"] = Pp[:, burn_in:].mean(axis=1)
-    need_tau = "ibf" in strategies or "olpef" in strategies
-    if not need_tau:
-        return out
-    tau = times_since_arrival(gamma)
-    times = np.arange(burn_in, T)
-    acc = {k: np.zeros(runs) for k in (["ibf_f", "ibf_p"] if "ibf" in strategies else []) + (["olpef_f"] if "olpef" in strategies else [])}
-    Pfull = full_information_priors(A, C, Q, R, N, P0, T) if "ibf" in strategies else None
-    if "olpef" in strategies and olpef_tables is None:
-        olpef_tables = OLPEFTables(A, C, Q, R, N)
-    for b0 in range(0, times.size, eval_block):
-        tb = times[b0 : b0 + eval_block]
-        E = tb.size
-        tau_b = np.transpose(tau[:, tb, :], (1, 0, 2)).reshape(E * runs, N)  # rows = (time, run)
-        t_rows = np.repeat(tb, runs)
-        if "ibf" in strategies:
-            f, p = ibf_covariances_at(tau_b, t_rows, A, C, Q, R, Pfull)
-            acc["ibf_f"] += f.reshape(E, runs).sum(axis=0)
-            acc["ibf_p"] += p.reshape(E, runs).sum(axis=0)
-        if "olpef" in strategies:
-            acc["olpef_f"] += olpef_tables.error_trace(tau_b, t_rows).reshape(E, runs).sum(axis=0)
-    for k, v in acc.items():
-        out[k] = v / times.size
-    return out
-
-
 def fusion_keys(strategies) -> tuple[str, ...]:
-    """The statistics a fusion Monte Carlo reports, in a fixed order (known before any chunk runs)."""
+    """The statistics a fusion Monte Carlo reports, in a fixed order (known before any chunk runs):
+    ``<strategy>_f`` (tr P_{k|k}) and, for mf and ibf, ``<strategy>_p`` (tr P_{k+1|k})."""
     keys: list[str] = []
-    if "mf" in strategies:
-        keys += ["mf_f", "mf_p"]
-    if "ibf" in strategies:
-        keys += ["ibf_f", "ibf_p"]
-    if "olpef" in strategies:
-        keys += ["olpef_f"]
+    for s in STRATEGIES:
+        if s in strategies:
+            keys += [f"{s}_f"] + ([f"{s}_p"] if s != "olpef" else [])
     return tuple(keys)
 
 
-def fusion_averages_tr(
-    arrival: np.ndarray,
-    A,
-    C,
-    Q,
-    R,
-    P0,
-    burn_in: int,
-    strategies=STRATEGIES,
-    eval_block: int = 8,
-    olpef_tables: OLPEFTables | None = None,
-) -> dict[str, np.ndarray]:
-    """:func:`fusion_run_averages` on a trace-layout arrival array ``(N, T, runs)`` (run axis innermost).
-
-    Per-run averages over t ∈ [burn_in, T) of tr P_{t|t} (``*_f``) and tr P_{t+1|t} (``*_p``), keys
-    :func:`fusion_keys`; any state dimension.
-    """
-    N, T, runs = arrival.shape
+def time_averages(system, trace, burn_in: int, strategies=STRATEGIES) -> dict[str, np.ndarray]:
+    """Per-run averages over steps k ∈ (burn_in, horizon] of tr P_{k|k} (``*_f``) and tr P_{k+1|k}
+    (``*_p``) of each strategy, each (runs,), keys :func:`fusion_keys` — from :meth:`FusionEstimator.covariances`."""
+    T = trace.horizon
     if not 0 <= burn_in < T:
         raise ConfigError.at("montecarlo.burn_in", f"must be in [0, horizon) = [0, {T}), got {burn_in}")
-    P0 = initial_prior(A, C, Q, R, N, P0)
+    steps = range(burn_in + 1, T + 1)
     out: dict[str, np.ndarray] = {}
-    if "mf" in strategies:
-        counts = arrival.sum(axis=0, dtype=np.int64).astype(float)  # (T, runs)
-        Pf, Pp = mf_traces_tr(counts, A, C, Q, R, P0)
-        out["mf_f"] = Pf[burn_in:].mean(axis=0)
-        out["mf_p"] = Pp[burn_in:].mean(axis=0)
-    if "ibf" not in strategies and "olpef" not in strategies:
-        return out
-    tau = times_since_arrival_tr(arrival)  # (T, runs, N)
-    times = np.arange(burn_in, T)
-    acc = {k: np.zeros(runs) for k in fusion_keys(strategies) if not k.startswith("mf")}
-    Pfull = full_information_priors(A, C, Q, R, N, P0, T) if "ibf" in strategies else None
-    if "olpef" in strategies and olpef_tables is None:
-        olpef_tables = OLPEFTables(A, C, Q, R, N)
-    for b0 in range(0, times.size, eval_block):
-        tb = times[b0 : b0 + eval_block]
-        E = tb.size
-        tau_b = tau[tb].reshape(E * runs, N)  # rows = (time, run), contiguous
-        t_rows = np.repeat(tb, runs)
-        if "ibf" in strategies:
-            f, p = ibf_covariances_at(tau_b, t_rows, A, C, Q, R, Pfull)
-            acc["ibf_f"] += f.reshape(E, runs).sum(axis=0)
-            acc["ibf_p"] += p.reshape(E, runs).sum(axis=0)
-        if "olpef" in strategies:
-            acc["olpef_f"] += olpef_tables.error_trace(tau_b, t_rows).reshape(E, runs).sum(axis=0)
-    for k, v in acc.items():
-        out[k] = v / times.size
-    return out
+    for s in STRATEGIES:
+        if s not in strategies:
+            continue
+        qs = ("filtered", "predicted") if s != "olpef" else ("filtered",)
+        acc = {q: np.zeros(trace.runs) for q in qs}
+        with np.errstate(over="ignore", invalid="ignore"):
+            for _, Ps in FusionEstimator(kind="fusion", strategies=[s]).covariances(system, trace, steps, qs):
+                for q in qs:
+                    acc[q] += bt.trace(Ps[q])
+        out[f"{s}_f"] = acc["filtered"] / len(steps)
+        if "predicted" in acc:
+            out[f"{s}_p"] = acc["predicted"] / len(steps)
+    return {k: out[k] for k in fusion_keys(strategies)}
+
+
+def fusion_averages_tr(arrival: np.ndarray, A, C, Q, R, P0, burn_in: int, strategies=STRATEGIES) -> dict[str, np.ndarray]:
+    """:func:`time_averages` for N identical sensors (C, R) from an arrival array (N, T, runs); ``P0`` = P_{0|0}."""
+    from netkf_cli.trace import Trace
+
+    N, T, runs = arrival.shape
+    return time_averages(identical_sensors(A, C, Q, R, N, P0), Trace(runs=runs, horizon=T, arrival=arrival), burn_in,
+                         strategies)
+
+
+def fusion_run_averages(gamma: np.ndarray, A, C, Q, R, P0, burn_in: int, strategies=STRATEGIES) -> dict[str, np.ndarray]:
+    """:func:`fusion_averages_tr` on the legacy layout γ (runs, T, N)."""
+    return fusion_averages_tr(np.ascontiguousarray(np.transpose(gamma, (2, 1, 0))), A, C, Q, R, P0, burn_in, strategies)
 
 
 class FusionKernel:
-    """Monte Carlo kernel of the fusion strategies (module-level, picklable; issue 12.5).
+    """Monte Carlo kernel of the fusion strategies' per-run time averages (module-level, picklable).
 
-    ``kernel(rng, runs)`` samples ``channel.sample_trace`` and returns additive statistics with
-    fixed keys, over d = x − ``shift`` for the per-run time averages x of :func:`fusion_keys`
-    (order ``self.keys``): ``sum`` (K,), ``cross`` (K, K) (sums of products, for paired ratios),
-    ``sum3``, ``sum4`` (K,) (for the heavy-tail diagnostic) and ``nonfinite`` (K,). The mean is
-    ``shift + sum / runs``.
+    ``FusionKernel(system, channel, strategies, horizon, burn_in)`` (the system's sensors are the
+    channel's streams), or the identical-sensors form ``FusionKernel(A, C, Q, R, P0, channel,
+    strategies, horizon, burn_in)`` with ONE sensor's C, R replicated over ``channel.sensors``
+    (P0 = P_{0|0}). ``kernel(rng, runs)`` samples ``channel.sample_trace`` and returns additive
+    statistics with fixed keys over d = x − ``shift`` for the per-run averages x of :func:`fusion_keys`
+    (order ``self.keys``): ``sum`` (K,), ``cross`` (K, K) (for paired ratios), ``sum3``, ``sum4`` (K,)
+    (heavy-tail diagnostic) and ``nonfinite`` (K,). The mean is ``shift + sum / runs``.
     """
 
-    def __init__(self, A, C, Q, R, P0, channel, strategies, horizon: int, burn_in: int, eval_block: int = 8):
-        self.A, self.C, self.Q, self.R = (_as2d(M) for M in (A, C, Q, R))
-        self.P0 = None if P0 is None else _as2d(P0)
-        self.channel = channel
+    def __init__(self, *args, **kw):
+        if isinstance(args[0] if args else kw.get("system"), LinearSystem):
+            vals = dict(zip(("system", "channel", "strategies", "horizon", "burn_in"), args), **kw)
+            system = vals["system"]
+        else:
+            vals = dict(zip(("A", "C", "Q", "R", "P0", "channel", "strategies", "horizon", "burn_in"), args), **kw)
+            system = identical_sensors(vals["A"], vals["C"], vals["Q"], vals["R"], vals["channel"].sensors, vals["P0"])
+        channel, strategies, horizon, burn_in = (vals[k] for k in ("channel", "strategies", "horizon", "burn_in"))
+        self.system, self.channel = system, channel
         self.strategies = tuple(s for s in STRATEGIES if s in strategies)
-        self.horizon, self.burn_in, self.eval_block = int(horizon), int(burn_in), int(eval_block)
+        self.horizon, self.burn_in = int(horizon), int(burn_in)
         if not 0 <= self.burn_in < self.horizon:
             raise ConfigError.at("montecarlo.burn_in", f"must be < horizon = {horizon}, got {burn_in}")
         self.keys = fusion_keys(self.strategies)
-        self.tables = OLPEFTables(self.A, self.C, self.Q, self.R, channel.sensors) if "olpef" in self.strategies else None
         # Moments are accumulated about a fixed shift c (a pilot mean from a private, fixed stream that
         # never touches the Monte Carlo streams): per-run averages can vary by 1e-5 relative, and raw
         # sums of x², x⁴ would cancel catastrophically in the variance and the kurtosis.
@@ -545,8 +430,7 @@ class FusionKernel:
 
     def _averages(self, rng: np.random.Generator, runs: int) -> np.ndarray:
         tr = self.channel.sample_trace(rng, runs, self.horizon)
-        avg = fusion_averages_tr(tr.arrival, self.A, self.C, self.Q, self.R, self.P0, self.burn_in,
-                                 self.strategies, self.eval_block, self.tables)
+        avg = time_averages(self.system, tr, self.burn_in, self.strategies)
         return np.stack([avg[k] for k in self.keys])  # (K, runs)
 
     def __call__(self, rng: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
@@ -556,20 +440,3 @@ class FusionKernel:
         X2 = Xf * Xf
         return {"sum": Xf.sum(axis=1), "cross": Xf @ Xf.T, "sum3": (X2 * Xf).sum(axis=1), "sum4": (X2 * X2).sum(axis=1),
                 "nonfinite": bad.sum(axis=1)}
-
-
-def heavy_tail_flag(s1, s2, s3, s4, n: int, rel: float = 0.25) -> np.ndarray:
-    """True where a sample mean's standard error is itself unreliable (heavy tail).
-
-    From raw sums of x, x², x³, x⁴ over n samples: the relative standard error of the sample
-    variance is ≈ √((κ − 1)/n) with κ = m₄/σ⁴ (m₄ the fourth central moment). Flag when it exceeds
-    ``rel`` (then "±5 s.e." means little). A run-level primitive that belongs in montecarlo.py.
-    """
-    s1, s2, s3, s4 = (np.asarray(v, float) for v in (s1, s2, s3, s4))
-    mu = s1 / n
-    e2, e3, e4 = s2 / n, s3 / n, s4 / n
-    var = np.maximum(e2 - mu**2, 0.0)
-    m4 = np.maximum(e4 - 4 * mu * e3 + 6 * mu**2 * e2 - 3 * mu**4, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        kappa = np.where(var > 1e-14 * np.maximum(mu**2, 1e-300), m4 / np.maximum(var, 1e-300) ** 2, 1.0)
-    return np.sqrt(np.maximum(kappa - 1.0, 0.0) / n) > rel

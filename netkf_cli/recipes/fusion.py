@@ -5,9 +5,10 @@
 * ``fusion_vs_loss``   (Fig. 3): MF and IBF Monte Carlo vs the Ψ upper bound, Prop. 1 and Prop. 2 bounds.
 
 Conventions (also in each manifest): ``loss`` is the packet LOSS probability (the paper's λ);
-``system.C``/``system.R`` are ONE sensor's (identical sensors, independent noises); "error variance"
-is tr P_{t|t} (filtering) unless a row says ``quantity: prediction``; Monte Carlo values are the
-mean over runs of each run's time average over t ∈ [burn_in, horizon), with the standard error over
+``system.sensors: N`` makes N identical sensors of ``system.C``/``system.R`` (independent noises), one
+per channel stream; "error variance" is tr P_{k|k} (filtering, quantity ``filtered``) unless a row
+says ``quantity: prediction`` (tr P_{k+1|k}, quantity ``predicted``); Monte Carlo values are the mean
+over runs of each run's time average over steps k ∈ (burn_in, horizon], with the standard error over
 runs. Every grid point uses the scenario's seed (common random numbers across the grid).
 
 Each artefact also writes a ``claims`` table: one row per checkable statement of the paper, with
@@ -24,10 +25,12 @@ from pydantic import Field
 
 from netkf_cli.analysis import fusion_bounds as fb
 from netkf_cli.errors import ConfigError
-from netkf_cli.estimators.fusion import STRATEGIES, FusionKernel, heavy_tail_flag
+from netkf_cli.engine import heavy_tail_flag
+from netkf_cli.estimators.fusion import STRATEGIES, FusionKernel, Sensors
 from netkf_cli.montecarlo import run_chunked
 from netkf_cli.plotting import LINESTYLES, MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
+from netkf_cli.system import LinearSystem
 from netkf_cli.spec import AnalysisModel, NonNegInt, PositiveFloat, PositiveInt, Probability
 
 NSIGMA = 5.0  # Monte Carlo comparisons allow 5 standard errors (P(|Z| > 5) ≈ 6e-7 per comparison)
@@ -35,10 +38,10 @@ FP_RTOL = 1e-9  # where the Monte Carlo is deterministic (loss 0: stderr 0), all
 
 CONVENTIONS = {
     "loss": "packet LOSS probability per sensor (the paper's λ); arrival = 1 − loss",
-    "sensors": "system.C and system.R describe ONE sensor; all N sensors identical, independent noises",
-    "error_variance": "trace of the filtering error covariance P_{t|t} unless quantity = prediction (P_{t+1|t})",
-    "monte_carlo": "mean over runs of each run's time average over t in [burn_in, horizon); stderr over runs",
-    "time": "measurements at t = 0..horizon-1, prior P_{0|-1} = system.P0 or P_m (steady state, N sensors)",
+    "sensors": "system.sensors: N identical copies of system.C, system.R (independent noises); channel stream i = sensor i's whole measurement",
+    "error_variance": "trace of the filtering error covariance P_{k|k} (quantity filtered) unless quantity = prediction (P_{k+1|k}, quantity predicted)",
+    "monte_carlo": "mean over runs of each run's time average over steps k in (burn_in, horizon]; stderr over runs",
+    "time": "step k = time of the newest measurement y_k; P0 = P_{0|0} = system.P0 or P-bar of the N sensors (so P_{1|0} = P_m, the paper's all-sensors steady state)",
     "psi_lambda": "Ψ (Sec. III-A) is evaluated with λ = ARRIVAL probability (re-derived; see experiments/fusion/README.md)",
     "ibf_bounds": "Prop. 2 with ℓ_t ~ Binom(N, 1−loss) unconditionally (read as 'all packets up to t−k arrived')",
 }
@@ -50,22 +53,30 @@ CONVENTIONS = {
 
 
 def _fusion_setup(scenario):
-    """(A, C, Q, R, P0, channel, estimator) after the cross-field checks of a fusion artefact."""
+    """(system, channel, estimator, (C1, R1, N)) after the cross-field checks of a fusion artefact: the
+    channel's streams are the system's sensors, identical (the paper's bounds assume it)."""
     s = scenario.linear_system()
     ch = scenario.require_channel("multi")
     es = scenario.require_estimator("fusion")
-    return s, ch, es
+    sens = Sensors.of(s, ch.sensors, "channel.sensors")
+    if not sens.identical:
+        raise ConfigError.at("system.sensors", "the fusion figures assume N identical sensors: give system.sensors: N "
+                                               "with one sensor's C and R")
+    return s, ch, es, (sens.C1, sens.R1, sens.N)
 
 
-def _mc_point(A, C, Q, R, P0, channel, strategies, mc, runs: int, eval_block: int, ctx: RunContext, *,
-              stream: int = 0, label: str = ""):
+def _with_Q(s: LinearSystem, Q) -> LinearSystem:
+    return LinearSystem.create(s.A, s.C, Q, s.R, s.P0, sensors=s.sensors)
+
+
+def _mc_point(system, channel, strategies, mc, runs: int, ctx: RunContext, *, stream: int = 0, label: str = ""):
     """Monte Carlo at one grid point → ({key: (mean, stderr, heavy_tail)}, paired-ratio function).
 
     The kernel is :class:`FusionKernel` (picklable, fixed keys: runs on worker processes and resumes
     from the chunk cache). Every grid point uses the same ``stream``: common random numbers across
     the grid (the arrival indicators are monotone in the loss probability).
     """
-    kernel = FusionKernel(A, C, Q, R, P0, channel, strategies, mc.horizon, mc.burn_in, eval_block)
+    kernel = FusionKernel(system, channel, strategies, mc.horizon, mc.burn_in)
     keys = list(kernel.keys)
     tot = run_chunked(kernel, runs, mc.chunk, mc.seed, stream=stream, progress=ctx.progress, label=label)
     if np.any(tot["nonfinite"]):
@@ -75,7 +86,8 @@ def _mc_point(A, C, Q, R, P0, channel, strategies, mc, runs: int, eval_block: in
     mean = kernel.shift + dmean
     cov = (tot["cross"] / runs - np.outer(dmean, dmean)) * runs / max(runs - 1, 1)
     se = np.sqrt(np.maximum(np.diag(cov), 0.0) / runs)
-    heavy = heavy_tail_flag(tot["sum"], np.diag(tot["cross"]), tot["sum3"], tot["sum4"], runs)
+    # central moments are shift-invariant: the sums about the kernel's shift are what the flag needs
+    _, _, heavy = heavy_tail_flag(tot["sum"], np.diag(tot["cross"]), tot["sum3"], tot["sum4"], runs, tot["nonfinite"])
     res = {k: (float(mean[i]), float(se[i]), bool(heavy[i])) for i, k in enumerate(keys)}
 
     def ratio(a: str, b: str) -> tuple[float, float]:
@@ -128,14 +140,14 @@ class FusionVsMuQ(AnalysisModel):
     mu_Q: list[PositiveFloat] = Field(min_length=1, description="process-noise multipliers μ_Q (Q = μ_Q · system.Q)")
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
-        s, ch, es = _fusion_setup(scenario)
+        s, ch, es, (C1, R1, N) = _fusion_setup(scenario)
         strategies = _strategies(es)
         runs = ctx.mc_runs(scenario)
         ctx.total(runs * len(self.mu_Q))
         rows, claims = [], []
         for i_mu, mu in enumerate(self.mu_Q):
             Q = mu * s.Q
-            res, ratio = _mc_point(s.A, s.C, Q, s.R, s.P0, ch, strategies, scenario.montecarlo, runs, es.eval_block, ctx,
+            res, ratio = _mc_point(_with_Q(s, Q), ch, strategies, scenario.montecarlo, runs, ctx,
                                    stream=0, label=f"{scenario.name}-mu{i_mu}")
             for k in strategies:
                 m, se, ht = res[f"{k}_f"]
@@ -151,8 +163,8 @@ class FusionVsMuQ(AnalysisModel):
                         rows.append(dict(mu_Q=mu, series=f"{k}_over_ibf", quantity="filtering", value=r, stderr=rse, n=runs,
                                          heavy_tail=0))
             # no-loss reference: centralized KF steady state Φ_f(P_m, N)
-            pm = fb.p_m(s.A, s.C, Q, s.R, ch.sensors)
-            ckf = float(np.trace(fb.phi_f(pm, np.float64(ch.sensors), s.C, s.R)))
+            pm = fb.p_m(s.A, C1, Q, R1, N)
+            ckf = float(np.trace(fb.phi_f(pm, np.float64(N), C1, R1)))
             rows.append(dict(mu_Q=mu, series="ckf_no_loss", quantity="filtering", value=ckf, stderr=np.nan, n=np.nan,
                              heavy_tail=0))
         table = pd.DataFrame(rows, columns=["mu_Q", "series", "quantity", "value", "stderr", "n", "heavy_tail"])
@@ -336,31 +348,29 @@ class FusionVsLoss(AnalysisModel):
     k_show: list[PositiveInt] = Field(default_factory=lambda: [1, 2, 3], description="Prop. 2 orders reported individually")
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
-        s, ch0, es = _fusion_setup(scenario)
+        s, ch0, es, (C1, R1, N) = _fusion_setup(scenario)
         for i, l in enumerate(self.loss):
             if l >= 1.0:
                 raise ConfigError.at(f"analysis.loss[{i}]", "must be < 1 (with every packet lost there is no steady state to bound)")
-        scalar = s.n == 1 and s.m == 1
+        scalar = s.n == 1 and C1.shape[0] == 1
         # the L_f^LB bounds (Prop. 1, Prop. 2 for k ≥ 2) are proved for scalar states only (Lemma 2);
         # for n > 1 only the Monte Carlo, the Ψ upper bound (any n) and Prop. 2 with k = 1 (any n) are reported
-        model = fb.ScalarFusionModel.from_matrices(s.A, s.C, s.Q, s.R, ch0.sensors) if scalar else None
+        model = fb.ScalarFusionModel.from_matrices(s.A, C1, s.Q, R1, N) if scalar else None
         strategies = [k for k in _strategies(es) if k in ("mf", "ibf")]
         if not strategies:
             raise ConfigError.at("estimator.strategies", "Fig. 3 needs mf and/or ibf")
         runs = ctx.mc_runs(scenario)
         ctx.total(runs * len(self.loss))
-        N = ch0.sensors
-        pm_mat = fb.p_m(s.A, s.C, s.Q, s.R, N)
+        pm_mat = fb.p_m(s.A, C1, s.Q, R1, N)
         rows, krows = [], []
         for i_l, lam in enumerate(self.loss):
             ch = ch0.with_loss(lam)
-            res, _ = _mc_point(s.A, s.C, s.Q, s.R, s.P0, ch, strategies, scenario.montecarlo, runs, es.eval_block, ctx,
-                               stream=0, label=f"{scenario.name}-loss{i_l}")
+            res, _ = _mc_point(s, ch, strategies, scenario.montecarlo, runs, ctx, stream=0, label=f"{scenario.name}-loss{i_l}")
             for k in strategies:
                 for q, suf in (("filtering", "f"), ("prediction", "p")):
                     m, se, ht = res[f"{k}_{suf}"]
                     rows.append(dict(loss=lam, series=f"{k}_mc", quantity=q, value=m, stderr=se, n=runs, heavy_tail=int(ht)))
-            S, Sf = fb.mf_upper_bound(1.0 - lam, s.A, s.C, s.Q, s.R, N)
+            S, Sf = fb.mf_upper_bound(1.0 - lam, s.A, C1, s.Q, R1, N)
             bounds = {"mf_ub_psi": (np.trace(S), np.trace(Sf))}
             if scalar:
                 lbp, lbf = fb.mf_lower_bound(lam, model)
@@ -372,7 +382,7 @@ class FusionVsLoss(AnalysisModel):
                 bounds["mf_lb_remark3"] = (max(lbp, seq.best_pred), max(lbf, seq.best_filt))
                 # the printed Ψ_λ read literally with this paper's λ (= loss): shown to FAIL as an upper bound
                 if lam > 0:
-                    S2, Sf2 = fb.mf_upper_bound(lam, s.A, s.C, s.Q, s.R, N)
+                    S2, Sf2 = fb.mf_upper_bound(lam, s.A, C1, s.Q, R1, N)
                 else:
                     S2 = Sf2 = np.atleast_2d(fb.p_M(s.A, s.Q))  # no arrivals: the open-loop variance
                 bounds["psi_lambda_read_as_loss"] = (S2[0, 0], Sf2[0, 0])
@@ -381,8 +391,8 @@ class FusionVsLoss(AnalysisModel):
             else:
                 # Prop. 2, k = 1: Φ(P_m, N(1−λ)) and Φ_f(P_m, N(1−λ)) — no L_f^LB involved, valid for any n
                 Eell = np.float64(N * (1.0 - lam))
-                bounds["ibf_lb_k1"] = (np.trace(fb.phi(pm_mat, Eell, s.A, s.C, s.Q, s.R)),
-                                       np.trace(fb.phi_f(pm_mat, Eell, s.C, s.R)))
+                bounds["ibf_lb_k1"] = (np.trace(fb.phi(pm_mat, Eell, s.A, C1, s.Q, R1)),
+                                       np.trace(fb.phi_f(pm_mat, Eell, C1, R1)))
             for name, (pv, fv) in bounds.items():
                 rows.append(dict(loss=lam, series=name, quantity="prediction", value=float(pv), stderr=np.nan, n=np.nan,
                                  heavy_tail=0))
