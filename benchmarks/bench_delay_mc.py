@@ -7,8 +7,8 @@ For the Fig. 5 (scalar, D = 10, d = 5) and Fig. 9 (4-state vehicle, Appendix B p
 D = 5, d = 3) workloads it measures, side by side in one process and on the SAME arrival
 patterns, run-steps per second (one run advanced by one time step = one run-step) of
 
-* ``netkf``: the batched covariance-only kernel (``buffered_mc_kernel``: RNG + kept indicators +
-  MKF, one entry-array per matrix entry, run index innermost), one core;
+* ``netkf``: the generic engine as the ``distribution`` metric runs it (``DelayChannel.sample_trace``
+  → ``BufferedEstimator.covariances`` on the Kalman core, backend numpy → Pr[P_k ≤ M] counts), one core;
 * ``loop``: the obvious per-run, per-step loop (numpy matrices, ``np.linalg.inv``);
 * ``filterpy``: FilterPy's ``KalmanFilter.predict/update`` per run and step (if installed);
 
@@ -36,10 +36,9 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from netkf_cli import riccati  # noqa: E402
+from netkf_cli import engine, riccati  # noqa: E402
 from netkf_cli.channels.delay import DelayChannel  # noqa: E402
-from netkf_cli.estimators.buffered import availability, buffered_mc_kernel  # noqa: E402
-from netkf_cli.montecarlo import run_chunked  # noqa: E402
+from netkf_cli.estimators.buffered import BufferedEstimator, availability, covariance_from_kept  # noqa: E402
 from netkf_cli.system import LinearSystem  # noqa: E402
 
 
@@ -55,13 +54,11 @@ def workloads():
 
 
 def kept_flags(ch, horizon, runs, seed):
-    """The kernel's kept indicators γ_s^{(k)} for the first ``runs`` runs of chunk 0 (same uniforms)."""
-    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0, 0)))
-    from netkf_cli.channels.delay import kept_thresholds
+    """The kept indicators γ_s^{(k)} at k = horizon of ``runs`` runs of a sampled delay trace."""
+    from netkf_cli.channels.delay import kept_by, trace_delays, trace_max_kept_delay
 
-    thr = kept_thresholds(ch, horizon)
-    u = np.stack([rng.random(runs) for _ in range(horizon)])
-    return u < thr[:, None]
+    tr = ch.sample_trace(np.random.default_rng(seed), runs, horizon)
+    return kept_by(trace_delays(tr), horizon, trace_max_kept_delay(tr))
 
 
 def loop_mkf(s, P0, avail):
@@ -113,9 +110,13 @@ def main(argv=None):
     print(f"{'workload':28s} {'method':10s} {'runs':>8s} {'time [s]':>9s} {'run-steps/s':>12s} {'speed-up':>9s}")
     for label, s, ch, span, M in workloads():
         P0 = riccati.pbar(s)
-        kernel = buffered_mc_kernel(s, ch, span, horizon, M)
-        run_chunked(kernel, 20_000, 20_000, 0)  # warm-up
-        _, dt = timed(run_chunked, kernel, runs, 20_000, 0)
+        est = BufferedEstimator(kind="buffered", backend="numpy")
+
+        def mc(n):
+            return engine.simulate(s, ch, [est], engine.DistributionReducer(M, [horizon]), steps=[horizon], runs=n,
+                                   horizon=horizon, seed=0, chunk=20_000)
+        mc(20_000)  # warm-up
+        _, dt = timed(mc, runs)
         ours = runs * horizon / dt
         print(f"{label:28s} {'netkf':10s} {runs:8d} {dt:9.3f} {ours:12.3e} {'1':>9s}")
         # same arrivals for the reference loops: chunk 0's first loop_runs runs
@@ -124,13 +125,8 @@ def main(argv=None):
         rate = loop_runs * horizon / dt
         print(f"{'':28s} {'loop':10s} {loop_runs:8d} {dt:9.3f} {rate:12.3e} {ours / rate:9.0f}")
         # agreement check on those runs
-        from netkf_cli.estimators.buffered import MKFBatch
-
-        mk = MKFBatch(s, loop_runs)
-        mk.set(P0)
-        for t in range(horizon):
-            mk.step(avail[t])
-        err = np.max(np.abs(mk.matrices() - ref) / np.maximum(1e-12, np.abs(ref).max(axis=(1, 2), keepdims=True)))
+        mk = np.moveaxis(covariance_from_kept(s, kept_flags(ch, horizon, loop_runs, 0), span, P0), -1, 0)
+        err = np.max(np.abs(mk - ref) / np.maximum(1e-12, np.abs(ref).max(axis=(1, 2), keepdims=True)))
         try:
             fp, dt = timed(filterpy_mkf, s, P0, avail)
             rate = loop_runs * horizon / dt

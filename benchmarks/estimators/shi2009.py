@@ -3,14 +3,15 @@
 ``CASES`` is a list of dicts::
 
     {"estimator": "buffered" | "smart_sensor", "system": "scalar" | "3-state" | "vehicle",
-     "backend": "numpy" | "numba" | "numba_philox" | "auto", "threads": int | None,
-     ["path": "engine",]  # absent: the dedicated Monte Carlo kernel
+     "backend": "numpy" | "numba" | "auto", "threads": None, "path": "engine",
      "make": callable() -> (kernel, runs, horizon)}
 
-``kernel(rng, runs)`` is the picklable Monte Carlo kernel the artefacts use (one sample P_k at
-k = horizon per run, additive statistics); one run advanced one step is one run-step, so a case
-runs ``runs × horizon`` run-steps per call. Compiled cases are listed only when numba imports;
-``threads`` is the numba thread count of the chunk (1 or 2 cores).
+``kernel(rng, runs)`` is the generic engine's kernel the artefacts run (``channel.sample_trace`` →
+``estimator.covariances`` → Pr[P_k ≤ M] counts at k = horizon, as the ``distribution`` metric does);
+one run advanced one step is one run-step, so a case runs ``runs × horizon`` run-steps per call.
+(The dedicated Monte Carlo kernels and ``numba_philox`` are gone: the estimators run on the Kalman
+core, the compiled backend is the core's ``kalman.Filter.run(backend="numba")``.) Compiled cases are
+listed only when numba imports.
 
 ``per_run_loop(system, runs, horizon, seed)`` is the baseline the batched kernels are compared
 with: the obvious per-run, per-step intermittent-KF loop (``np.linalg.solve`` on one matrix at a
@@ -29,9 +30,7 @@ import numpy as np
 
 from netkf_cli.channels.bernoulli import BernoulliChannel
 from netkf_cli.channels.delay import DelayChannel
-from netkf_cli.estimators import buffered_numba as bn
-from netkf_cli.estimators.buffered import buffered_mc_kernel
-from netkf_cli.estimators.smart_sensor import smart_mc_kernel
+from netkf_cli.kalman import numba_available
 from netkf_cli.system import LinearSystem
 
 HORIZON = 100
@@ -55,49 +54,31 @@ def systems() -> dict:
 
 
 class _Make:
-    """Picklable ``make()``: builds the case's kernel (compiles/loads numba code on first use).
+    """Picklable ``make()``: the generic engine's kernel for the case (compiles/loads numba code on first use)."""
 
-    ``path="kernel"``: the dedicated Monte Carlo kernel; ``path="engine"``: the generic engine's
-    kernel (``channel.sample_trace`` → ``estimator.covariances`` → Pr[P_k ≤ M] counts), what the
-    ``distribution`` metric runs."""
-
-    def __init__(self, estimator: str, system: str, backend: str, threads: int | None, path: str = "kernel"):
+    def __init__(self, estimator: str, system: str, backend: str, threads: int | None = None, path: str = "engine"):
         self.estimator, self.system, self.backend, self.threads, self.path = estimator, system, backend, threads, path
 
     def __call__(self):
-        s, ch, span, M = systems()[self.system]
-        P0 = s.P0
-        if self.path == "engine":
-            from netkf_cli.engine import DistributionReducer, PairKernel
-            from netkf_cli.estimators.buffered import BufferedEstimator
-            from netkf_cli.estimators.smart_sensor import SmartSensorEstimator
+        from netkf_cli.engine import DistributionReducer, PairKernel
+        from netkf_cli.estimators.buffered import BufferedEstimator
+        from netkf_cli.estimators.smart_sensor import SmartSensorEstimator
 
-            est = (SmartSensorEstimator(kind="smart_sensor") if self.estimator == "smart_sensor" else
-                   BufferedEstimator(kind="buffered", backend=self.backend, packet="pair" if span == 2 else "measurement"))
-            return PairKernel(s, ch, [est], HORIZON, [HORIZON], DistributionReducer(M, [HORIZON])), RUNS, HORIZON
-        if self.estimator == "smart_sensor":
-            return smart_mc_kernel(s, ch, M), RUNS, HORIZON
-        return buffered_mc_kernel(s, ch, span, HORIZON, M, P0=P0, backend=self.backend, threads=self.threads), RUNS, HORIZON
+        s, ch, span, M = systems()[self.system]
+        est = (SmartSensorEstimator(kind="smart_sensor") if self.estimator == "smart_sensor" else
+               BufferedEstimator(kind="buffered", backend=self.backend, packet="pair" if span == 2 else "measurement"))
+        return PairKernel(s, ch, [est], HORIZON, [HORIZON], DistributionReducer(M, [HORIZON])), RUNS, HORIZON
 
 
 def _cases() -> list[dict]:
     out = []
-    compiled = bn.numba_available()
     for name in ("scalar", "3-state", "vehicle"):
-        variants = [("numpy", None)]
-        if compiled:
-            variants += [("numba", 1), ("numba", 2), ("numba_philox", 1), ("numba_philox", 2)]
-        for backend, threads in variants:
-            out.append({"estimator": "buffered", "system": name, "backend": backend, "threads": threads,
-                        "make": _Make("buffered", name, backend, threads)})
-    for name in ("scalar", "vehicle"):  # the smart sensor's kernel samples N_k only (no MKF): numpy
-        out.append({"estimator": "smart_sensor", "system": name, "backend": "numpy", "threads": None,
-                    "make": _Make("smart_sensor", name, "numpy", None)})
-    # the generic engine (trace → covariances), as the distribution metric runs it
-    for name in ("scalar", "3-state", "vehicle"):
-        for backend in ("numpy", "auto") if compiled else ("numpy",):
+        for backend in ("numpy", "numba") if numba_available() else ("numpy",):
             out.append({"estimator": "buffered", "system": name, "backend": backend, "threads": None, "path": "engine",
-                        "make": _Make("buffered", name, backend, None, "engine")})
+                        "make": _Make("buffered", name, backend)})
+    for name in ("scalar", "vehicle"):
+        out.append({"estimator": "smart_sensor", "system": name, "backend": "numpy", "threads": None, "path": "engine",
+                    "make": _Make("smart_sensor", name, "numpy")})
     return out
 
 
@@ -145,5 +126,5 @@ def filterpy_loop(system: str, runs: int, horizon: int = HORIZON, seed: int = 0)
 
 for _c in CASES:  # what bounds the generic-engine path (trace → covariances), measured with a profiler
     if _c.get("path") == "engine":
-        _c["bound"] = ("the engine path materializes the delay trace (int32 per packet and run) and the time-k "
-                       "view in numpy before the compiled MKF; the dedicated kernel draws uniforms in place")
+        _c["bound"] = ("the engine path materializes the delay trace (uniforms + inverse CDF, int32 per packet and "
+                       "run: ~60 % of a chunk) and the time-k view in numpy before the core's filter")

@@ -17,13 +17,27 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from netkf_cli import riccati
-from netkf_cli.channels.delay import Convention, max_kept_delay
 from netkf_cli.errors import TheoremConditionError
 from netkf_cli.system import LinearSystem
+
+Convention = Literal["delay_le_D", "delay_lt_D"]
+DEFAULT_CONVENTION: Convention = "delay_le_D"
+CONVENTION_HELP = {
+    "delay_le_D": "a packet is kept iff its delay d_k ≤ D (Example 3.10, Sec. 3.4, the paper's figures)",
+    "delay_lt_D": "a packet is kept iff its delay d_k < D, i.e. d_k ≥ D is discarded (Sec. 2.3, eq. 4)",
+}
+"""The buffer convention (which delays the estimator keeps): the paper is not self-consistent (Sec. 2.3 /
+eq. 4 vs Example 3.10's printed numbers; ``experiments/shi2009/README.md``)."""
+
+
+def max_kept_delay(D: int, convention: Convention) -> int:
+    """The largest delay the buffer keeps: D under ``delay_le_D``, D − 1 under ``delay_lt_D``."""
+    return D if convention == "delay_le_D" else D - 1
 
 K_MAX = 100_000  # iterations of h before declaring hᵗ(X) ≤ M for all t
 

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from netkf_cli import riccati
-from netkf_cli.channels.delay import max_kept_delay
+from netkf_cli.analysis.delay_bounds import max_kept_delay
 from netkf_cli.errors import ConfigError
 from netkf_cli.system import LinearSystem
 from netkf_cli.tolerances import PSD_TOL

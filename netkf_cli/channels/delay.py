@@ -18,20 +18,11 @@ import numpy as np
 from pydantic import Field, model_validator
 from scipy import stats
 
+# the buffer rule is the paper's (closed forms use it too): defined with them, one layer down
+from netkf_cli.analysis.delay_bounds import CONVENTION_HELP, DEFAULT_CONVENTION, Convention, max_kept_delay  # noqa: F401
 from netkf_cli.spec import ChannelModel, NonNegFloat, PositiveInt, Probability, StrictModel
 from netkf_cli.trace import LOST, Trace  # LOST: the delay of a packet that never arrives
 
-Convention = Literal["delay_le_D", "delay_lt_D"]
-DEFAULT_CONVENTION: Convention = "delay_le_D"
-CONVENTION_HELP = {
-    "delay_le_D": "a packet is kept iff its delay d_k ≤ D (Example 3.10, Sec. 3.4, the paper's figures)",
-    "delay_lt_D": "a packet is kept iff its delay d_k < D, i.e. d_k ≥ D is discarded (Sec. 2.3, eq. 4)",
-}
-
-
-def max_kept_delay(D: int, convention: Convention) -> int:
-    """The largest delay the buffer keeps: D under ``delay_le_D``, D − 1 under ``delay_lt_D``."""
-    return D if convention == "delay_le_D" else D - 1
 
 
 class PoissonDelay(StrictModel):

@@ -57,26 +57,28 @@ class BufferedEstimator(EstimatorModel):
     )
     backend: BackendKind = Field(
         "auto",
-        description="covariance backend: numpy (the reference); numba (compiled on the core's compiled "
-        "primitives, one requested step; equal to numpy to rounding); auto (default) = numba where it is "
-        "measured faster (numba importable, one requested step), else numpy",
+        description="numpy (the core, reference) | numba (the core's compiled filter, kalman.Filter.run: equal "
+        "to rounding) | auto = numba for chunks of ≥ 2e6 run-steps when numba is importable (kalman.choose_backend)",
     )
 
     def span(self, s: LinearSystem) -> int:
         """Number of consecutive measurements a packet carries (1 or 2)."""
         return packet_span(s, self.packet)
 
-    def resolved_backend(self, system: LinearSystem) -> str:
-        """The backend that runs a one-step request (``auto`` → ``numba`` or ``numpy``)."""
-        return resolve_backend(self.backend)
+    def resolved_backend(self, system: LinearSystem, run_steps: int = kalman.AUTO_MIN_RUN_STEPS) -> str:
+        """The backend a chunk of ``run_steps`` run-steps runs on (``kalman.choose_backend``)."""
+        return kalman.choose_backend(self.backend, kalman.Filter.of(system, 1), run_steps)
+
+    def backend_used(self, system: LinearSystem, channel, runs: int, horizon: int) -> str:
+        """The backend a chunk of ``runs`` × ``horizon`` runs on (recorded in the manifest)."""
+        return self.resolved_backend(system, runs * horizon)
 
     def check(self, system: LinearSystem, channel) -> None:
         """One packet stream carrying all of y_k (the buffer model of Sec. 2.3); a packet kind that
         fits C; a usable backend."""
         single_link(system, channel, "buffered")
         packet_span(system, self.packet)
-        if self.backend != "numpy":
-            self.resolved_backend(system)
+        self.resolved_backend(system)
 
     def conventions(self, system: LinearSystem, channel) -> dict[str, str]:
         """Buffer length D, keep rule, packet content and delay law (the numbers depend on each)."""
@@ -96,28 +98,6 @@ class BufferedEstimator(EstimatorModel):
         qs = kalman.check_quantities(quantities, self.quantities, "buffered")
         yield from buffered_covariances(system, trace, steps, packet_span(system, self.packet), qs,
                                         backend=self.backend)
-
-
-def numba_available() -> bool:
-    """True iff ``import numba`` works (numba is optional)."""
-    try:
-        import numba  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-def resolve_backend(backend: str) -> str:
-    """The backend that runs a one-step request: ``numpy``; ``numba`` (a ConfigError when numba is
-    not importable); ``auto`` = numba when importable, else numpy."""
-    if backend == "numpy":
-        return "numpy"
-    if numba_available():
-        return "numba"
-    if backend == "auto":
-        return "numpy"
-    raise ConfigError.at("estimator.backend", "backend numba needs numba (pip install 'netkf[fast]'); "
-                                              "use backend: numpy or auto")
 
 
 def _c_invertible(s: LinearSystem) -> bool:
@@ -185,11 +165,14 @@ def availability(kept: np.ndarray, span: int) -> np.ndarray:
     return a
 
 
-def mkf(f: kalman.Filter, P: np.ndarray, avail: np.ndarray) -> np.ndarray:
-    """P_{t|t} after the MKF steps t = 1 … len(avail) from ``P`` (n, n, runs): ``f.step`` with γ_t = a_t."""
-    for t in range(avail.shape[0]):
-        _, P = f.step(P, avail[t][None])
-    return P
+def mkf(f: kalman.Filter, P: np.ndarray, avail: np.ndarray, backend: str = "numpy") -> np.ndarray:
+    """P_{t|t} after the MKF steps t = 1 … len(avail) from ``P`` (n, n, runs): the core's filter
+    (``Filter.run``) with γ_t = a_t, on ``backend`` (numpy: ``f.step`` per step; numba: the core's
+    compiled filter, rescue-flagged runs on the numpy core)."""
+    if avail.shape[0] == 0:
+        return P
+    (_, out), = f.run(P, np.asarray(avail, dtype=bool)[None], [avail.shape[0]], ("filtered",), backend=backend)
+    return out["filtered"]
 
 
 def covariance_from_kept(s: LinearSystem, kept: np.ndarray, span: int, P0: np.ndarray | None = None) -> np.ndarray:
@@ -204,29 +187,22 @@ def buffered_covariances(s: LinearSystem, trace, steps, span: int = 1, quantitie
                          backend: str = "numpy"):
     """Generator of (k, {quantity: P_k}) for ``BufferedEstimator.covariances`` (see there).
 
-    With one requested step and a compiled ``backend`` the MKF over the time-k availabilities runs
-    in the compiled kernel of :mod:`netkf_cli.estimators.buffered_numba` (the core's compiled
-    primitives; runs the rescue policy flags are redone by the numpy core).
+    ``backend`` (numpy | numba | auto, :func:`netkf_cli.kalman.choose_backend`) is the core filter's:
+    every MKF pass is ``kalman.Filter.run`` (:func:`mkf`).
     """
     T, runs = trace.horizon, trace.runs
     d = trace_delays(trace)
     Dmax = trace_max_kept_delay(trace)
     f = kalman.Filter.of(s, 1, "estimator.kind")
+    be = kalman.choose_backend(backend, f, runs * T)
     P0 = initial_covariance(s)
     steps = sorted(int(k) for k in steps)
     for k in steps:
         if not 1 <= k <= T:
             raise ValueError(f"steps must lie in 1..{T}, got {k}")
-    if len(steps) == 1 and resolve_backend(backend) == "numba":
-        from netkf_cli.estimators import buffered_numba as bn
-
+    if len(steps) == 1:  # one pass over the time-k view
         k = steps[0]
-        a = availability(kept_by(d, k, Dmax), span)
-        P, flagged = bn.filtered(f.A, f.C, f.Q, f.R, P0, a, f.rescue.limit)
-        idx = np.flatnonzero(flagged)
-        if idx.size:  # the rescue policy fired: these runs are the numpy core's
-            P[:, :, idx] = mkf(f, np.repeat(P0[:, :, None], idx.size, axis=2), a[:, idx])
-        yield k, kalman.report(P, quantities, f.A, f.Q)
+        yield from f.run(P0, availability(kept_by(d, k, Dmax), span)[None], [k], quantities, backend=be)
         return
     final = d <= Dmax  # (T, runs): final kept status of packet t + 1
     a_final = availability(final, span)
@@ -244,9 +220,9 @@ def buffered_covariances(s: LinearSystem, trace, steps, span: int = 1, quantitie
         b = max(0, j - (span - 1))  # steps 1..b use final statuses (non-decreasing in k)
         if b < done:  # pragma: no cover - cannot happen (the oldest in-flight packet only moves on)
             base, done = np.repeat(P0[:, :, None], runs, axis=2), 0
-        base = mkf(f, base, a_final[done:b])
+        base = mkf(f, base, a_final[done:b], be)
         done = b
-        P = base if b == k else mkf(f, base, availability(kept_by(d, k, Dmax, b), span))
+        P = base if b == k else mkf(f, base, availability(kept_by(d, k, Dmax, b), span), be)
         yield k, kalman.report(P, quantities, f.A, f.Q)
 
 

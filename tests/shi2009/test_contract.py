@@ -207,14 +207,16 @@ TRACES = {"bernoulli": bernoulli(0.6), "zero_delay_pmf": pmf([0.7], 3)}
 
 @pytest.mark.parametrize("s", [scalar_system(), vehicle_system(), _dense_3x1()], ids=["scalar", "vehicle", "dense_3x1"])
 @pytest.mark.parametrize("chname", list(TRACES))
-@pytest.mark.parametrize("backend", ["numpy", "auto"])
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
 def test_buffered_on_zero_delay_is_kf(s, chname, backend):
     """One filter, many names: on a pure-loss / zero-delay trace the time-k view is the arrival
     pattern, and buffered runs kalman.Filter — the same numbers as kf at every k (relative 1e-12),
-    filtered and predicted (numpy: bitwise; compiled one-step path: to rounding)."""
+    filtered and predicted, on either backend of the core (numpy: bitwise)."""
     tr = TRACES[chname].sample_trace(np.random.default_rng(4), 300, 40)
     ks = list(range(1, 41))
-    ref = dict(KalmanFilterEstimator(kind="kf").covariances(s, tr, ks, ("filtered", "predicted")))
+    if backend == "numba":
+        pytest.importorskip("numba")
+    ref = dict(KalmanFilterEstimator(kind="kf", backend=backend).covariances(s, tr, ks, ("filtered", "predicted")))
     est = BufferedEstimator(kind="buffered", packet="measurement", backend=backend)
     got = dict(est.covariances(s, tr, ks, ("filtered", "predicted")))
     for k in ks:
@@ -252,9 +254,9 @@ def test_any_C_simulates_with_measurement_packets():
 
 
 def test_check_refuses_an_unusable_backend(monkeypatch):
-    from netkf_cli.estimators import buffered as bf
+    from netkf_cli import kalman
 
-    monkeypatch.setattr(bf, "numba_available", lambda: False)
+    monkeypatch.setattr(kalman, "numba_available", lambda: False)
     s = scalar_system()
     BufferedEstimator(kind="buffered", backend="auto").check(s, bernoulli(0.5))  # falls back to numpy
     assert BufferedEstimator(kind="buffered", backend="auto").resolved_backend(s) == "numpy"
@@ -310,12 +312,14 @@ def test_overflow_system_recovers_after_an_overflowed_prior():
     assert np.all(np.abs(p - 0.05) <= 5 * np.sqrt(0.05 * 0.95 / n))
 
 
-@pytest.mark.parametrize("backend", ["numpy", "auto"])
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
 def test_overflow_covariances_equal_kf(backend):
     """Through the generic contract, on one trace: buffered gives kf's P at k = 120 (bitwise with numpy;
     compiled: the runs the Rescue flags are the numpy core's, the others equal to rounding), including
     which runs are ∞. Runs whose last packet arrived and whose prior stayed finite have
     P_k = diag(≈1, the scalar recursion a = 0.5, q = r = 1)."""
+    if backend == "numba":
+        pytest.importorskip("numba")
     s = _overflow_system()
     tr = bernoulli(0.05).sample_trace(np.random.default_rng(2), 4000, 120)
     with warnings.catch_warnings():
@@ -390,8 +394,8 @@ def test_multi_sensor_channel_is_refused():
 
 @pytest.mark.parametrize("name", ["scalar", "vehicle_pairs", "big_buffer_2x2", "bernoulli_2x2", "dense_3x1_measurement"])
 def test_compiled_covariances_equal_numpy(name):
-    """One requested step with backend numba: the compiled MKF (kalman_numba's inlined primitives) on
-    the time-k availabilities gives the numpy core's P_k to rounding (relative 1e-12), both quantities."""
+    """Backend numba: the core's compiled filter (kalman.Filter.run) over the time-k availabilities gives
+    the numpy core's P_k to rounding (relative 1e-12), both quantities, one step and several."""
     pytest.importorskip("numba")
     s, ch, _ = CASES[name]
     tr = ch.sample_trace(np.random.default_rng(12), 700, 30)
@@ -400,6 +404,11 @@ def test_compiled_covariances_equal_numpy(name):
         (_, Pc), = BufferedEstimator(kind="buffered", backend="numba").covariances(s, tr, [k], ("filtered", "predicted"))
         for q in Pn:
             assert np.abs(Pn[q] - Pc[q]).max() <= 1e-12 * np.abs(Pn[q]).max(), (name, k, q)
+    several = [5, 17, 30]
+    gn = dict(BufferedEstimator(kind="buffered", backend="numpy").covariances(s, tr, several))
+    gc = dict(BufferedEstimator(kind="buffered", backend="numba").covariances(s, tr, several))
+    for k in several:
+        assert np.abs(gn[k]["filtered"] - gc[k]["filtered"]).max() <= 1e-12 * np.abs(gn[k]["filtered"]).max(), k
 
 
 @pytest.mark.parametrize("ch", [poisson(5, 10), pmf([0.3, 0.2, 0.1], 2), poisson(0.01, 3), bernoulli(0.999)])

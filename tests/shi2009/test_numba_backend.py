@@ -1,9 +1,10 @@
 """The compiled (numba) path of the ``buffered`` estimator against the numpy core, on the same traces.
 
-``backend: numba`` runs, per run, kalman_numba's inlined ``predict``/``update`` over the time-k
-availabilities (one requested step); the numpy path runs ``kalman.Filter``. On the same trace P_k
-agrees to rounding, so the engine's statistics are identical: the counts Pr[P_k ≤ M] exactly (unless
-λ_max is within rounding of a threshold, which these grids avoid) and the moment sums to 1e-12.
+``backend: numba`` runs the core's compiled filter (``kalman.Filter.run(backend="numba")``: a kernel
+generated for the system from the core's equations, rescue-flagged runs on the numpy core) over the
+time-k availabilities; the numpy path runs ``kalman.Filter.step``. On the same trace P_k agrees to
+rounding, so the engine's statistics are identical: the counts Pr[P_k ≤ M] exactly (unless λ_max is
+within rounding of a threshold, which these grids avoid) and the moment sums to 1e-12.
 Skipped when numba is not installed.
 """
 
@@ -13,7 +14,6 @@ import pytest
 pytest.importorskip("numba")
 
 from netkf_cli import engine, kalman  # noqa: E402
-from netkf_cli.estimators import buffered_numba as bn  # noqa: E402
 from netkf_cli.estimators.buffered import BufferedEstimator, availability, mkf  # noqa: E402
 from netkf_cli.montecarlo import execution  # noqa: E402
 from netkf_cli.system import LinearSystem  # noqa: E402
@@ -68,39 +68,27 @@ def test_numba_equals_numpy_statistics_on_the_same_traces(name):
         assert np.allclose(a, b, rtol=1e-12, atol=0), key  # sums of P: equal to rounding
 
 
-def test_serial_and_parallel_kernels_agree():
-    s, ch, _, H = CASES["vehicle_pairs"]
-    tr = ch.sample_trace(np.random.default_rng(1), 2000, H)
-    from netkf_cli.channels.delay import kept_by, trace_delays, trace_max_kept_delay
-
-    a = availability(kept_by(trace_delays(tr), H, trace_max_kept_delay(tr)), 2)
-    f = kalman.Filter.of(s, 1)
-    P0 = s.P0 if s.P0 is not None else np.eye(4)
-    Ps, fs = bn.filtered(f.A, f.C, f.Q, f.R, P0, a, f.rescue.limit, threads=1)
-    Pp, fp = bn.filtered(f.A, f.C, f.Q, f.R, P0, a, f.rescue.limit)
-    assert not fs.any() and np.array_equal(fs, fp) and np.array_equal(Ps, Pp)
-    ref = mkf(f, np.repeat(P0[:, :, None], a.shape[1], axis=2), a)
-    assert np.allclose(Ps, ref, rtol=1e-12, atol=1e-15)
-
-
 def test_flagged_runs_are_the_numpy_cores():
     """A = diag(10, 0.5): the Rescue flags a run once an outage drives tr P⁻ past 2e8 (≥ 4 lost packets in
-    a row); the kernel leaves those runs and the numpy core redoes them (bitwise the numpy path's).
-    A = diag(1e6, 0.5) flags every run at every step (P⁻_11 ≥ 1e12): all of them are the numpy core's."""
+    a row); the compiled filter hands those runs to the numpy core (bitwise the numpy path's); the
+    others agree to rounding."""
     s = LinearSystem.create(np.diag([10.0, 0.5]), np.eye(2), np.eye(2), np.eye(2))
     tr = bernoulli(0.7).sample_trace(np.random.default_rng(2), 500, 60)
     f = kalman.Filter.of(s, 1)
-    a = tr.arrival[0]
-    _, flag = bn.filtered(f.A, f.C, f.Q, f.R, np.eye(2), a, f.rescue.limit, threads=1)
-    assert flag.any() and not flag.all()
+    P = np.repeat(np.eye(2)[:, :, None], 500, axis=2)
+    flagged = np.zeros(500, dtype=bool)
+    for t in range(60):  # which runs the rescue test flags at some step (numpy core)
+        Pm, P = f.step(P, tr.arrival[:, t])
+        flagged |= f.rescue.flag(Pm)
+    assert flagged.any() and not flagged.all()
     with np.errstate(all="ignore"):
         (_, Pn), = BufferedEstimator(kind="buffered", backend="numpy").covariances(s, tr, [60])
         (_, Pc), = BufferedEstimator(kind="buffered", backend="numba").covariances(s, tr, [60])
-    assert np.array_equal(Pn["filtered"][:, :, flag], Pc["filtered"][:, :, flag])
-    ok = ~flag
+    a, b = Pn["filtered"], Pc["filtered"]
+    assert np.array_equal(a[:, :, flagged], b[:, :, flagged])
     # the others to rounding: the update P⁻ − P⁻Cᵀ S⁻¹ C P⁻ loses ~ε·‖P⁻‖/‖R‖ digits, and unflagged
     # priors reach limit = 2e8, so relative to each run's largest entry 1e-16·2e8 = 2e-8 bounds it
-    a, b = Pn["filtered"][:, :, ok], Pc["filtered"][:, :, ok]
+    a, b = a[:, :, ~flagged], b[:, :, ~flagged]
     assert np.all(np.abs(a - b).max(axis=(0, 1)) <= 2e-8 * np.abs(a).max(axis=(0, 1)))
 
 
@@ -114,7 +102,10 @@ def test_process_pool_equals_numpy():
 
 
 def test_backend_field_and_auto():
+    """auto = the core's choice (kalman.choose_backend): compiled for chunks ≥ AUTO_MIN_RUN_STEPS."""
     s = vehicle_system()
     est = BufferedEstimator(kind="buffered")
     assert est.backend == "auto" and est.resolved_backend(s) == "numba"
+    assert est.backend_used(s, poisson(3, 5), 100, 100) == "numpy"
+    assert est.backend_used(s, poisson(3, 5), 20_000, 100) == "numba"
     assert BufferedEstimator(kind="buffered", backend="numpy").resolved_backend(s) == "numpy"
