@@ -531,6 +531,8 @@ def ge_critical_curve(A, C, ps, *, tol: float = 1e-4, solver: str = "CLARABEL", 
     A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
     qn = ge_q_necessary(A)
     ec = exact_case_ge(A, C)
+    e_iid = exact_case(A, C)
+    deg = e_iid is not None and e_iid.key.startswith("degenerate_2x2_p")
     lmi = _MarkovLMI(A, C, solver)
     lam_ref = lam_c_upper if lam_c_upper is not None else (ec.value if ec and ec.value is not None else lambda_min(A))
     out = []
@@ -550,6 +552,8 @@ def ge_critical_curve(A, C, ps, *, tol: float = 1e-4, solver: str = "CLARABEL", 
                     a = mid
             qs = b
         q_exact = None if ec is None or ec.value is None else ec.value
+        if ec is None and deg:
+            q_exact = ge_degenerate_critical_q(A, C, p)  # derived; 1.0 = no recovery rate suffices at this p
         # q/(p+q) = λ ⇔ q = λ p / (1 − λ)
         qb = lam_ref * p / (1 - lam_ref) if lam_ref < 1 else math.inf
         out.append(GECurvePoint(p, qn, qs, q_exact, qb))
@@ -789,6 +793,50 @@ def subsystem_lower_bound(A, C) -> LowerBound | None:
                               "a filter told the other modes exactly does better, so λ_c ≥ its λ_c (genie argument, "
                               "experiments/critical/README.md)")
     return best
+
+
+def residue_window_rate(T: np.ndarray, p_order: int) -> float:
+    """Per-period decay μ_p of Pr[all arrivals of a window fall in one residue class mod p] under the chain T.
+
+    Allowed patterns: one free step (arrival or loss) then p − 1 lost steps, repeated. With K_free = T and
+    K_lost = T·diag(1, 0) (next step must be a loss), the window of m periods has probability π·(K_free K_lost^{p−1})^m·1,
+    so μ_p = spectral radius of M = K_free·K_lost^{p−1} (i.i.d.: (1 − λ)^{p−1}; p = 1 means "no constraint" and is
+    not used: a Jordan block's mechanism is "at most one arrival", rate 1 − q).
+    """
+    T = np.asarray(T, float)
+    Kl = T @ np.diag([1.0, 0.0])
+    M = T @ np.linalg.matrix_power(Kl, p_order - 1)
+    return float(np.max(np.abs(np.linalg.eigvals(M))))
+
+
+def ge_degenerate_critical_q(A, C, p: float, *, tol: float = 1e-10) -> float | None:
+    """Critical recovery rate of a degenerate 2×2 system (``degenerate_2x2_p<P>``) over Gilbert–Elliott loss.
+
+    Derived like the i.i.d. case (experiments/critical/README.md): P_k ≤ c·ρ^{2(k−t)} with t the older arrival of the
+    most recent pair in different residue classes mod P, and a window of L steps whose arrivals share one class has
+    probability ≍ μ_P^{L/P} (:func:`residue_window_rate`). So E[P] < ∞ ⇔ ρ^{2P}·μ_P(p, q) < 1; the critical q is found
+    by bisection (μ_P decreases in q: more recovery, fewer constrained windows). P = 1 (Jordan block): q > 1 − 1/ρ².
+    Returns None if the system is not a degenerate 2×2 case, 1.0 if even q = 1 is not enough.
+    """
+    ec = exact_case(A, C)
+    if ec is None or not ec.key.startswith("degenerate_2x2_p"):
+        return None
+    P = int(ec.key.rsplit("p", 1)[1])
+    rho = spectral_radius(A)
+    if P == 1:
+        return 1.0 - rho ** -2
+
+    def unstable(q):
+        return rho ** (2 * P) * residue_window_rate(ge_chain(p, q), P) >= 1.0
+
+    if unstable(1.0):
+        return 1.0
+    a, b = 0.0, 1.0
+    while b - a > tol:
+        m = 0.5 * (a + b)
+        a, b = (m, b) if unstable(m) else (a, m)
+    return b
+
 
 
 def tail_exponent(A, C, *, loss_stay: float, channel: str = "bernoulli") -> tuple[float | None, str]:

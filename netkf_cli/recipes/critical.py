@@ -211,6 +211,14 @@ def channel_answer(s: LinearSystem, channel, report: cr.CriticalReport, *, solve
                    else "one received packet bounds P")
             why = (f"recovery rate q = {q:.6g} {'>' if ok else '≤'} 1 − 1/ρ(A)² = {ege.value:.6g}: necessary and "
                    f"sufficient here ({ege.key.replace('_', ' ')}; {how}), whatever the failure rate")
+        elif e is not None and e.key.startswith("degenerate_2x2_p"):
+            P = int(e.key.rsplit("p", 1)[1])
+            qd = cr.ge_degenerate_critical_q(s.A, s.C, p)
+            ok = q > qd if qd < 1.0 else False
+            why = ((f"recovery rate q = {q:.6g} {'>' if ok else '≤'} q_c(p) = {qd:.6g}" if qd < 1.0 else
+                    f"no recovery rate suffices at failure rate p = {p:.6g}") +
+                   f" (derived for a degenerate 2×2 system, p-order {P}: E[P] < ∞ ⇔ ρ^(2·{P})·μ_{P}(p, q) < 1, μ the "
+                   f"decay of windows whose arrivals share one residue class; experiments/critical/README.md)")
         elif q <= qn:
             ok, why = False, f"q = {q:.6g} ≤ 1 − 1/ρ(A)² = {qn:.6g}: E[P_k] unbounded (necessary condition fails)"
         else:
@@ -371,7 +379,8 @@ class CriticalAnalysis(AnalysisModel):
                                     q_iid=1.0 - pt.p))
         ge = pd.DataFrame(ge_rows, columns=["p", "q_necessary", "q_sufficient", "q_exact", "q_bernoulli_same_loss", "q_iid"])
         ege = cr.exact_case_ge(s.A, s.C)
-        ge["exact_by"] = "" if ege is None else ege.key
+        ge["exact_by"] = (ege.key if ege is not None else
+                          f"{e.key} (derived)" if e is not None and e.key.startswith("degenerate_2x2_p") else "")
 
         # ---- claims ----
         claims = self._claims(table, rep, ge)
@@ -472,7 +481,11 @@ class CriticalAnalysis(AnalysisModel):
         legend_outside(ax, loc="right")
         # ---- right: Gilbert–Elliott plane ----
         if ge is not None and len(ge):
-            bx.fill_between(ge.p, ge.q_necessary, 0, color="0.88", lw=0, label=r"unstable: $q \leq 1 - 1/\rho(A)^2$")
+            exq = ge.q_exact if "q_exact" in ge else None
+            if exq is not None and np.isfinite(exq).all() and (exq > ge.q_necessary + 1e-9).any():
+                bx.fill_between(ge.p, exq, 0, color="0.88", lw=0, label="unstable: below the exact curve")
+            else:
+                bx.fill_between(ge.p, ge.q_necessary, 0, color="0.88", lw=0, label=r"unstable: $q \leq 1 - 1/\rho(A)^2$")
             bx.plot(ge.p, ge.q_necessary, **{**series_style(0), "marker": None, "lw": 2.2},
                     label=r"necessary: $q > 1 - 1/\rho(A)^2$")
             suf = ge[np.isfinite(ge.q_sufficient)]
@@ -480,9 +493,14 @@ class CriticalAnalysis(AnalysisModel):
             ex = ge[np.isfinite(ge.q_exact)]
             if len(ex):
                 by = str(ge.exact_by.iloc[0]) if "exact_by" in ge and isinstance(ge.exact_by.iloc[0], str) else ""
-                src = "Mo & Sinopoli 2012" if by in ("non_degenerate", "c_invertible_observable") else "one arrival bounds P"
-                bx.plot(ex.p, ex.q_exact, **{**series_style(2), "markersize": 4, "linestyle": ":"},
-                        label=f"exact critical curve ({by.replace('_', ' ')}; {src})")
+                if "derived" in by:
+                    lab = f"exact curve, derived ({by.split()[0].replace('_', ' ')});\nat q = 1: no recovery rate suffices"
+                else:
+                    src = "Mo & Sinopoli 2012" if by in ("non_degenerate", "c_invertible_observable") else "one arrival bounds P"
+                    lab = f"exact critical curve ({by.replace('_', ' ')}; {src})"
+                bx.plot(ex.p, ex.q_exact, **{**series_style(2), "markersize": 4, "linestyle": ":"}, label=lab)
+                if "derived" in by and ge.p.min() < 0.05 * ge.p.max():
+                    bx.set_xscale("log")
             else:
                 bx.plot([], [], " ", label="no exact curve (degenerate): only necessary / sufficient")
             qb = ge.q_bernoulli_same_loss.clip(upper=1.0)
@@ -495,9 +513,12 @@ class CriticalAnalysis(AnalysisModel):
             if ch is not None:
                 p, q = ch.transition
                 bx.plot([p], [q], "*", ms=11, color=PALETTE[5], linestyle="none", label=f"this channel (p = {p:.3g}, q = {q:.3g})")
-            bx.set_xlim(0, 1.02)
+            if bx.get_xscale() == "log":
+                bx.set_xlim(ge.p.min() / 1.5, 1.3)
+            else:
+                bx.set_xlim(0, 1.02)
             bx.set_ylim(0, 1.02)
-            bx.set_xlabel(r"failure rate $p$ = P(loss | arrival)")
+            bx.set_xlabel(r"failure rate $p$ = P(loss | arrival)" + (" (log scale)" if bx.get_xscale() == "log" else ""))
             bx.set_ylabel(r"recovery rate $q$ = P(arrival | loss)")
             bx.set_title("Gilbert–Elliott: stable above the curve", fontsize=10)
             legend_outside(bx, loc="right")

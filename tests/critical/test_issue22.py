@@ -249,3 +249,26 @@ def test_reliability_flags_the_287_case_and_not_a_perfect_channel():
     # well above λ_c with a big sample: reliable
     r = cr.mean_reliability(5.6, 0.01, runs=20_000, steps=100, loss_stay=0.07, growth=4.0, lower_bound=1.39)
     assert r.reliable and r.missing_fraction < 1e-3
+
+
+def test_ge_region_of_the_parity_system_derived_and_enumerated():
+    """Degenerate 2×2 over Gilbert–Elliott (derived): E[P] < ∞ ⇔ ρ⁴·μ₂(p, q) < 1 with μ₂ = (1 − q)² + q p, the
+    per-period rate of windows whose arrivals share one parity; no q suffices once p ≥ 1/16."""
+    A, C = np.diag([2.0, -2.0]), np.array([[1.0, 1.0]])
+    T = cr.ge_chain(0.03, 0.8)
+    assert cr.residue_window_rate(T, 2) == pytest.approx(0.2**2 + 0.8 * 0.03, rel=1e-12)
+    assert cr.residue_window_rate(cr.iid_chain(0.9), 2) == pytest.approx(0.1, rel=1e-12)  # i.i.d.: (1 − λ)^{p−1}
+    p = 0.03
+    qc = cr.ge_degenerate_critical_q(A, C, p)
+    assert 16 * ((1 - qc) ** 2 + qc * p) == pytest.approx(1.0, abs=1e-8)
+    assert cr.ge_degenerate_critical_q(A, C, 1 / 16 + 1e-6) == 1.0  # unstable for every recovery rate
+    # exact recursion over all 2^20 sequences of the chain: the increment ratio per two steps equals the derived
+    # factor 16·μ₂ on both sides (measured to 1e-10; subleading terms are ≥ 4× smaller per period)
+    for q in (qc - 0.05, qc + 0.05):
+        T = cr.ge_chain(p, q)
+        e = cr.enumerate_expected_trace(A, C, I2, R1, T, 20)
+        assert cr.growth_per_period(e, 2) == pytest.approx(16 * cr.residue_window_rate(T, 2), rel=1e-6)
+        assert (cr.growth_per_period(e, 2) < 1) is (q > qc)
+    # the sufficient Markov LMI is never below the derived exact curve (and close to it: ±2 bisection steps)
+    pts = cr.ge_critical_curve(A, C, [p], tol=1e-3)
+    assert pts[0].q_exact == pytest.approx(qc) and qc - 1e-12 <= pts[0].q_sufficient <= qc + 0.01
