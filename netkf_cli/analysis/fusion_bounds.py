@@ -29,6 +29,7 @@ import numpy as np
 import scipy.linalg
 from scipy import stats
 
+from netkf_cli import kalman
 from netkf_cli.errors import ConfigError
 
 
@@ -65,10 +66,10 @@ def phi_f(P, ell, C, R) -> np.ndarray:
             out = p * r / (ell * c * c * p + r)
             out = np.where(np.isinf(p), np.where(ell * c * c > 0, r / np.where(ell * c * c > 0, ell * c * c, 1.0), np.inf), out)
         return out[..., None, None]
-    PCt = P @ C.T  # (..., n, m)
-    S = C @ PCt * ell[..., None, None] + R  # ℓ C P Cᵀ + R
-    K = np.swapaxes(np.linalg.solve(S, np.swapaxes(PCt, -1, -2)), -1, -2)  # P Cᵀ S⁻¹
-    return _sym(P - ell[..., None, None] * K @ np.swapaxes(PCt, -1, -2))
+    lead = np.broadcast_shapes(P.shape[:-2], ell.shape)
+    Pt = np.moveaxis(np.broadcast_to(P, lead + P.shape[-2:]).reshape((-1,) + P.shape[-2:]), 0, -1)
+    out = kalman.update_counts(np.ascontiguousarray(Pt), C, R, np.broadcast_to(ell, lead).reshape(-1))  # the core's eq. (14)
+    return np.moveaxis(out, -1, 0).reshape(lead + P.shape[-2:])
 
 
 def phi(P, ell, A, C, Q, R) -> np.ndarray:

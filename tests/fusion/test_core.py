@@ -11,6 +11,7 @@ from scipy import stats
 from netkf_cli.analysis import fusion_bounds as fb
 from netkf_cli.channels.multi import MultiChannel, sample_multi_arrivals, times_since_arrival
 from netkf_cli.estimators import fusion as fe
+from netkf_cli.trace import Trace
 
 SYS1 = dict(A=[[0.9]], C=[[1.0]], Q=[[0.3]], R=[[2.0]])
 SYS2 = dict(A=[[0.8, 0.3], [-0.2, 0.7]], C=[[1.0, 0.5]], Q=[[0.4, 0.1], [0.1, 0.2]], R=[[1.5]])
@@ -73,12 +74,13 @@ def test_backward_chain_marginals_are_binomial():
 
 
 def _kf_received_rows(A, C, Q, R, P0, gamma_run):
-    """Per-run KF with the stacked measurement of the received sensors only, eq. (7) with pseudo-inverse."""
+    """Per-run KF with the stacked measurement of the received sensors only, eq. (7) with pseudo-inverse;
+    P0 = P_{0|0}, step t + 1 uses the packets of trace step t."""
     N = gamma_run.shape[1]
     Cbar_full = np.kron(np.ones((N, 1)), C)
     Rbar_full = np.kron(np.eye(N), R)
     m = C.shape[0]
-    P = P0.copy()
+    P = A @ P0 @ A.T + Q
     out_f, out_p, out_pinv = [], [], []
     for t in range(gamma_run.shape[0]):
         rows = np.repeat(gamma_run[t], m)
@@ -105,7 +107,12 @@ def test_mf_matches_per_run_kalman_filter(sysd):
     T, runs = 12, 6
     g = sample_multi_arrivals(np.random.default_rng(2), runs, T, [0.2, 0.5, 0.7, 0.4])
     P0 = 1.7 * np.eye(A.shape[0])
-    Pf, Pp = fe.mf_covariances(g.sum(axis=2).astype(float), A, C, Q, R, P0)
+    s = fe.identical_sensors(A, C, Q, R, 4, P0)
+    trace = Trace(runs=runs, horizon=T, arrival=np.ascontiguousarray(np.transpose(g, (2, 1, 0))))
+    out = dict(fe.FusionEstimator(kind="fusion", strategies=["mf"]).covariances(s, trace, range(1, T + 1),
+                                                                                ("filtered", "predicted")))
+    Pf = np.array([np.trace(out[k]["filtered"]) for k in range(1, T + 1)]).T  # (runs, T)
+    Pp = np.array([np.trace(out[k]["predicted"]) for k in range(1, T + 1)]).T
     for r in range(runs):
         f, p, fpinv = _kf_received_rows(A, C, Q, R, P0, g[r])
         assert np.allclose(Pf[r], f, rtol=1e-11) and np.allclose(Pp[r], p, rtol=1e-11)
@@ -143,14 +150,16 @@ def test_ibf_matches_batch_conditioning(sysd):
     A, C, Q, R = _mats(sysd)
     N, T, runs = 3, 7, 5
     g = sample_multi_arrivals(np.random.default_rng(3), runs, T, 0.55, N)
-    P0 = 1.3 * np.eye(A.shape[0])
+    P0 = 1.3 * np.eye(A.shape[0])  # P_{0|0}: x at step 1 has prior A P0 Aᵀ + Q; step t + 1 uses trace step t
     tau = times_since_arrival(g)
-    Pfull = fe.full_information_priors(A, C, Q, R, N, P0, T)
+    s = fe.identical_sensors(A, C, Q, R, N, P0)
+    trace = Trace(runs=runs, horizon=T, arrival=np.ascontiguousarray(np.transpose(g, (2, 1, 0))))
+    out = dict(fe.FusionEstimator(kind="fusion", strategies=["ibf"]).covariances(s, trace, range(1, T + 1)))
     for t in range(T):
-        f, p = fe.ibf_covariances_at(tau[:, t, :], np.full(runs, t), A, C, Q, R, Pfull)
+        f = np.trace(out[t + 1]["filtered"])
         for r in range(runs):
             last = t - tau[r, t]  # -1: nothing received from that sensor
-            ref = _batch_conditional_trace(A, C, Q, R, P0, t, last)
+            ref = _batch_conditional_trace(A, C, Q, R, A @ P0 @ A.T + Q, t, last)
             assert f[r] == pytest.approx(ref, rel=1e-9)
 
 

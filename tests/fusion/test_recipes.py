@@ -90,7 +90,7 @@ def _write(tmp_path, text: str) -> Path:
 
 BASE3 = """
 name: t
-system: {{A: {A}, C: {C}, Q: {Q}, R: 1.0e-2}}
+system: {{A: {A}, C: {C}, Q: {Q}, R: 1.0e-2, sensors: 3}}
 channel: {{kind: multi, sensors: 3, loss: {loss}}}
 estimator: {{kind: fusion}}
 analysis: {{kind: fusion_vs_loss, loss: {grid}}}
@@ -145,3 +145,11 @@ def test_vector_state_runs_its_monte_carlo_and_omits_scalar_only_bounds(tmp_path
     c = pd.read_csv(out / "t_claims.csv").set_index("claim")
     for claim in ("mf_le_upper_bound", "ibf_lower_bounds_hold", "ibf_le_mf"):
         assert c.loc[claim, "value"] == 1.0, claim
+
+
+def test_channel_streams_must_be_the_systems_sensors(tmp_path):
+    """A `multi` channel with 3 streams on a system of one sensor: refused, naming the fix."""
+    text = BASE3.format(A=0.9, C=1, Q=1e-4, loss=0.1, grid="[0.1]").replace(", sensors: 3}", "}", 1)
+    assert "sensors: 3}" not in text.split("channel")[0]
+    with pytest.raises(ConfigError, match="system.sensors: 3"):
+        _run(tmp_path, text)
