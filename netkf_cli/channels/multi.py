@@ -6,6 +6,12 @@ config can never be read the wrong way round (``arrival = 1 − loss``).
 
 Links are independent across sensors and i.i.d. in time (the paper's Bernoulli model).
 ``loss`` is one number for every sensor or a list of N per-sensor rates.
+
+What a stream carries (the one sensor model, :func:`netkf_cli.kalman.stream_rows`): stream i is
+sensor i's WHOLE measurement y_k^i = C_i x_k + v_k^i, sensor i of ``system.sensors`` — so the
+channel's ``sensors`` must equal the system's number of sensors (``system.sensors: N`` for N
+identical sensors each measuring C x with noise R; a list of {C, R} for sensors of their own;
+unset = one sensor per output row of C). Every estimator refuses another count, naming the fix.
 """
 
 from __future__ import annotations
@@ -109,12 +115,19 @@ def times_since_arrival(gamma: np.ndarray) -> np.ndarray:
 
 
 class MultiChannel(ChannelModel):
-    """``kind: multi`` — N independent i.i.d. Bernoulli loss links, one per sensor (eq. (2))."""
+    """``kind: multi`` — N independent i.i.d. Bernoulli loss links, one per sensor (eq. (2)).
+
+    Arrival stream i carries sensor i's whole measurement (sensor i of ``system.sensors``); N must be
+    the system's number of sensors (``system.sensors: N`` for N identical sensors).
+    """
 
     trace_kinds: ClassVar[frozenset[str]] = frozenset({"arrival"})
 
     kind: Literal["multi"]
-    sensors: PositiveInt = Field(description="number of sensors N (the paper's example: 25)")
+    sensors: PositiveInt = Field(description="number of sensors N = arrival streams (the paper's example: 25); stream i "
+                                             "carries sensor i's whole measurement y^i = C_i x + v^i, sensor i of "
+                                             "system.sensors, so N must be the system's number of sensors "
+                                             "(system.sensors: N for N identical sensors)")
     loss: Probability | list[Probability] = Field(
         description="packet LOSS probability (the paper's λ): one value for all sensors or a list of N"
     )
