@@ -514,7 +514,13 @@ def critical(
     """
     from netkf_cli.recipes.critical import critical_answer
 
-    answer = critical_answer(config=config, arrival=arrival, tol=tol)
+    scenario = where = None
+    if config is not None:
+        from netkf_cli.loader import load_scenario, locate
+
+        scenario = load_scenario(config)
+        where = functools.partial(locate, path=config)
+    answer = critical_answer(config=config, scenario=scenario, locate=where, arrival=arrival, tol=tol)
     if as_json:
         sys.stdout.write(json.dumps(answer.as_json(), indent=2, ensure_ascii=False) + "\n")
     else:

@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
+from netkf_cli.analysis.delay_bounds import max_kept_delay
 from netkf_cli.errors import NetkfError
 
 RHO_TOL = 1e-9
@@ -1155,8 +1156,6 @@ def delay_effective_rate(channel) -> tuple[float, int]:
     and P_k is sandwiched between the KF on those packets and h^{D_max} of it at k − D_max, so
     E[P_k] is bounded iff it is for i.i.d. arrivals at rate λ_eff.
     """
-    from netkf_cli.channels.delay import max_kept_delay
-
     Dmax = max_kept_delay(channel.D, channel.convention)
     return float(np.asarray(channel.cdf(Dmax)).reshape(-1)[0]), int(Dmax)
 

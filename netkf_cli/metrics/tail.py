@@ -47,7 +47,7 @@ from netkf_cli.errors import ConfigError
 from netkf_cli.metrics.common import MGrid, PaperRef, labels, m_values, needs
 from netkf_cli.montecarlo import run_chunked, wilson_interval
 from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
-from netkf_cli.recipes.base import Artefact, RunContext
+from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, PositiveInt
 
 QUANTITY = {"filtered": "P_{k|k}", "predicted": "P_{k+1|k}", "smoothed": "P_{k-N|k}"}

@@ -246,18 +246,23 @@ def channel_answer(s: LinearSystem, channel, report: cr.CriticalReport, *, solve
     return {"kind": kind, "label": f"{kind} (no stability rule for this channel kind: the system's rates only)"}
 
 
-def critical_answer(*, config: Path | None = None, arrival: float | None = None, tol: float = cr.DEFAULT_BISECTION_TOL) -> CriticalAnswer:
-    """Build the answer for a scenario file's system and channel, or for the embedded default."""
-    channel = None
-    if config is not None:
-        from netkf_cli.loader import load_scenario, locate
+def critical_answer(*, config: Path | None = None, scenario=None, locate=None, arrival: float | None = None,
+                    tol: float = cr.DEFAULT_BISECTION_TOL) -> CriticalAnswer:
+    """Build the answer for a loaded scenario's system and channel (``config`` names its file), or for the default.
 
-        sc = load_scenario(config)
+    The caller loads the scenario (recipes sit below the loader in the import layers); ``locate(exc)`` attaches the
+    file and line to a problem found here (the CLI passes the loader's).
+    """
+    channel = None
+    if config is not None and scenario is None:
+        raise TypeError("critical_answer: load the scenario first (netkf_cli.loader.load_scenario) and pass scenario=")
+    if scenario is not None:
+        sc = scenario
         try:
             s = sc.linear_system()
         except ConfigError as exc:
-            raise locate(exc, config) from None
-        label, channel = f"from {config}", sc.channel
+            raise (locate(exc) if locate is not None else exc) from None
+        label, channel = f"from {config}" if config is not None else f"from scenario {sc.name}", sc.channel
         if isinstance(sc.analysis, CriticalAnalysis):
             tol = min(tol, sc.analysis.bisection_tol)
     else:
