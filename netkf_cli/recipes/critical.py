@@ -534,7 +534,8 @@ class CriticalAnalysis(AnalysisModel):
         what = self.title or scenario.description or scenario.name
         fig.suptitle(paper_title(TOPIC, None, f"critical arrival rate — {what}"), fontsize=10)
         n = m.n.dropna()
-        footnote(fig, f"{PAPER}, Thms 3–5: λ_min ≤ λ_c ≤ λ_max; tr S̄ ≤ lim tr E[P_k|k-1] ≤ tr V̄. "
+        decided = str(rates.decided_by.iloc[0]).split(":")[0] if "decided_by" in rates else ""
+        footnote(fig, f"{PAPER}, Thms 3–5: λ_min ≤ λ_c ≤ λ_max; tr S̄ ≤ lim tr E[P_k|k-1] ≤ tr V̄. λ_c: {decided}. "
                       f"Monte Carlo: {int(n.iloc[0]) if len(n) else 0} runs per λ (time average after burn-in). "
                       f"Markov LMI: constant-gain predictor, mean-square stable under the Gilbert chain.")
         return fig
