@@ -84,6 +84,8 @@ def compute(scenario, ctx: RunContext, source: str | Path | None = None) -> Arte
             art = sc.analysis.compute(sc, replace(ctx, set_total=point_total if ctx.set_total else None))
             done_total += declared[0]
             _check_artefact(sc, art)
+            if not tables:  # plot.where / plot.series name columns and series: the first table tells
+                sweep.check_plot(scenario.sweep, sweep.add_coords(art.table, coords))
             tables.append(sweep.add_coords(art.table, coords))
             for k, df in art.extra_tables.items():
                 extras.setdefault(k, []).append(sweep.add_coords(df, coords))
@@ -155,7 +157,7 @@ def write_result(scenario, art: Artefact, out: Path, *, force: bool, ctx: RunCon
         save(fig, tmp / f"{name}.png", dpi=scenario.output.dpi, formats=scenario.output.formats)  # <name>.<fmt>
         mc = scenario.montecarlo
         files = sorted(p.name for p in tmp.iterdir()) + ["manifest.json"]
-        if io.same_files(out, tmp, h):
+        if io.same_files(out, tmp, h, lambda man: same_scenario(man, scenario, ctx.runs)):
             unchanged = True
             raise io.KeepExisting
         manifest = {
@@ -356,36 +358,43 @@ def run_scenario(scenario, *, source: str | Path | None = None, out_dir: str | P
     out, cache = plan.out, plan.cache
     h = scenario_hash(scenario, runs)
     created = io.make_parent(out)
-    interrupted = False
     try:
-        with io.FileLock(out, "result folder"):
-            io.clean_leftovers(out.parent)
-            resumed = _open_cache(cache, h, resume, scenario)
-            if resumed.get("note") and notify:
-                notify(resumed["note"])
-            t0 = time.perf_counter()
-            with montecarlo.execution(executor, jobs, scheduler, cache_dir=cache, progress=progress,
-                                      add_total=add_total) as ex:
-                art = compute(scenario, ctx, source)
-                where = ex.report()  # where the chunks really ran (tested: a promise in the manifest)
-            resumed["chunks_reused"] = ex.chunks_cached
-            info["resume"] = resumed
-            folder = write_result(scenario, art, out, force=force, ctx=ctx, source=source,
-                                  wall_time=time.perf_counter() - t0,
-                                  execution={"executor": executor, "jobs": jobs, "scheduler": scheduler,
-                                             "resumed": resumed, "chunks_ran": where},
-                                  overrides=overrides, started=started, info=info)
+        lock = io.FileLock(out, "result folder").acquire()
+    except BaseException:
+        for d in reversed(created):  # folders this run created, if still empty
+            _rmdir_empty(d)
+        raise
+    interrupted = False
+    try:  # from here on the folder, its cache and what this run made are ours to clean
+        io.clean_leftovers(out.parent)
+        resumed = _open_cache(cache, h, resume, scenario)
+        if resumed.get("note") and notify:
+            notify(resumed["note"])
+        t0 = time.perf_counter()
+        with montecarlo.execution(executor, jobs, scheduler, cache_dir=cache, progress=progress,
+                                  add_total=add_total) as ex:
+            art = compute(scenario, ctx, source)
+            where = ex.report()  # where the chunks really ran (tested: a promise in the manifest)
+        resumed["chunks_reused"] = ex.chunks_cached
+        info["resume"] = resumed
+        folder = write_result(scenario, art, out, force=force, ctx=ctx, source=source,
+                              wall_time=time.perf_counter() - t0,
+                              execution={"executor": executor, "jobs": jobs, "scheduler": scheduler,
+                                         "resumed": resumed, "chunks_ran": where},
+                              overrides=overrides, started=started, info=info)
     except KeyboardInterrupt:
         interrupted = True  # finished chunks stay for --resume
         raise
     finally:
-        if not interrupted or not _has_chunks(cache):
-            if cache.exists():
-                io._rmtree(cache)
-            _rmdir_empty(cache.parent)
-            if not interrupted or not out.exists():
-                for d in reversed(created):  # folders this run created, if still empty
-                    _rmdir_empty(d)
+        try:
+            if not interrupted or not _has_chunks(cache):
+                if cache.exists():
+                    io._rmtree(cache)
+                _rmdir_empty(cache.parent)
+        finally:
+            lock.release()
+            for d in reversed(created):  # folders this run created, if empty (a failed run's)
+                _rmdir_empty(d)
     return folder
 
 

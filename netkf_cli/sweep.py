@@ -84,6 +84,8 @@ class SweepSpec(StrictModel):
     def _check(self):
         if not self.axes:
             raise ValueError("a sweep needs at least one dotted field path with values")
+        if self.plot.x is not None and self.plot.x not in self.axes:
+            raise ValueError(f"plot: x must be one of the swept fields ({', '.join(self.axes)}), got {self.plot.x!r}")
         if self.mode == "zip" and len({len(v) for v in self.axes.values()}) > 1:
             raise ValueError(f"mode zip needs lists of equal length, got {[len(v) for v in self.axes.values()]}")
         count = len(next(iter(self.axes.values()))) if self.mode == "zip" else int(np.prod([len(v) for v in self.axes.values()], dtype=float))
@@ -112,13 +114,9 @@ def _set(data: dict, path: str, value: Any) -> None:
 
 def expand(scenario, file: str | None = None) -> list[tuple[dict, Any]]:
     """All sweep points as (coordinates, validated Scenario); every bad point is reported at once."""
-    from pydantic import ValidationError
-
-    from netkf_cli.loader import validation_problems
-    from netkf_cli.scenario import scenario_model
+    from netkf_cli.loader import validate_data
 
     base = scenario.model_dump(mode="json", by_alias=True, exclude={"sweep"})
-    Model = scenario_model()
     out, problems = [], []
     for coords in scenario.sweep.points():
         data = _deep_copy(base)
@@ -132,10 +130,10 @@ def expand(scenario, file: str | None = None) -> list[tuple[dict, Any]]:
                 bad = True
         if bad:
             continue
-        try:
-            out.append((coords, Model.model_validate(data)))
-        except ValidationError as exc:
-            for p in validation_problems(exc, data, {}, file):
+        try:  # the same checks as a scenario file (schema, system, channel × estimator × analysis)
+            out.append((coords, validate_data(data, file)))
+        except ConfigError as exc:
+            for p in exc.problems:
                 problems.append(Problem(p.path, f"{p.message} (sweep point {where})", file))
     if problems:
         # de-duplicate (a bad path repeats at every point)
@@ -154,6 +152,21 @@ def _deep_copy(x):
     if isinstance(x, list):
         return [_deep_copy(v) for v in x]
     return x
+
+
+def check_plot(spec: "SweepSpec", table: pd.DataFrame) -> None:
+    """``plot.where`` and ``plot.series`` must name what the table holds: checked on the first
+    point's table, before the other points run (a filter on a missing column would silently draw
+    everything)."""
+    cols = [*spec.axes, *table.columns]
+    problems = [Problem(f"sweep.plot.where.{k}", f"is not a column of the table; columns: {', '.join(map(str, cols))}")
+                for k in spec.plot.where if k not in cols]
+    if spec.plot.series is not None and "series" in table.columns:
+        have = sorted(map(str, table["series"].dropna().unique()))
+        if spec.plot.series not in have:
+            problems.append(Problem("sweep.plot.series", f"is not a series of the table; series: {', '.join(have)}"))
+    if problems:
+        raise ConfigError(problems)
 
 
 def add_coords(df: pd.DataFrame, coords: dict) -> pd.DataFrame:
