@@ -221,7 +221,7 @@ class FusionVsMuQ(AnalysisModel):
         unit = np.isclose(float(np.atleast_2d(scenario.system.Q)[0][0]), 1e-3)
         ax.set_xlabel(r"$\mu_Q$  (process-noise variance $=\mu_Q\cdot 10^{-3}$)" if unit
                       else r"$\mu_Q$  ($Q = \mu_Q\cdot$ system.Q)")
-        ax.set_ylabel(r"filtering error variance $\mathrm{E}\,[\mathrm{tr}\,P_{t|t}]$")
+        ax.set_ylabel(r"filtering error variance $\mathrm{E}\,[\mathrm{tr}\,P_{k|k}]$")
         ax.set_title("error variance")
         ax.legend(loc="upper left")  # the curves rise from the lower left: that corner is empty
         for k in ("mf", "olpef"):
@@ -494,7 +494,7 @@ class FusionVsLoss(AnalysisModel):
                 ax.plot(d.loss, d.value * sc, color=c, ls=ls, lw=1.4, label=lab)
         ax.set_xlabel(r"packet loss probability $\lambda$")
         unit = rf" ($\times 10^{{{e}}}$)" if e else ""
-        ax.set_ylabel(r"filtering error variance $\mathrm{E}\,[P_{t|t}]$" + unit)
+        ax.set_ylabel(r"filtering error variance $\mathrm{E}\,[P_{k|k}]$" + unit)
         legend_outside(ax)
         ax.set_title(paper_title("fusion", 3, "Monte Carlo vs analytical bounds"))
         ch, mc = scenario.channel, scenario.montecarlo
