@@ -82,8 +82,7 @@ class BufferedEstimator(EstimatorModel):
 
     def conventions(self, system: LinearSystem, channel) -> dict[str, str]:
         """Buffer length D, keep rule, packet content and delay law (the numbers depend on each)."""
-        return delay_conventions(channel, packet="pair (y_k, y_k-1)" if packet_span(system, self.packet) == 2
-                                 else "measurement y_k")
+        return delay_conventions(channel, packet="(y_k, y_k-1)" if packet_span(system, self.packet) == 2 else "y_k")
 
     def covariances(self, system: LinearSystem, trace, steps, quantities=("filtered",)):
         """Yield (k, {quantity: P (n, n, runs)}): the MKF over the time-k view (Prop. 3.1).
@@ -125,9 +124,9 @@ def delay_conventions(channel, packet: str) -> dict[str, str]:
     if channel is not None and channel.kind == "delay":
         conv = getattr(channel, "convention", DEFAULT_CONVENTION)
         out["buffer"] = f"D = {channel.D}"
-        out["convention"] = f"{conv} (keep delay {'≤' if conv == 'delay_le_D' else '<'} D)"
+        out["convention"] = f"{conv} (d {'≤' if conv == 'delay_le_D' else '<'} D kept)"
     elif channel is not None and channel.kind == "bernoulli":
-        out["buffer"] = "none needed (pure loss: every kept packet has delay 0)"
+        out["buffer"] = "none (pure loss: delay 0)"
     out["packet"] = packet
     if channel is not None:
         out["delay law"] = delay_label(channel)

@@ -49,7 +49,7 @@ class SmartSensorEstimator(EstimatorModel):
         initial_covariance(system)
 
     def conventions(self, system: LinearSystem, channel) -> dict[str, str]:
-        return delay_conventions(channel, packet="estimate x̂^s_k (the sensor's own KF)")
+        return delay_conventions(channel, packet="x̂^s_k (the sensor's KF estimate)")
 
     def covariances(self, system: LinearSystem, trace, steps, quantities=("filtered",)):
         """Yield (k, {quantity: P (n, n, runs)}) with P_{k|k} = h^{N_k}(P^s_{k−N_k}) (module docstring).

@@ -236,8 +236,8 @@ def test_conventions_name_buffer_rule_packet_and_law():
     lt = BufferedEstimator(kind="buffered").conventions(s, poisson(5, 10, "delay_lt_D"))
     assert le["buffer"] == "D = 10" and le["convention"].startswith("delay_le_D")
     assert lt["convention"].startswith("delay_lt_D") and le != lt
-    assert le["packet"] == "measurement y_k" and le["delay law"] == "Poisson d = 5"
-    assert BufferedEstimator(kind="buffered").conventions(vehicle_system(), poisson(3, 5))["packet"].startswith("pair")
+    assert le["packet"] == "y_k" and le["delay law"] == "Poisson d = 5"
+    assert BufferedEstimator(kind="buffered").conventions(vehicle_system(), poisson(3, 5))["packet"] == "(y_k, y_k-1)"
     assert "estimate" in SmartSensorEstimator(kind="smart_sensor").conventions(s, poisson(5, 10))["packet"]
 
 
