@@ -272,3 +272,24 @@ def test_ge_region_of_the_parity_system_derived_and_enumerated():
     # the sufficient Markov LMI is never below the derived exact curve (and close to it: ±2 bisection steps)
     pts = cr.ge_critical_curve(A, C, [p], tol=1e-3)
     assert pts[0].q_exact == pytest.approx(qc) and qc - 1e-12 <= pts[0].q_sufficient <= qc + 0.01
+
+
+def test_critical_figure_never_draws_a_mean_below_the_proven_bound_as_a_result(tmp_path):
+    """Issue 19, item 4, end to end: near λ_min the sample mean falls far below tr S̄ — flagged, drawn hollow."""
+    from netkf_cli.loader import load_scenario
+    from netkf_cli.recipes.base import RunContext
+
+    cfg = tmp_path / "i19.yaml"
+    cfg.write_text("name: i19\nsystem: {A: [[1.2, 1], [0, 0.8]], C: [[1, 0]], Q: [[1, 0], [0, 1]], R: 1}\n"
+                   "analysis: {kind: critical, lambdas: [0.3075, 0.7], failure_rates: [], bisection_tol: 1.0e-3}\n"
+                   "montecarlo: {runs: 2000, horizon: 150, burn_in: 100, seed: 19, chunk: 2000}\n")
+    sc = load_scenario(cfg)
+    art = sc.analysis.compute(sc, RunContext())
+    t = art.table
+    mc = t[t.series == "monte_carlo"].set_index("lam")
+    S = t[t.series == "S_bar"].set_index("lam").value
+    # at λ = 0.3075 (tr S̄ ≈ 2565) a 2000-run mean cannot contain the bursts that carry E[P]: not a result
+    assert mc.loc[0.3075, "reliable"] == 0 and mc.loc[0.3075, "flag"] in (2.0, 3.0)
+    # every mean drawn as a result respects the proven lower bound (5 s.e.)
+    ok = mc[mc.reliable > 0]
+    assert len(ok) >= 1 and (ok.value >= S.loc[ok.index] - 5 * ok.stderr).all()
