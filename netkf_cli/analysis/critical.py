@@ -840,7 +840,7 @@ def ge_degenerate_critical_q(A, C, p: float, *, tol: float = 1e-10) -> float | N
 
 
 
-def tail_exponent(A, C, *, loss_stay: float, channel: str = "bernoulli") -> tuple[float | None, str]:
+def tail_exponent(A, C, *, loss_stay: float, channel: str = "bernoulli", T: np.ndarray | None = None) -> tuple[float | None, str]:
     """Decay exponent φ of Pr[tr P_k > M] ~ M^φ and where it comes from.
 
     Non-degenerate systems (Mo & Sinopoli 2012, IEEE TAC 57(3): power decay law with exact rate): a loss burst of
@@ -862,7 +862,13 @@ def tail_exponent(A, C, *, loss_stay: float, channel: str = "bernoulli") -> tupl
     if ec.key.startswith("degenerate_2x2_p"):
         p = int(ec.key.rsplit("p", 1)[1])
         if channel != "bernoulli":
-            return None, "degenerate system over a Markov channel: the residue-class law is not derived"
+            if T is None or p == 1:
+                return (base if p == 1 else None), ("derived for a 2×2 Jordan block: log(1 − q)/(2 log ρ(A))" if p == 1
+                                                    else "degenerate system over a Markov channel: give the chain T")
+            mu = residue_window_rate(T, p)
+            return (math.log(mu) / (p * 2.0 * math.log(rho)),
+                    f"derived for a degenerate 2×2 system (p = {p}) over a Markov chain: log μ_p/(p·2 log ρ(A)), μ_p the "
+                    "per-period rate of windows whose arrivals share one residue class")
         f = 1.0 if p == 1 else (p - 1) / p
         return f * base, f"derived for a degenerate 2×2 system (p = {p}): ((p−1)/p)·log(1−λ)/(2 log ρ(A))"
     what = "1 − λ" if channel == "bernoulli" else "1 − q (q = recovery rate)"

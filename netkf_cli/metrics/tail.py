@@ -351,7 +351,8 @@ class TailMetric(AnalysisModel):
             tq = float(sps.t.ppf(0.975, max(nb - 1, 1))) if nb >= 3 else math.nan
             theo, why = (None, "theory only for the Kalman filter (kind: kf)")
             if ests[j].kind == "kf" and loss_stay is not None:
-                theo, why = cr.tail_exponent(s.A, s.C, loss_stay=loss_stay, channel=kind)
+                T = cr.ge_chain(*ch.transition) if kind == "gilbert_elliott" else cr.iid_chain(float(ch.arrival))
+                theo, why = cr.tail_exponent(s.A, s.C, loss_stay=loss_stay, channel=kind, T=T)
             elif loss_stay is None:
                 why = f"no loss-burst law for channel {kind!r}"
             # the exceedance law is a staircase in log M (burst lengths are integers: one step = 2 log ρ(A) in log M,

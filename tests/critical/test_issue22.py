@@ -221,6 +221,10 @@ def test_tail_exponent_where_it_holds():
     phi, why = cr.tail_exponent(np.diag([2.0, -2.0]), np.array([[1.0, 1.0]]), loss_stay=0.1)
     assert phi == pytest.approx(0.5 * math.log(0.1) / (2 * math.log(2.0))) and "derived" in why
     assert cr.tail_exponent(np.diag([2.0, -2.0, 1.5]), np.array([[1.0, 1.0, 1.0]]), loss_stay=0.1)[0] is None
+    # the Markov version reduces to the i.i.d. one on an i.i.d. chain: log μ₂/(2·2 log 2) with μ₂ = 1 − λ
+    phi_m, _ = cr.tail_exponent(np.diag([2.0, -2.0]), np.array([[1.0, 1.0]]), loss_stay=0.1, channel="gilbert_elliott",
+                                T=cr.iid_chain(0.9))
+    assert phi_m == pytest.approx(phi, rel=1e-12)
 
 
 # ---------------------------------------------------------------------------------------------
