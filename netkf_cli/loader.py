@@ -392,6 +392,13 @@ def validate_data(data: Any, file: str | None = None, index: dict | None = None,
     except ConfigError as exc:
         raise ConfigError(attribute([p if p.file else Problem(p.path, p.message, file, line_of(index, _keys(p.path)))
                                      for p in exc.problems], overrides)) from None
+    if scenario.sweep is not None:  # every point gets these same checks, now (as `netkf validate` promises)
+        from netkf_cli import sweep
+
+        try:
+            sweep.expand(scenario, file)
+        except ConfigError as exc:
+            raise ConfigError(attribute(locate_index(exc, index, file).problems, overrides)) from None
     return scenario
 
 
@@ -669,6 +676,13 @@ def locate(exc: ConfigError, path: str | Path) -> ConfigError:
         index = line_index(read_text(path))
     except ConfigError:
         index = {}
+    return locate_index(exc, index, str(path))
+
+
+def locate_index(exc: ConfigError, index: dict, path: str | None) -> ConfigError:
+    """:func:`locate` with the file's line index at hand."""
+    if path is None:
+        return exc
     probs = []
     for p in exc.problems:
         if p.line is not None or (p.file and Path(p.file) != Path(path)):
