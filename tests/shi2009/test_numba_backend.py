@@ -31,19 +31,10 @@ def _dense_system() -> LinearSystem:
     return LinearSystem.create(A, C, L @ L.T * 0.1 + 0.01 * np.eye(3), 0.3)
 
 
-def _three_outputs() -> LinearSystem:
-    """m = 3 (> 2: the compiled update's Gauss–Jordan branch)."""
-    g = np.random.default_rng(5)
-    A = g.normal(size=(3, 3)) * 0.5
-    L = g.normal(size=(3, 3))
-    return LinearSystem.create(A, g.normal(size=(3, 3)), L @ L.T * 0.1 + 0.01 * np.eye(3), np.eye(3) * 0.2)
-
-
 CASES = {  # name: (system, channel, M grid, horizon)
     "scalar": (scalar_system(), poisson(5, 10), np.geomspace(0.5, 250, 40), 60),
     "vehicle_pairs": (vehicle_system(), poisson(3, 5), np.geomspace(0.06, 3, 30), 40),
     "dense_3x1": (_dense_system(), bernoulli(0.6), np.geomspace(0.05, 20, 30), 30),
-    "three_outputs": (_three_outputs(), poisson(1, 2), np.geomspace(0.05, 20, 30), 30),
 }
 
 
