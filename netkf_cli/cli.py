@@ -62,8 +62,13 @@ def _report_unexpected(exc: BaseException) -> int:
         err.print("[bold red]error:[/] out of memory; reduce montecarlo.chunk, the grid or --jobs", highlight=False)
         return 1
     if isinstance(exc, OSError):
+        import errno
+
         where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-        err.print("[bold red]error:[/] " + escape(f"cannot access{where}: {exc.strerror or exc}"), highlight=False)
+        full = exc.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", -1))
+        what = (f"{exc.strerror or exc}{' writing' + where if where else ''}; the run stopped and nothing of this "
+                "run was kept (free some space and run it again)") if full else f"cannot access{where}: {exc.strerror or exc}"
+        err.print("[bold red]error:[/] " + escape(what), highlight=False)
         return 1
     err.print("[bold red]error:[/] " + escape(f"internal error ({type(exc).__name__}: {exc}). This is a bug in netkf: "
               "please report it with the scenario; `netkf --debug …` shows the traceback."), highlight=False)
@@ -263,7 +268,15 @@ def run(
         n_jobs = cores
     mode = "dask" if executor == "dask" else ("process" if n_jobs > 1 else "serial")
     scenario = load_scenario(config, overrides)
-    plan = plan_run(scenario, out_dir=out_dir, runs=runs, force=force, executor=mode, jobs=n_jobs, yes=yes)
+    try:
+        plan = plan_run(scenario, out_dir=out_dir, runs=runs, force=force, executor=mode, jobs=n_jobs, yes=yes)
+    except ConfigError as exc:  # a field's problem: its file and line (or the override that set it)
+        from netkf_cli.loader import attribute, locate, parse_overrides
+
+        fields = ConfigError([p for p in exc.problems if not p.path.startswith("-")])
+        options = [p for p in exc.problems if p.path.startswith("-")]
+        located = locate(fields, config).problems if fields.problems else []
+        raise ConfigError(attribute(located, parse_overrides(overrides)) + options) from None
     out_path, cache = plan.out, plan.cache
     if dry_run:
         _print_plan(plan, config, overrides, as_json)
