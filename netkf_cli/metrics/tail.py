@@ -51,6 +51,8 @@ from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, PositiveInt
 
 QUANTITY = {"filtered": "P_{k|k}", "predicted": "P_{k+1|k}", "smoothed": "P_{k-N|k}"}
+MIN_CONTRIBUTORS = 30
+"""An exceedance estimate is a result when at least this many runs lie above M (else its s.e. is itself unreliable)."""
 
 
 # =============================================================================================
@@ -132,6 +134,9 @@ def window_loglik(law, prev: np.ndarray, win: np.ndarray) -> np.ndarray:
     kind, par = law
     g = win.astype(bool)
     with np.errstate(divide="ignore"):
+        if kind == "bernoulli_steps":                        # one arrival probability per window step (W,)
+            v = np.asarray(par, float)[-win.shape[0]:, None]
+            return np.where(g, np.log(v), np.log1p(-v)).sum(axis=0)
         if kind == "bernoulli":
             lam = par
             return np.where(g, math.log(lam) if lam > 0 else -np.inf,
@@ -152,6 +157,8 @@ def sample_window(rng, law, prev: np.ndarray, W: int) -> np.ndarray:
     """(W, runs) bool arrivals from ``law`` continuing from the arrival ``prev`` (runs,)."""
     kind, par = law
     u = rng.random((W, prev.size))
+    if kind == "bernoulli_steps":
+        return u < np.asarray(par, float)[-W:, None]
     if kind == "bernoulli":
         return u < par
     p, q = par
@@ -177,31 +184,41 @@ class TailKernel:
     """
 
     def __init__(self, system, channel, estimators, horizon: int, step: int, M, of: str, quantity: str,
-                 tilt: float, windows, batches: int):
+                 tilt: float, windows, batches: int, residues: int = 0):
         self.system, self.channel, self.estimators = system, channel, list(estimators)
         self.horizon, self.step, self.M = int(horizon), int(step), np.asarray(M, float)
         self.of, self.quantity = of, quantity
         self.law = _law(channel)
         self.windows = [int(w) for w in windows] if self.law is not None else []
         self.tilt, self.batches = float(tilt), int(batches)
+        # components: (window length, tilted law). Homogeneous tilts target complete loss bursts; for a degenerate
+        # 2×2 system of order p ≥ 2 over i.i.d. loss, "residue" tilts also target windows in which only one
+        # residue class mod p keeps its arrivals (the rare event that drives that system's tail)
+        self.components = [(W, tilted_params(self.law, self.tilt)) for W in self.windows]
+        if residues >= 2 and self.law is not None and self.law[0] == "bernoulli":
+            lam = self.law[1]
+            for W in self.windows:
+                for r in range(residues):
+                    d = np.arange(W, 0, -1)                   # distance of each window step to k
+                    v = np.where(d % residues == r, lam, self.tilt * lam)
+                    self.components.append((W, ("bernoulli_steps", v)))
 
     def __call__(self, rng: np.random.Generator, runs: int) -> dict:
-        K = 1 + len(self.windows)
+        K = 1 + len(self.components)
         comp = np.arange(runs) % K
         batch = (np.arange(runs) // K) % self.batches
         trace = self.channel.sample_trace(rng, runs, self.horizon)
         w = np.ones(runs)
         if K > 1:
             arr = trace.arrival
-            tl = tilted_params(self.law, self.tilt)
-            for c, W in enumerate(self.windows, start=1):
+            for c, (W, tl) in enumerate(self.components, start=1):
                 idx = np.flatnonzero(comp == c)
                 k1 = self.step - W                           # window = trace steps k1 … step−1
                 prev = arr[0, k1 - 1, idx] if k1 >= 1 else np.ones(idx.size, bool)
                 view = arr[0, k1:self.step]                  # a view (W, runs)
                 view[:, idx] = sample_window(rng, tl, prev, W)
             logr = np.empty((K - 1, runs))
-            for c, W in enumerate(self.windows):
+            for c, (W, tl) in enumerate(self.components):
                 k1 = self.step - W
                 prev = arr[0, k1 - 1] if k1 >= 1 else np.ones(runs, bool)
                 win = arr[0, k1:self.step]
@@ -218,6 +235,7 @@ class TailKernel:
                 stats[f"wf_{j}"] = np.stack([wf[:, comp == c].sum(axis=1) for c in range(K)])
                 stats[f"w2f_{j}"] = np.stack([(wf[:, comp == c] * w[None, comp == c]).sum(axis=1) for c in range(K)])
                 stats[f"cnt0_{j}"] = f[:, comp == 0].sum(axis=1).astype(float)
+                stats[f"cnt_{j}"] = f.sum(axis=1).astype(float)               # runs (any component) above M
                 stats[f"bwf_{j}"] = np.stack([wf[:, batch == b].sum(axis=1) for b in range(self.batches)])
                 stats[f"max_x_{j}"] = np.asarray(float(np.max(np.where(np.isfinite(x), x, -np.inf), initial=0.0)))
         return stats
@@ -273,6 +291,8 @@ class TailMetric(AnalysisModel):
                         "recovery s·q and failure 1 − s(1 − p) (gilbert_elliott)")
     windows: list[PositiveInt] | None = Field(None, description="window lengths (steps before k) of the tilted mixture "
                                               "components (default: 8 lengths from 2 to what the largest M needs, from ρ(A))")
+    residue_tilts: bool = Field(True, description="for a degenerate 2×2 system over i.i.d. loss, also tilt windows in "
+                                "which only one residue class mod p keeps its arrivals (that system's rare event)")
     batches: PositiveInt = Field(10, ge=4, le=100, description="independent run batches for the exponent's jackknife interval")
     fit_below: float = Field(0.1, gt=0, lt=1, description="the exponent is fitted where p̂ ≤ this (the tail)")
     paper: PaperRef | None = Field(None, description="the paper figure this reproduces (title only)")
@@ -315,10 +335,13 @@ class TailMetric(AnalysisModel):
         wins = self._windows(s, step, float(M.max())) if law is not None else []
         runs = ctx.mc_runs(scenario)
         ctx.total(runs)
-        kern = TailKernel(s, ch, ests, H, step, M, self.of, self.quantity, self.tilt, wins, self.batches)
+        ec = cr.exact_case(s.A, s.C)
+        residues = int(ec.key.rsplit("p", 1)[1]) if ec is not None and ec.key.startswith("degenerate_2x2_p") else 0
+        kern = TailKernel(s, ch, ests, H, step, M, self.of, self.quantity, self.tilt, wins, self.batches,
+                          residues=residues if self.residue_tilts else 0)
         st = run_chunked(kern, runs, mc.chunk, mc.seed, stream=0, progress=ctx.progress, label="tail")
         labs = labels(ests)
-        K = 1 + len(wins)
+        K = 1 + len(kern.components)
         n0 = int(st["n_c"][0])
         rows, fits = [], []
         kind = getattr(ch, "kind", "")
@@ -336,15 +359,19 @@ class TailMetric(AnalysisModel):
                 p, se = importance_estimate(st, j)
             else:
                 p, se = p0, se0
+            cnt = st[f"cnt_{j}"]
+            rel = np.where(p > 0, se / np.where(p > 0, p, 1), np.inf)
+            # a weighted estimate resting on few runs has an unreliable standard error too: a result needs
+            # MIN_CONTRIBUTORS runs above M and a relative s.e. ≤ 0.25
+            good = (cnt >= MIN_CONTRIBUTORS) & (rel <= 0.25)
             for i, m in enumerate(M):
                 rows.append(dict(M=m, estimator=lab, series="importance" if K > 1 else "monte_carlo", value=p[i],
                                  stderr=se[i], n=int(st["n_c"].sum()), lo=max(p[i] - 1.96 * se[i], 0.0),
-                                 hi=p[i] + 1.96 * se[i], count=np.nan))
+                                 hi=p[i] + 1.96 * se[i], count=cnt[i], reliable=float(good[i])))
                 if K > 1:
                     rows.append(dict(M=m, estimator=lab, series="plain", value=p0[i], stderr=se0[i], n=n0,
-                                     lo=lo0[i], hi=hi0[i], count=cnt0[i]))
-            rel = np.where(p > 0, se / np.where(p > 0, p, 1), np.inf)
-            mask = (p > 0) & (p <= self.fit_below) & (rel <= 0.25)
+                                     lo=lo0[i], hi=hi0[i], count=cnt0[i], reliable=float(cnt0[i] >= MIN_CONTRIBUTORS)))
+            mask = (p > 0) & (p <= self.fit_below) & good
             slope, sej, nb = jackknife_slope(M, st[f"bwf_{j}"], st["n_b"], mask) if mask.sum() >= 3 else (math.nan, math.nan, 0)
             from scipy import stats as sps
 
@@ -375,10 +402,12 @@ class TailMetric(AnalysisModel):
                                                 and slope - half <= theo <= slope + half),
                              is_vs_plain_max_z=float(z[both].max()) if both.any() else np.nan,
                              is_vs_plain_points=int(both.sum())))
-        table = pd.DataFrame(rows, columns=["M", "estimator", "series", "value", "stderr", "n", "lo", "hi", "count"])
+        table = pd.DataFrame(rows, columns=["M", "estimator", "series", "value", "stderr", "n", "lo", "hi", "count",
+                                            "reliable"])
         fit = pd.DataFrame(fits)
         meta = {"step": step, "statistic": self.of, "quantity": QUANTITY[self.quantity], "estimators": labs,
                 "importance_sampling": ({"components": K, "tilt": self.tilt, "windows": wins, "alpha": 1.0 / K,
+                                         "residue_classes": residues if self.residue_tilts else 0,
                                          "weights": "w = 1 / (α₀ + Σ_c α_c q_c/p) ≤ K over each component's window "
                                                     "(balance heuristic); component 0 is the channel itself (plain "
                                                     "Monte Carlo)"}
@@ -394,12 +423,17 @@ class TailMetric(AnalysisModel):
         X = r"\mathrm{tr}\,P_k" if self.of == "trace" else r"\lambda_{\max}(P_k)"
         for j, (lab, g) in enumerate(t.groupby("estimator", sort=False)):
             sty = series_style(j)
-            main = g[g.series.isin(["importance", "monte_carlo"])]
-            main = main[main.value > 0]
-            is_imp = (main.series == "importance").any()
+            allm = g[g.series.isin(["importance", "monte_carlo"])]
+            allm = allm[allm.value > 0]
+            rel_ok = allm.reliable > 0 if "reliable" in allm else np.ones(len(allm), bool)
+            main, weak = allm[rel_ok], allm[~rel_ok]
+            is_imp = (allm.series == "importance").any()
             ax.errorbar(main.M, main.value, yerr=[main.value - main.lo.clip(lower=main.value * 1e-3), main.hi - main.value],
                         fmt=sty["marker"], color=sty["color"], ms=4, capsize=2, lw=1,
                         label=f"{lab}: {'importance sampling' if is_imp else 'Monte Carlo'} (95 % interval)")
+            if len(weak):
+                ax.plot(weak.M, weak.value, linestyle="none", marker=sty["marker"], mfc="none", color=sty["color"], ms=6,
+                        label=f"{lab}: fewer than {MIN_CONTRIBUTORS} runs above M or rel. s.e. > 0.25 (not a result)")
             pl = g[(g.series == "plain") & (g.value > 0)]
             if len(pl):
                 ax.errorbar(pl.M, pl.value, yerr=[pl.value - pl.lo, pl.hi - pl.value], linestyle="none", marker="o",
