@@ -30,7 +30,9 @@ Backends: ``numpy`` (the reference, batched over runs) and ``numba`` (one compil
 built from :mod:`netkf_cli.kalman_numba`'s inlined primitives — predict, update, the rescue's
 information update, gain, the RTS step ``smooth``; one arrival stream or one sensor). Equal to rounding (a test).
 ``auto`` = numba where it is available, applicable and measured faster (batches of at most
-:data:`AUTO_NUMBA_MAX_RUNS` runs: long runs of few columns), else numpy.
+:data:`AUTO_NUMBA_MAX_RUNS` runs: long runs of few columns), else numpy; with nothing to smooth
+(lag 0, or only ``filtered``/``predicted`` asked) auto is always the numpy core, so those numbers
+are kf's bit for bit.
 
 Monte Carlo kernels kept here (picklable, additive statistics): :class:`SmootherMCKernel` (used by
 ``benchmarks/``) and :class:`RetransmissionKernel` (Sec. V: the effective arrival pattern of a
@@ -99,8 +101,7 @@ class SmootherEstimator(EstimatorModel):
         return int(self.lag) if quantity == "smoothed" else 1
 
     def conventions(self, system, channel) -> dict[str, str]:
-        return {"smoothed": f"P_{{k-{self.lag}|k}} (lag N = {self.lag}: x_(k-{self.lag}) from y_1..y_k)",
-                "forward pass": "kalman.Filter (= kf), P0 = P_{0|0}"}
+        return {"lag": f"N = {self.lag} (smoothed = P_{{k-{self.lag}|k}}; filtered, predicted = kf's)"}
 
     def check(self, system, channel) -> None:
         from netkf_cli.estimators.kf import channel_streams
@@ -176,8 +177,8 @@ def run(system: LinearSystem, gamma: np.ndarray, steps, quantities=("smoothed",)
         return
     N = int(lag) if "smoothed" in qs else 0
     be = resolve_backend(backend)
-    if backend == "auto" and gamma.shape[-1] > AUTO_NUMBA_MAX_RUNS:
-        be = "numpy"
+    if backend == "auto" and (gamma.shape[-1] > AUTO_NUMBA_MAX_RUNS or N == 0):
+        be = "numpy"  # auto: nothing to smooth (lag 0, or only filtered/predicted) runs kf's own numpy path
     if be == "numba" and len(f.groups) == 1:
         yield from _run_numba(f, system, gamma, steps, qs, N, prior)
     else:
@@ -239,116 +240,122 @@ def _inf_if_bad(P: np.ndarray) -> np.ndarray:
     return P
 
 
+kn = None
+"""netkf_cli.kalman_numba, bound when the kernel is first compiled (numba is optional)."""
+
 _JIT: dict[str, object] = {}
+
+
+def _nb_kernel(A, C, Q, R, info, limit, info_s, limit_s, P0, Pm1, use_prior, gamma, slot, N, wf, wp, ws, outF, outP, outS):
+    """Per run (outer loop), per step: predict, update, the rescue (as :class:`kalman.Rescue` for one
+    sensor group), the output slots, and N :func:`kalman_numba.smooth` steps back over the ring buffer
+    of P_{t|t} — all kalman_numba primitives, inlined."""
+    n = A.shape[0]
+    m = C.shape[0]
+    T = slot.shape[0] - 1
+    runs = gamma.shape[0]
+    W = N + 1
+    Pf = np.empty((W, n, n))
+    Pm = np.empty((n, n))
+    Pn = np.empty((n, n))
+    Ps = np.empty((n, n))
+    Ps2 = np.empty((n, n))
+    tmp = np.empty((n, n))
+    w1 = np.empty((n, n))
+    w2 = np.empty((n, n))
+    w3 = np.empty((n, n))
+    w4 = np.empty((n, n))
+    w5 = np.empty((n, n))
+    w6 = np.empty((n, n))
+    PCt = np.empty((n, m))
+    S = np.empty((m, m))
+    X = np.empty((m, n))
+    t0 = 1 if use_prior else 0
+    for r in range(runs):
+        for i in range(n):
+            for j in range(n):
+                Pf[0, i, j] = P0[i, j]
+        for t in range(1, T + 1):
+            if t == 1 and use_prior:
+                for i in range(n):
+                    for j in range(n):
+                        Pm[i, j] = Pm1[i, j]
+            else:
+                kn.predict(Pf[(t - 1) % W], A, Q, Pm, tmp)
+            g = 1.0 if gamma[r, t - 1] else 0.0
+            tr = 0.0
+            for i in range(n):
+                tr += Pm[i, i]
+            flagged = not (tr <= limit)
+            kn.update(Pm, C, R, g, Pn, PCt, S, X)
+            if flagged:  # kalman.Rescue: redo in information form, non-finite ⇒ inf
+                finite = True
+                for i in range(n):
+                    for j in range(n):
+                        if not np.isfinite(Pm[i, j]):
+                            finite = False
+                if finite and g != 0.0:
+                    kn.information_update(Pm, info, Pn, w1, w2)
+                bad = False
+                for i in range(n):
+                    for j in range(n):
+                        if not np.isfinite(Pn[i, j]):
+                            bad = True
+                if bad:
+                    for i in range(n):
+                        for j in range(n):
+                            Pn[i, j] = np.inf
+            for i in range(n):
+                for j in range(n):
+                    Pf[t % W, i, j] = Pn[i, j]
+            s_ = slot[t]
+            if s_ < 0:
+                continue
+            if wf:
+                for i in range(n):
+                    for j in range(n):
+                        outF[r, s_, i, j] = Pn[i, j]
+            if wp:
+                kn.predict(Pn, A, Q, Ps, tmp)
+                for i in range(n):
+                    for j in range(n):
+                        outP[r, s_, i, j] = Ps[i, j]
+            if ws:
+                if t - N < t0:
+                    for i in range(n):
+                        for j in range(n):
+                            outS[r, s_, i, j] = np.nan
+                    continue
+                for i in range(n):
+                    for j in range(n):
+                        Ps[i, j] = Pn[i, j]
+                for u in range(t - 1, t - N - 1, -1):
+                    kn.smooth(Ps, Pf[u % W], A, Q, info_s, limit_s, Ps2, w1, w2, w3, w4, w5, w6)
+                    for i in range(n):
+                        for j in range(n):
+                            Ps[i, j] = Ps2[i, j]
+                bad = False
+                for i in range(n):
+                    for j in range(n):
+                        if not np.isfinite(Ps[i, j]):
+                            bad = True
+                for i in range(n):
+                    for j in range(n):
+                        outS[r, s_, i, j] = np.inf if bad else Ps[i, j]
+    # step 0 (P_{0|0}) is never a slot of the kernel: handled by the caller
 
 
 def _kernel():
     """The compiled recursion (built lazily: numba is imported only when used; cached on disk)."""
     f = _JIT.get("k")
-    if f is not None:
-        return f
-    import numba as nb
+    if f is None:
+        import numba as nb
 
-    from netkf_cli import kalman_numba as kn
+        from netkf_cli import kalman_numba
 
-    @nb.njit(cache=True, nogil=True, error_model="numpy")
-    def kernel(A, C, Q, R, info, limit, info_s, limit_s, P0, Pm1, use_prior, gamma, slot, N, wf, wp, ws, outF, outP, outS):
-        n = A.shape[0]
-        m = C.shape[0]
-        T = slot.shape[0] - 1
-        runs = gamma.shape[0]
-        W = N + 1
-        Pf = np.empty((W, n, n))
-        Pm = np.empty((n, n))
-        Pn = np.empty((n, n))
-        Ps = np.empty((n, n))
-        Ps2 = np.empty((n, n))
-        tmp = np.empty((n, n))
-        w1 = np.empty((n, n))
-        w2 = np.empty((n, n))
-        w3 = np.empty((n, n))
-        w4 = np.empty((n, n))
-        w5 = np.empty((n, n))
-        w6 = np.empty((n, n))
-        PCt = np.empty((n, m))
-        S = np.empty((m, m))
-        X = np.empty((m, n))
-        t0 = 1 if use_prior else 0
-        for r in range(runs):
-            for i in range(n):
-                for j in range(n):
-                    Pf[0, i, j] = P0[i, j]
-            for t in range(1, T + 1):
-                if t == 1 and use_prior:
-                    for i in range(n):
-                        for j in range(n):
-                            Pm[i, j] = Pm1[i, j]
-                else:
-                    kn.predict(Pf[(t - 1) % W], A, Q, Pm, tmp)
-                g = 1.0 if gamma[r, t - 1] else 0.0
-                tr = 0.0
-                for i in range(n):
-                    tr += Pm[i, i]
-                flagged = not (tr <= limit)
-                kn.update(Pm, C, R, g, Pn, PCt, S, X)
-                if flagged:  # kalman.Rescue: redo in information form, non-finite ⇒ inf
-                    finite = True
-                    for i in range(n):
-                        for j in range(n):
-                            if not np.isfinite(Pm[i, j]):
-                                finite = False
-                    if finite and g != 0.0:
-                        kn.information_update(Pm, info, Pn, w1, w2)
-                    bad = False
-                    for i in range(n):
-                        for j in range(n):
-                            if not np.isfinite(Pn[i, j]):
-                                bad = True
-                    if bad:
-                        for i in range(n):
-                            for j in range(n):
-                                Pn[i, j] = np.inf
-                for i in range(n):
-                    for j in range(n):
-                        Pf[t % W, i, j] = Pn[i, j]
-                s_ = slot[t]
-                if s_ < 0:
-                    continue
-                if wf:
-                    for i in range(n):
-                        for j in range(n):
-                            outF[r, s_, i, j] = Pn[i, j]
-                if wp:
-                    kn.predict(Pn, A, Q, Ps, tmp)
-                    for i in range(n):
-                        for j in range(n):
-                            outP[r, s_, i, j] = Ps[i, j]
-                if ws:
-                    if t - N < t0:
-                        for i in range(n):
-                            for j in range(n):
-                                outS[r, s_, i, j] = np.nan
-                        continue
-                    for i in range(n):
-                        for j in range(n):
-                            Ps[i, j] = Pn[i, j]
-                    for u in range(t - 1, t - N - 1, -1):
-                        kn.smooth(Ps, Pf[u % W], A, Q, info_s, limit_s, Ps2, w1, w2, w3, w4, w5, w6)
-                        for i in range(n):
-                            for j in range(n):
-                                Ps[i, j] = Ps2[i, j]
-                    bad = False
-                    for i in range(n):
-                        for j in range(n):
-                            if not np.isfinite(Ps[i, j]):
-                                bad = True
-                    for i in range(n):
-                        for j in range(n):
-                            outS[r, s_, i, j] = np.inf if bad else Ps[i, j]
-        # step 0 (P_{0|0}) is never a slot of the kernel: handled by the caller
-
-    _JIT["k"] = kernel
-    return kernel
+        globals()["kn"] = kalman_numba  # resolved by numba when it compiles the kernel
+        f = _JIT["k"] = nb.njit(cache=True, nogil=True, error_model="numpy")(_nb_kernel)
+    return f
 
 
 def _run_numba(f: kalman.Filter, system, gamma, steps, qs, N, prior):
@@ -605,6 +612,8 @@ def paper_way_indicators(system: LinearSystem, gamma: np.ndarray, lags: Sequence
     steps, cols = gamma.shape
     Lmax = max(max(lags), 0)
     times = np.arange(burn + 1, steps - Lmax + 1)
+    if backend == "auto" and numba_available():
+        backend = "numba"  # one long run per column: the compiled kernel is 10–100× faster here (README "Speed")
     g = np.ascontiguousarray(gamma)[None]
     ind = np.empty((len(times), cols), dtype=bool)
     for lag in sorted(set(int(l) for l in lags)):
