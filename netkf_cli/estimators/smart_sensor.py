@@ -85,6 +85,9 @@ def smart_covariances(s: LinearSystem, trace, steps, quantities=("filtered",)):
     Ps = initial_covariance(s)[:, :, None]  # the sensor's P^s_t (one run, every measurement received)
     G = Ps.copy()  # G_0 = [P^s_0]
     one = np.ones((1, 1), dtype=bool)
+    final = d <= Dmax  # a packet older than D_max is kept iff its delay is ≤ D_max (its final status)
+    last = np.zeros(trace.runs, dtype=np.int64)  # newest finally kept packet among 1 … done (0: none)
+    done = 0
     t = 0
     for k in want:
         while t < k:
@@ -92,6 +95,10 @@ def smart_covariances(s: LinearSystem, trace, steps, quantities=("filtered",)):
                 _, Ps = f.step(Ps, one)
                 G = _finite_or_inf(np.concatenate([Ps, kalman.predict(G, f.A, f.Q)], axis=2))
             t += 1
-        kept = kept_by(d, k, Dmax)[::-1]  # (k, runs), row j = packet k − j (age j)
-        N = np.where(kept.any(axis=0), np.argmax(kept, axis=0), k)
+        w0 = max(0, k - Dmax - 1)  # packets 1 … w0 have age > D_max at k
+        while done < w0:
+            last = np.where(final[done], done + 1, last)
+            done += 1
+        kept = kept_by(d, k, Dmax, w0)[::-1]  # (k − w0, runs), row j = packet k − j (age j ≤ D_max)
+        N = np.where(kept.any(axis=0), np.argmax(kept, axis=0), np.where(last > 0, k - last, k))
         yield k, kalman.report(np.ascontiguousarray(G[:, :, N]), quantities, f.A, f.Q)
