@@ -312,7 +312,9 @@ def lmmse_filter(model: AugmentedModel, T: np.ndarray, pi0: np.ndarray, x0: np.n
         Σ_ν[j,l] = Σ_i (δ_jl p_ij − p_ij p_il) F_i Q_i F_iᵀ + δ_jl Σ_i p_ij π_i G_i Σ G_iᵀ
         Σ_νη[j]  = Σ_i π_i p_ij G_i Σ J_iᵀ,      Σ_η = Σ_i π_i J_i Σ J_iᵀ
         Σ_y = ℍ P ℍᵀ + Σ_η,  K = (𝔽 P ℍᵀ + Σ_νη) Σ_y⁺,  P⁺ = 𝔽 P 𝔽ᵀ + Σ_ν − K Σ_y Kᵀ
-        Ẑ(k+1) = 𝔽 Ẑ + K (y − ℍ Ẑ);  filtered: K_f = P ℍᵀ Σ_y⁺.
+        Ẑ(k+1) = 𝔽 Ẑ + K (y − ℍ Ẑ);  filtered: K_f = P ℍᵀ Σ_y⁺,
+    computed on the core in filtered form: P_f, K_f = ``kalman.update_pinv``(P, ℍ, Σ_η), then
+    P⁺ = ``kalman.predict``(P_f, 𝔽 − D ℍ, Σ_ν − D Σ_νηᵀ), K = (𝔽 − D ℍ) K_f + D, D = Σ_νη Σ_η⁺ (the same K).
 
     Initial: Ẑ_i(0) = π_i(0) ξ̄(0); P(0)[i,j] = δ_ij π_i M0 − π_i π_j ξ̄ ξ̄ᵀ, M0 = E ξ(0)ξ(0)ᵀ.
     """
@@ -350,17 +352,21 @@ def lmmse_filter(model: AugmentedModel, T: np.ndarray, pi0: np.ndarray, x0: np.n
                 Snu[j * d:(j + 1) * d, l * d:(l + 1) * d] = blk
         Snueta = np.concatenate([np.einsum("i,i,iab->ab", pi, T[:, j], GSJ) for j in range(N)], axis=0)
         Seta = np.einsum("i,iab->ab", pi, JSJ)
-        Sy = HH @ P @ HH.T + Seta
-        Syinv = pinv_psd(Sy, np.trace(Sy) + 1e-300)
-        Kf = P @ HH.T @ Syinv
-        K = (FF @ P @ HH.T + Snueta) @ Syinv
-        Pf = P - Kf @ Sy @ Kf.T
+        # on the core: the filtered update with the pseudo-inverse rule (the gain as K e_j on m copies of P),
+        # then the time update with ν decorrelated from η: ν = D η + ν̃, D = Σ_νη Σ_η⁺ (Anderson & Moore §5.5)
+        Sy_tr = np.trace(HH @ P @ HH.T + Seta)
+        Prep = np.repeat(P[:, :, None], m, axis=2)
+        Pf3, Kf = kalman.update_pinv(Prep, HH, Seta, ZERO_INNOVATION_RTOL * Sy_tr, np.eye(m))
+        Pf = Pf3[:, :, 0]
+        D = Snueta @ pinv_psd(Seta, np.trace(Seta) + 1e-300)
+        Fb = FF - D @ HH
+        Snu_t = Snu - D @ Snueta.T
+        K = Fb @ Kf + D
         tp[k] = np.trace(Ep @ P @ Ep.T)
         tf[k] = np.trace(Ep @ Pf @ Ep.T)
         As[k], Gs[k] = FF - K @ HH, K
         Ef[k], Lf[k] = Ep @ (np.eye(r) - Kf @ HH), Ep @ Kf
-        P = FF @ P @ FF.T + Snu - K @ Sy @ K.T
-        P = (P + P.T) / 2
+        P = kalman.one(kalman.predict, Pf, Fb, 0.5 * (Snu_t + Snu_t.T))
     # Ẑ_i(0) = π_i(0) [x̂0; x̂0; 0; 0]
     lift = np.zeros((d, n)); lift[:n] = np.eye(n); lift[n:2 * n] = np.eye(n)
     s0_map = np.concatenate([pi0[i] * lift for i in range(N)], axis=0)
@@ -567,9 +573,6 @@ class ModeAwareKFTr:
             self.xi = xin_all
         return xf, trf, Pfx
 
-
-ModeAwareKF = ModeAwareKFTr
-"""(former per-run layout; the one mode-aware filter is :class:`ModeAwareKFTr`)"""
 
 
 def plant_outputs_tr(model: AugmentedModel, xi: np.ndarray, eps: np.ndarray, mode: np.ndarray) -> np.ndarray:
@@ -812,9 +815,10 @@ def _numba_kernel():
     @numba.njit(cache=True, nogil=True)
     def run(P, xi, ys, xs, modes, t0, t1, H, Rq, Fb, D, Qb, scale, rtol, n, has_x, limit,
             Pfx, se_p, se_f, trp, trf, flag):  # pragma: no cover - compiled
-        # P (d, d, runs) = P(t0|t0−1) in, P(t1|t1−1) out; xi (d, runs) likewise; Pfx (n, n, runs) = P_x(t1−1|t1−1)
-        d = P.shape[0]
-        runs = P.shape[2]
+        # P (runs, d, d) = P(t0|t0−1) in, P(t1|t1−1) out; xi (runs, d) likewise; Pfx (n, n, runs) = P_x(t1−1|t1−1);
+        # modes (runs, T), ys (runs, T, m), xs (runs, T, n), se_p … (runs, T): each run contiguous
+        d = P.shape[1]
+        runs = P.shape[0]
         m = H.shape[1]
         Pl = np.empty((d, d))
         Pf = np.empty((d, d))
@@ -828,11 +832,11 @@ def _numba_kernel():
         for r in range(runs):
             for i in range(d):
                 for j in range(d):
-                    Pl[i, j] = P[i, j, r]
+                    Pl[i, j] = P[r, i, j]
                 if has_x:
-                    xl[i] = xi[i, r]
+                    xl[i] = xi[r, i]
             for t in range(t0, t1):
-                q = modes[t, r]
+                q = modes[r, t]
                 trx = 0.0
                 tra = 0.0
                 for i in range(d):
@@ -842,12 +846,12 @@ def _numba_kernel():
                 if (q == 0 or q == 2) and not (trx <= limit):
                     flag[r] = True  # the plain KF's overflow policy applies: numpy redoes this run
                 if has_x:
-                    trp[t, r] = trx
+                    trp[r, t] = trx
                     s = 0.0
                     for i in range(n):
-                        v = xs[t, i, r] - xl[i]
+                        v = xs[r, t, i] - xl[i]
                         s += v * v
-                    se_p[t, r] = s
+                    se_p[r, t] = s
                 if q == 2:
                     for i in range(d):
                         dx[i] = 0.0
@@ -857,7 +861,7 @@ def _numba_kernel():
                     for a in range(m):
                         acc = 0.0
                         if has_x:
-                            acc = ys[t, a, r]
+                            acc = ys[r, t, a]
                             for b in range(d):
                                 acc -= H[q, a, b] * xl[b]
                         e[a] = acc
@@ -868,17 +872,17 @@ def _numba_kernel():
                     for i in range(d):
                         xfl[i] = xl[i] + dx[i]
                     for i in range(n):
-                        v = xs[t, i, r] - xfl[i]
+                        v = xs[r, t, i] - xfl[i]
                         s += v * v
                         tf += Pf[i, i]
-                    se_f[t, r] = s
-                    trf[t, r] = tf
+                    se_f[r, t] = s
+                    trf[r, t] = tf
                     for i in range(d):
                         acc = 0.0
                         for j in range(d):
                             acc += Fb[q, i, j] * xfl[j]
                         for a in range(m):
-                            acc += D[q, i, a] * ys[t, a, r]
+                            acc += D[q, i, a] * ys[r, t, a]
                         xl[i] = acc
                 if t == t1 - 1:
                     for i in range(n):
@@ -887,9 +891,9 @@ def _numba_kernel():
                 kn.predict(Pf, Fb[q], Qb[q], Pl, tmp)
             for i in range(d):
                 for j in range(d):
-                    P[i, j, r] = Pl[i, j]
+                    P[r, i, j] = Pl[i, j]
                 if has_x:
-                    xi[i, r] = xl[i]
+                    xi[r, i] = xl[i]
 
     _NB_KERNEL = run
     return run
@@ -905,8 +909,7 @@ class ModeAwareCompiled:
         self.ref = ModeAwareKFTr(model, runs, xhat0, P0, states, base)
         self.model = model
         self._fn = _numba_kernel()
-        self._args = (np.ascontiguousarray(model.H), np.ascontiguousarray(self.ref.Rq),
-                      *(np.ascontiguousarray(a) for a in (self.ref.Fb, self.ref.D, self.ref.Qb)))
+        self._args = tuple(np.ascontiguousarray(a) for a in (model.H, self.ref.Rq, self.ref.Fb, self.ref.D, self.ref.Qb))
 
     @property
     def P(self):
@@ -921,15 +924,24 @@ class ModeAwareCompiled:
         has_x = ref.xi is not None and ys is not None
         K = modes.shape[0]
         P0, xi0 = ref.P.copy(), (ref.xi.copy() if has_x else None)
-        P = np.ascontiguousarray(ref.P)
-        xi = np.ascontiguousarray(ref.xi) if has_x else np.zeros((md.d, 1))
+        PT = np.ascontiguousarray(np.moveaxis(ref.P, -1, 0))  # (runs, d, d): one run's P contiguous
+        xiT = np.ascontiguousarray(ref.xi.T) if has_x else np.zeros((1, md.d))
         Pfx = np.empty((n, n, runs))
-        arr = (lambda: np.zeros((K, runs))) if has_x else (lambda: np.zeros((1, 1)))
+        # run-outer loop: each run's inputs and outputs contiguous in time ((runs, K, ·) copies)
+        arr = (lambda: np.zeros((runs, t1 - t0))) if has_x else (lambda: np.zeros((1, 1)))
         se_p, se_f, trp, trf = arr(), arr(), arr(), arr()
         flag = np.zeros(runs, dtype=np.bool_)
-        self._fn(P, xi, ys if has_x else np.zeros((1, 1, 1)), xs if has_x else np.zeros((1, 1, 1)),
-                 np.ascontiguousarray(modes, dtype=np.int64), int(t0), int(t1), *self._args, ref.scale,
+        mT = np.ascontiguousarray(modes[t0:t1].T, dtype=np.int64)
+        yT = np.ascontiguousarray(np.moveaxis(ys[t0:t1], -1, 0)) if has_x else np.zeros((1, 1, 1))
+        xT = np.ascontiguousarray(np.moveaxis(xs[t0:t1], -1, 0)) if has_x else np.zeros((1, 1, 1))
+        self._fn(PT, xiT, yT, xT, mT, 0, t1 - t0, *self._args, ref.scale,
                  ZERO_INNOVATION_RTOL, n, has_x, ref.rescue.limit, Pfx, se_p, se_f, trp, trf, flag)
+        if has_x:  # back to the (K, runs) layout, rows t0 … t1−1
+            full = [np.zeros((K, runs)) for _ in range(4)]
+            for F_, a in zip(full, (se_p, se_f, trp, trf)):
+                F_[t0:t1] = a.T
+            se_p, se_f, trp, trf = full
+        P, xi = np.moveaxis(PT, 0, -1), (xiT.T if has_x else None)  # views in the (d, d, runs) layout
         if flag.any():  # the overflow policy: these runs through the numpy reference
             idx = np.flatnonzero(flag)
             sub = ModeAwareKFTr.__new__(ModeAwareKFTr)

@@ -97,3 +97,4 @@ def test_compiled_update_pinv_equals_numpy(m):
             a, b = call(np.ascontiguousarray(P[:, :, r]), C, R, floor[r], e[:, r])
             np.testing.assert_allclose(a, Pf[:, :, r], rtol=1e-9, atol=1e-9 * np.abs(P[:, :, r]).max())
             np.testing.assert_allclose(b, dx[:, r], rtol=1e-8, atol=1e-8 * (1 + np.abs(dx[:, r]).max()))
+
