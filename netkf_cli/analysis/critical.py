@@ -24,8 +24,17 @@ P_k = P_{k|k−1} (the prediction covariance, the quantity of Sinopoli et al. 20
 ρ(A) = 1 with (A, C) detectable (λ_c = 0, every λ > 0 works); the scalar case and C invertible
 (Sinopoli et al. 2004); C restricted to the observable subspace invertible (Plarre & Bullo 2009,
 "On Kalman filtering for detectable systems with intermittent observations", IEEE TAC 54(2));
-a single unstable eigenvalue (Mo & Sinopoli 2008; argument in experiments/critical/README.md).
-Everywhere else the answer is the interval [λ_min, λ_max].
+a single unstable eigenvalue (Mo & Sinopoli 2008; argument in experiments/critical/README.md); every
+non-degenerate system — each group of eigenvalues of equal modulus ≥ 1 one-step observable (Mo & Sinopoli 2012,
+IEEE TAC 57(3): λ_c = 1 − 1/ρ(A)², :func:`nondegeneracy`); degenerate second-order systems whose eigenvalue ratio
+is a primitive p-th root of unity (derived here: λ_c = 1 − ρ^{−2p/(p−1)}, :func:`degenerate_second_order`, checked
+against :func:`enumerate_expected_trace`). Everywhere else a numerical certificate: a proven lower end (λ_min, or the
+λ_c of a decoupled degenerate 2×2 sub-system, :func:`subsystem_lower_bound`) and an upper end certified by the
+L-step averaged Riccati map (:func:`lambda_c_certificate`), tighter than λ_max.
+
+**Tail** (Mo & Sinopoli 2012): Pr[tr P_k > M] ~ M^φ, φ = log s/(2 log ρ(A)) (:func:`tail_exponent`), used by the
+``tail`` metric (:mod:`netkf_cli.metrics.tail`). **Monte Carlo reliability** of a mean of P (issue 19):
+:func:`mean_reliability`.
 
 **Gilbert–Elliott (Markov) arrivals** with failure rate p = P(γ_{k+1} = 0 | γ_k = 1) and
 recovery rate q = P(γ_{k+1} = 1 | γ_k = 0) (``channels.gilbert_elliott``: p = p_gb, q = p_bg):
@@ -33,8 +42,11 @@ recovery rate q = P(γ_{k+1} = 1 | γ_k = 0) (``channels.gilbert_elliott``: p = 
 * necessary for any system: (1 − q) ρ(A)² < 1 (:func:`ge_q_necessary`; the analogue of Thm 3:
   a loss burst of length j has probability ∝ (1 − q)^j and P grows like ρ(A)^{2j} during it);
 * exact where one received packet bounds P (scalar, C of full column rank, single unstable
-  eigenvalue, ρ(A) ≤ 1): bounded iff q > 1 − 1/ρ(A)², whatever p (:func:`ge_scalar_bounds`
+  eigenvalue, ρ(A) ≤ 1) and for every non-degenerate system (Mo & Sinopoli 2012; derivation in
+  experiments/critical/README.md): bounded iff q > 1 − 1/ρ(A)², whatever p (:func:`ge_scalar_bounds`
   gives the stationary E[P] bracket of the scalar case in closed form);
+* derived for degenerate 2×2 systems: bounded iff ρ^{2p}·μ_p(p_fail, q) < 1, μ_p the decay of windows whose
+  arrivals share one residue class (:func:`ge_degenerate_critical_q`);
 * sufficient for any system: mean-square stability of a constant-gain predictor under the
   Markov switching, an LMI in (P₀, P₁, W) (:func:`ge_lmi_margin`), the Markov analogue of
   Sinopoli's Thm 5(b); at p + q = 1 (i.i.d.) its threshold equals λ_max.
