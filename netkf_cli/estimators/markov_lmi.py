@@ -431,11 +431,10 @@ class MarkovLMIEstimator(EstimatorModel):
             kalman.stream_rows(system, 1, "estimator.kind")
 
     def conventions(self, system, channel) -> dict[str, str]:
-        return {"packet": "one packet per step carries y_k; mode 1 on time, 2 one-step delayed z_{k-1}, 3 noise only, "
-                          "4 held copy of y_{k-1}",
-                "filter": {"lmi": "LMI-designed fixed gains (Sec. III)", "naive": "KF assuming mode 1 always",
-                           "mode_aware": "KF knowing the mode", "lmmse": "exact LMMSE"}[self.filter],
-                "start": "P0 = P_{0|0}; before the start the held/delayed content is noise (eq. 35 one step later)"}
+        """The packet model and the start (eq. 35 one step later: what a delayed or held packet holds at k = 1)."""
+        return {"packet": "one packet per step carries y_k (mode 1 on time, 2 z_{k-1} delayed, 3 noise only, "
+                          "4 y_{k-1} held)",
+                "start": "y_0 = v_0 (a delayed/held first packet is noise)"}
 
     def _model(self, system):
         n = np.atleast_2d(np.asarray(system.A, float)).shape[0]
