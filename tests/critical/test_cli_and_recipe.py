@@ -142,3 +142,15 @@ def test_gilbert_elliott_verdict_next_to_bernoulli_at_the_same_loss(tmp_path):
     cfg.write_text(cfg.read_text().replace("p_bg: 0.5", "p_bg: 0.8"))
     js = json.loads(runner.invoke(app, ["critical", "--config", str(cfg), "--json"]).stdout)
     assert js["channel"]["bounded"] is True
+
+
+def test_gilbert_elliott_verdict_for_the_degenerate_parity_system(tmp_path):
+    """diag(2, −2), C = [1 1] over Gilbert–Elliott: decided by the derived residue-class law, not by q > 0.75."""
+    cfg = tmp_path / "pge.yaml"
+    cfg.write_text("name: pge\nsystem: {A: [[2, 0], [0, -2]], C: [[1, 1]], Q: [[1, 0], [0, 1]], R: 1}\n"
+                   "channel: {kind: gilbert_elliott, p_gb: 0.03, p_bg: 0.85}\nanalysis: {kind: critical}\n")
+    ch = json.loads(runner.invoke(app, ["critical", "--config", str(cfg), "--json"]).stdout)["channel"]
+    assert ch["bounded"] is True and "q_c(p) = 0.804099" in ch["verdict"]
+    cfg.write_text(cfg.read_text().replace("p_gb: 0.03", "p_gb: 0.1"))  # p ≥ 1/16: alternating patterns starve a parity
+    ch = json.loads(runner.invoke(app, ["critical", "--config", str(cfg), "--json"]).stdout)["channel"]
+    assert ch["bounded"] is False and "no recovery rate suffices" in ch["verdict"] and ch["q"] > ch["q_necessary"]
