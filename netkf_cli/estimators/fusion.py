@@ -87,13 +87,14 @@ class Sensors:
     def identical(self) -> bool:
         return self.C1 is not None
 
-    def correct(self, Pm: np.ndarray, arrived: np.ndarray) -> np.ndarray:
+    def correct(self, Pm: np.ndarray, arrived: np.ndarray, counts: np.ndarray | None = None) -> np.ndarray:
         """P_{k|k} from P_{k|k−1} with the sensors ``arrived`` (N, runs) bool: the core's Filter, or for
-        N > 1 identical sensors the count update (eq. (14)) under the same Rescue."""
+        N > 1 identical sensors the count update (eq. (14); ``counts`` = ``arrived.sum(0)`` if known)
+        under the same Rescue."""
         if self.N == 1 or not self.identical:
             return self.filt.correct(Pm, arrived)
         flagged = self.filt.rescue.flag(Pm)
-        P = kalman.update_counts(Pm, self.C1, self.R1, arrived.sum(axis=0))
+        P = kalman.update_counts(Pm, self.C1, self.R1, arrived.sum(axis=0) if counts is None else counts)
         if flagged.any():
             P = self.filt.rescue.apply(P, Pm, flagged, kalman.row_mask(arrived, self.filt.groups, self.filt.C.shape[0]))
         return P
@@ -176,10 +177,13 @@ def _mf_run(sens: Sensors, P0: np.ndarray, arrival: np.ndarray, want, qs):
     """MF with N identical sensors: the count update, step k from trace step k − 1."""
     runs = arrival.shape[-1]
     P = np.repeat(np.asarray(P0, dtype=float)[:, :, None], runs, axis=2)
+    counts = arrival.sum(axis=0, dtype=np.float64)  # ℓ_k per step and run, (T, runs): one pass over the trace
+    A, Q = sens.filt.A, sens.filt.Q
     t = 0
     for k in want:
         while t < k:
-            P = sens.step(P, arrival[:, t])
+            with np.errstate(over="ignore", invalid="ignore"):
+                P = sens.correct(kalman.predict(P, A, Q), arrival[:, t], counts[t])
             t += 1
         yield k, kalman.report(P, qs, sens.filt.A, sens.filt.Q)
 
@@ -338,9 +342,14 @@ class OLPEFTables:
         tc = np.where(received, tau, K + 1).astype(np.int64)
         flat = (np.arange(rows, dtype=np.int64)[:, None] * (K + 2) + tc).ravel()
         h = np.bincount(flat, minlength=rows * (K + 2)).reshape(rows, K + 2)[:, : K + 1].astype(float)
-        lin = np.einsum("ra,aij->rij", h, self.linM[: K + 1])
-        out = self.sxxM[None] - lin - np.swapaxes(lin, 1, 2) + np.einsum("ra,aij->rij", h, self.diagM[: K + 1])
-        out += np.einsum("ra,rb,abij->rij", h, h, self.TM[: K + 1, : K + 1], optimize=True)
+        n, L = self.n, K + 1
+        # the contractions as GEMMs over row blocks (einsum without BLAS was ~10× slower; memory O(block·L·n²))
+        lin = (h @ self.linM[:L].reshape(L, n * n)).reshape(rows, n, n)
+        out = self.sxxM[None] - lin - np.swapaxes(lin, 1, 2) + (h @ self.diagM[:L].reshape(L, n * n)).reshape(rows, n, n)
+        TM = self.TM[:L, :L].transpose(0, 2, 3, 1).reshape(L, n * n * L)  # [a, (i, j, b)]
+        for r0 in range(0, rows, 2048):
+            hb = h[r0 : r0 + 2048]
+            out[r0 : r0 + 2048] += np.einsum("rkb,rb->rk", (hb @ TM).reshape(hb.shape[0], n * n, L), hb).reshape(-1, n, n)
         return (out + np.swapaxes(out, 1, 2)) / 2
 
 
