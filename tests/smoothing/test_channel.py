@@ -41,7 +41,8 @@ def test_parameterisations_agree():
         (dict(), "needs loss_rate"),
         (dict(loss_rate=1.2, mean_burst=3), "loss_rate"),
         (dict(loss_rate=0.2, mean_burst=0.5), "mean_burst"),
-        (dict(p_gb=0.0, p_bg=0.5), "p_gb"),
+        (dict(p_gb=-0.1, p_bg=0.5), "p_gb"),  # p_gb = 0 (never lose) is allowed since issue 23
+        (dict(p_gb=0.3, p_bg=0.0), "p_bg"),
     ],
 )
 def test_bad_parameters_are_rejected_with_the_field(kw, needle):
