@@ -55,7 +55,8 @@ _STREAM_FIELDS = ("sensors", "streams")
 
 def _examples() -> tuple[dict, list]:
     """One validated instance per channel kind and estimator kind, from the example scenarios
-    (configs/, experiments/), else from the defaults alone; and the examples' systems."""
+    (configs/, experiments/), else from the defaults alone; and the systems to check them on,
+    as ``(label, system block, LinearSystem)``: the representative ones, then the examples'."""
     from pydantic import ValidationError
 
     from netkf_cli.errors import ConfigError
@@ -86,21 +87,38 @@ def _examples() -> tuple[dict, list]:
                 continue
         if isinstance(data.get("system"), dict) and len(systems) < 40:
             try:
-                systems.append((f"the system of {f.relative_to(_ROOT).as_posix()}",
+                systems.append((f"the system of {f.relative_to(_ROOT).as_posix()}", data["system"],
                                 SystemSpec.model_validate(data["system"]).build()))
             except (ValidationError, ConfigError, ValueError):
                 pass
     for family, known in fam.items():
         for k, cls in known.items():
             if k not in found[family]:
-                try:
-                    found[family][k] = cls.model_validate({"kind": k})
-                except (ValidationError, ConfigError, ValueError):
-                    pass
+                for data in ({"kind": k}, _minimal(cls, k)):
+                    try:
+                        found[family][k] = cls.model_validate(data)
+                        break
+                    except (ValidationError, ConfigError, ValueError):
+                        pass
     reps = []
     for label, spec in REPRESENTATIVE_SYSTEMS.items():
-        reps.append((label, SystemSpec.model_validate(spec).build()))
+        reps.append((label, spec, SystemSpec.model_validate(spec).build()))
     return found, reps + systems
+
+
+def _minimal(cls, kind: str) -> dict:
+    """``{"kind": kind}`` with every required field that has a fixed set of values (a Literal) set to
+    its first value: enough to instantiate a kind no example scenario uses."""
+    data: dict[str, Any] = {"kind": kind}
+    for name, f in cls.model_fields.items():
+        if name == "kind" or not f.is_required():
+            continue
+        ann = f.annotation
+        if get_origin(ann) is Annotated:
+            ann = get_args(ann)[0]
+        if get_origin(ann) is Literal:
+            data[f.alias or name] = get_args(ann)[0]
+    return data
 
 
 def _streams(channel) -> int | None:
@@ -145,7 +163,7 @@ def _condition(trials: list[tuple]) -> str:
         if all((t[0] is not None and rule(t[0], t[1])) == t[2] for t in trials):
             return words
     bad = next(t for t in trials if not t[2])
-    return f"depends on the system; e.g. refused on {bad[4]}: {bad[3]}"
+    return f"depends on the system (refused on {bad[4]}: {bad[3]})"
 
 
 def compatibility() -> dict[str, dict[str, dict]]:
@@ -162,10 +180,18 @@ def _compat_cached(_cache: dict = {}) -> dict:  # noqa: B006 - a process-wide ca
     from netkf_cli.compat import check_pair
     from netkf_cli.errors import ConfigError
 
+    from netkf_cli.scenario import kinds
+    from netkf_cli.spec import ChannelModel, EstimatorModel
+
     found, systems = _examples()
     table: dict[str, dict[str, dict]] = {}
+    for ck in sorted(set(kinds(ChannelModel)) - set(found["channel"])):
+        table[ck] = {ek: {"status": "unknown", "reason": f"no example of channel kind {ck} to check it on"}
+                     for ek in kinds(EstimatorModel)}
     for ck, ch in sorted(found["channel"].items()):
         row = table.setdefault(ck, {})
+        for ek in sorted(set(kinds(EstimatorModel)) - set(found["estimator"])):
+            row[ek] = {"status": "unknown", "reason": f"no example of estimator kind {ek} to check it on"}
         for ek, es in sorted(found["estimator"].items()):
             try:
                 check_pair(ch, es, "estimator.kind", strict=True)
@@ -173,7 +199,7 @@ def _compat_cached(_cache: dict = {}) -> dict:  # noqa: B006 - a process-wide ca
                 row[ek] = {"status": "no", "reason": "; ".join(p.message for p in exc.problems)}
                 continue
             trials = []
-            for label, system in systems:
+            for label, _spec, system in systems:
                 for variant in _variants(ch, system.m):
                     try:
                         es.check(system, variant)
@@ -186,7 +212,12 @@ def _compat_cached(_cache: dict = {}) -> dict:  # noqa: B006 - a process-wide ca
             if all(t[2] for t in trials):
                 row[ek] = {"status": "yes"}
             elif not any(t[2] for t in trials):
-                row[ek] = {"status": "no", "reason": trials[0][3] if trials else "no system to check it on"}
+                msgs = {t[3] for t in trials}
+                if trials and len(msgs) == 1:  # the same refusal on every system: the example's own fields
+                    row[ek] = {"status": "conditional", "fields_only": True,
+                               "condition": f"with the estimator's fields set for it ({msgs.pop()})"}
+                else:
+                    row[ek] = {"status": "no", "reason": trials[0][3] if trials else "no system to check it on"}
             else:
                 row[ek] = {"status": "conditional", "condition": _condition(trials)}
     _cache["v"] = table
