@@ -1,0 +1,91 @@
+"""Issue 23.4: `runs: 1e12` stays under 500 MB whatever `--jobs` is.
+
+Memory is measured as the proportional set size (PSS, /proc/<pid>/smaps_rollup) summed over netkf
+and its worker processes: forked workers share the parent's pages, so summing resident sizes (RSS)
+counts the parent's ~250 MB of libraries once per worker — memory the machine does not spend.
+`--jobs 32` on a 2-core machine runs 2 workers (capped at the cores), so it holds the same bound.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from netkf_cli.montecarlo import usable_cores
+
+pytestmark = pytest.mark.skipif(not Path("/proc/self/smaps_rollup").exists(), reason="needs Linux /proc smaps_rollup")
+
+CFG = """\
+name: huge
+system: {A: 1.2, C: 1, Q: 1, R: 1}
+channel: {kind: bernoulli, arrival: 0.8}
+estimator: {kind: kf}
+analysis: {kind: distribution, M: [1, 5, 50]}
+montecarlo: {runs: 1e12, horizon: 50, chunk: 20000}
+"""
+
+
+def _field(pid: int, name: str, file: str) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/{file}").read_text().splitlines():
+            if line.startswith(name + ":"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit():
+            try:
+                if int((p / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                    out.append(int(p.name))
+            except (OSError, IndexError, ValueError):
+                pass
+    return out
+
+
+@pytest.mark.keeps_resume_cache  # stopped by Ctrl-C on purpose: its finished chunks are kept for --resume
+def test_a_trillion_runs_with_many_jobs_stays_under_500_mb(tmp_path):
+    cfg = tmp_path / "huge.yaml"
+    cfg.write_text(CFG, encoding="utf-8")
+    proc = subprocess.Popen([sys.executable, "-m", "netkf_cli.cli", "run", str(cfg), "--out", str(tmp_path / "o"),
+                             "--jobs", "32"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
+    reader.start()
+    peak, procs = 0.0, 1
+    try:
+        t0 = time.monotonic()  # start-up (imports: slow on a busy machine) until the run announces itself
+        while not any("large run" in ln for ln in lines) and time.monotonic() - t0 < 120:
+            assert proc.poll() is None, (proc.returncode, lines)
+            peak = max(peak, sum(_field(p, "Pss", "smaps_rollup") for p in [proc.pid, *_children(proc.pid)]))
+            time.sleep(0.2)
+        t1 = time.monotonic()
+        while time.monotonic() - t1 < 8.0:  # planning, the pool and the first chunks
+            assert proc.poll() is None, (proc.returncode, lines)
+            pids = [proc.pid, *_children(proc.pid)]
+            procs = max(procs, len(pids))
+            peak = max(peak, sum(_field(p, "Pss", "smaps_rollup") for p in pids))
+            time.sleep(0.2)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        reader.join(timeout=10)
+    err = "".join(lines)
+    assert peak < 500, f"netkf and its workers reached {peak:.0f} MB (PSS)"
+    assert procs <= 1 + usable_cores() + 1, procs  # the parent, one worker per core (and a resource tracker)
+    assert "capped at" in err or usable_cores() >= 32
+    assert "ETA" in err and not (tmp_path / "o").exists()
