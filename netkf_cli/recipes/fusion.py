@@ -25,9 +25,9 @@ from pydantic import Field
 
 from netkf_cli.analysis import fusion_bounds as fb
 from netkf_cli.errors import ConfigError
-from netkf_cli.engine import heavy_tail_flag
-from netkf_cli.estimators.fusion import STRATEGIES, FusionKernel, Sensors
-from netkf_cli.montecarlo import run_chunked
+from netkf_cli import batched, kalman
+from netkf_cli.engine import heavy_tail_flag, simulate
+from netkf_cli.estimators.fusion import STRATEGIES, FusionEstimator, FusionKernel, Sensors
 from netkf_cli.plotting import LINESTYLES, MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.system import LinearSystem
@@ -69,21 +69,59 @@ def _with_Q(s: LinearSystem, Q) -> LinearSystem:
     return LinearSystem.create(s.A, s.C, Q, s.R, s.P0, sensors=s.sensors)
 
 
+class TimeAverageMoments:
+    """Engine reducer of the fusion figures: per run and estimator j (one strategy each, in
+    :func:`fusion_keys` order), the time averages over ``steps`` of tr P_{k|k} and, where ``pred[j]``,
+    of tr P_{k+1|k} (:func:`netkf_cli.kalman.predict`); after the last step of the last estimator, the
+    additive statistics over d = x − ``shift`` (``sum``, ``cross`` for paired ratios, ``sum3``, ``sum4``,
+    ``nonfinite``) — the moments about a fixed shift, so the variance and the kurtosis do not cancel."""
+
+    def __init__(self, steps, A, Q, pred: list[bool], shift: np.ndarray):
+        self.steps, self.A, self.Q = list(steps), np.asarray(A, float), np.asarray(Q, float)
+        self.pred, self.shift = list(pred), np.asarray(shift, float)
+
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
+        if w is not None:  # the fusion estimators are not variance-reduced
+            raise ValueError("TimeAverageMoments takes unweighted covariances")
+        acc = stats.setdefault("_avg", {})
+        with np.errstate(over="ignore", invalid="ignore"):
+            if k == self.steps[0]:
+                acc[j] = [np.zeros(P.shape[-1]) for _ in range(1 + self.pred[j])]
+            acc[j][0] += batched.trace(P)
+            if self.pred[j]:
+                acc[j][1] += batched.trace(kalman.predict(P, self.A, self.Q))
+        if k != self.steps[-1] or j != len(self.pred) - 1:
+            return
+        X = np.stack([a / len(self.steps) for jj in sorted(acc) for a in acc[jj]]) - self.shift[:, None]
+        del stats["_avg"]
+        bad = ~np.isfinite(X)
+        Xf = np.where(bad, 0.0, X)
+        X2 = Xf * Xf
+        stats.update(sum=Xf.sum(axis=1), cross=Xf @ Xf.T, sum3=(X2 * Xf).sum(axis=1), sum4=(X2 * X2).sum(axis=1),
+                     nonfinite=bad.sum(axis=1))
+
+
 def _mc_point(system, channel, strategies, mc, runs: int, ctx: RunContext, *, stream: int = 0, label: str = ""):
     """Monte Carlo at one grid point → ({key: (mean, stderr, heavy_tail)}, paired-ratio function).
 
-    The kernel is :class:`FusionKernel` (picklable, fixed keys: runs on worker processes and resumes
-    from the chunk cache). Every grid point uses the same ``stream``: common random numbers across
-    the grid (the arrival indicators are monotone in the loss probability).
+    The generic engine (:func:`netkf_cli.engine.simulate`): one ``fusion`` estimator per strategy on the
+    same traces, reduced by :class:`TimeAverageMoments` (fixed keys: runs on worker processes and resumes
+    from the chunk cache). The shift is :class:`FusionKernel`'s pilot mean (a private stream). Every grid
+    point uses the same ``stream``: common random numbers across the grid (the arrival indicators are
+    monotone in the loss probability).
     """
-    kernel = FusionKernel(system, channel, strategies, mc.horizon, mc.burn_in)
-    keys = list(kernel.keys)
-    tot = run_chunked(kernel, runs, mc.chunk, mc.seed, stream=stream, progress=ctx.progress, label=label)
+    pilot = FusionKernel(system, channel, strategies, mc.horizon, mc.burn_in)
+    keys = list(pilot.keys)
+    ests = [FusionEstimator(kind="fusion", strategies=[k]) for k in STRATEGIES if k in strategies]
+    steps = list(range(mc.burn_in + 1, mc.horizon + 1))
+    reducer = TimeAverageMoments(steps, system.A, system.Q, [e.strategies[0] != "olpef" for e in ests], pilot.shift)
+    tot = simulate(system, channel, ests, reducer, steps=steps, runs=runs, horizon=mc.horizon, seed=mc.seed,
+                   chunk=mc.chunk, stream=stream, progress=ctx.progress, label=label)
     if np.any(tot["nonfinite"]):
         bad = {k: int(tot["nonfinite"][i]) for i, k in enumerate(keys) if tot["nonfinite"][i]}
         raise ConfigError.at("system", f"some runs overflowed (non-finite error variance): {bad}")
     dmean = tot["sum"] / runs  # moments are about the kernel's fixed shift (numerically stable)
-    mean = kernel.shift + dmean
+    mean = pilot.shift + dmean
     cov = (tot["cross"] / runs - np.outer(dmean, dmean)) * runs / max(runs - 1, 1)
     se = np.sqrt(np.maximum(np.diag(cov), 0.0) / runs)
     # central moments are shift-invariant: the sums about the kernel's shift are what the flag needs
