@@ -86,9 +86,12 @@ def test_compatible_pair_runs_every_generic_metric(samples, tmp_path, ch, es):
         t = pd.read_csv(out / f"{name}.csv")
         assert len(t) > 0 and (out / f"{name}.png").stat().st_size > 1000
         if metric == "compare":  # an estimator compared with itself: identical columns, difference exactly 0
-            mt = t[t.quantity == "mean_trace"].value.tolist()
+            mt = t[t.statistic == "mean_trace"].value.tolist()
             assert mt[0] == mt[1]
-            assert (t[t.quantity.str.startswith("diff_")].value == 0).all()
+            assert (t[t.statistic.str.startswith("diff_")].value == 0).all()
+        # every generic metric says what its numbers are
+        assert {"quantity", "P0", "conventions"} <= set(t.columns)
+        assert set(t.quantity) == {"filtered"}
 
 
 def test_the_core_pairs_are_compatible():
