@@ -283,28 +283,7 @@ def _nb_kernel(A, C, Q, R, info, limit, info_s, limit_s, P0, Pm1, use_prior, gam
             else:
                 kn.predict(Pf[(t - 1) % W], A, Q, Pm, tmp)
             g = 1.0 if gamma[r, t - 1] else 0.0
-            tr = 0.0
-            for i in range(n):
-                tr += Pm[i, i]
-            flagged = not (tr <= limit)
-            kn.update(Pm, C, R, g, Pn, PCt, S, X)
-            if flagged:  # kalman.Rescue: redo in information form, non-finite ⇒ inf
-                finite = True
-                for i in range(n):
-                    for j in range(n):
-                        if not np.isfinite(Pm[i, j]):
-                            finite = False
-                if finite and g != 0.0:
-                    kn.information_update(Pm, info, Pn, w1, w2)
-                bad = False
-                for i in range(n):
-                    for j in range(n):
-                        if not np.isfinite(Pn[i, j]):
-                            bad = True
-                if bad:
-                    for i in range(n):
-                        for j in range(n):
-                            Pn[i, j] = np.inf
+            _correct(Pm, C, R, g, info, limit, Pn, PCt, S, X, w1, w2)
             for i in range(n):
                 for j in range(n):
                     Pf[t % W, i, j] = Pn[i, j]
@@ -330,7 +309,7 @@ def _nb_kernel(A, C, Q, R, info, limit, info_s, limit_s, P0, Pm1, use_prior, gam
                     for j in range(n):
                         Ps[i, j] = Pn[i, j]
                 for u in range(t - 1, t - N - 1, -1):
-                    kn.smooth(Ps, Pf[u % W], A, Q, info_s, limit_s, Ps2, w1, w2, w3, w4, w5, w6)
+                    _smooth(Ps, Pf[u % W], A, Q, info_s, limit_s, Ps2, w1, w2, w3, w4, w5, w6)
                     for i in range(n):
                         for j in range(n):
                             Ps[i, j] = Ps2[i, j]
@@ -345,16 +324,57 @@ def _nb_kernel(A, C, Q, R, info, limit, info_s, limit_s, P0, Pm1, use_prior, gam
     # step 0 (P_{0|0}) is never a slot of the kernel: handled by the caller
 
 
+def _nb_correct(Pm, C, R, g, info, limit, Pn, PCt, S, X, w1, w2):
+    """Pn = P_{k|k} from Pm = P_{k|k−1}: kalman_numba.update, then :class:`kalman.Rescue` for one sensor
+    group (tr Pm > limit: redo in information form if Pm is finite and the packet arrived; non-finite ⇒ inf)."""
+    n = Pm.shape[0]
+    tr = 0.0
+    for i in range(n):
+        tr += Pm[i, i]
+    kn.update(Pm, C, R, g, Pn, PCt, S, X)
+    if not (tr <= limit):
+        finite = True
+        for i in range(n):
+            for j in range(n):
+                if not np.isfinite(Pm[i, j]):
+                    finite = False
+        if finite and g != 0.0:
+            kn.information_update(Pm, info, Pn, w1, w2)
+        bad = False
+        for i in range(n):
+            for j in range(n):
+                if not np.isfinite(Pn[i, j]):
+                    bad = True
+        if bad:
+            for i in range(n):
+                for j in range(n):
+                    Pn[i, j] = np.inf
+
+
+def _nb_smooth(Ps, Pf, A, Q, info_s, limit_s, out, w1, w2, w3, w4, w5, w6):
+    """kalman_numba.smooth (one RTS step in conditioning form), as a compiled call of its own."""
+    kn.smooth(Ps, Pf, A, Q, info_s, limit_s, out, w1, w2, w3, w4, w5, w6)
+
+
+_correct = _smooth = None  # the compiled helpers, bound by _kernel()
+
+
 def _kernel():
-    """The compiled recursion (built lazily: numba is imported only when used; cached on disk)."""
+    """The compiled recursion (built lazily: numba is imported only when used; cached on disk). The
+    filter correction and the RTS step are compiled as functions of their own (not inlined into the
+    kernel): each inlines its kalman_numba primitives once, which keeps the first compilation short."""
     f = _JIT.get("k")
     if f is None:
         import numba as nb
 
         from netkf_cli import kalman_numba
 
-        globals()["kn"] = kalman_numba  # resolved by numba when it compiles the kernel
-        f = _JIT["k"] = nb.njit(cache=True, nogil=True, error_model="numpy")(_nb_kernel)
+        opts = dict(cache=True, nogil=True, error_model="numpy")
+        g = globals()
+        g["kn"] = kalman_numba  # resolved by numba when it compiles the kernel
+        g["_correct"] = nb.njit(**opts)(_nb_correct)
+        g["_smooth"] = nb.njit(**opts)(_nb_smooth)
+        f = _JIT["k"] = nb.njit(**opts)(_nb_kernel)
     return f
 
 
@@ -619,8 +639,9 @@ def paper_way_indicators(system: LinearSystem, gamma: np.ndarray, lags: Sequence
     for lag in sorted(set(int(l) for l in lags)):
         q, _, N = column_request(lag, 0)
         ks = [column_request(lag, int(t))[1] for t in times]
-        got = dict(run(system, g, ks, (q,), N, backend=backend))
-        P = np.stack([got[k][q] for k in ks], axis=0)  # (J, n, n, cols)
-        for c in [c for c, l in enumerate(lags) if int(l) == lag]:
-            ind[:, c] = bt.psd_leq(np.moveaxis(P[..., c], 0, -1), M)
+        cs = [c for c, l in enumerate(lags) if int(l) == lag]  # only the columns of this lag
+        got = dict(run(system, np.ascontiguousarray(g[:, :, cs]), ks, (q,), N, backend=backend))
+        P = np.stack([got[k][q] for k in ks], axis=0)  # (J, n, n, len(cs))
+        for i, c in enumerate(cs):
+            ind[:, c] = bt.psd_leq(np.moveaxis(P[..., i], 0, -1), M)
     return ind
