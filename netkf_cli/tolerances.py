@@ -44,3 +44,10 @@ ZERO_INNOVATION_RTOL = 1e-9
 tr Σ + tr P⁻ counts as zero and gets no gain (kalman.update_pinv): a held packet, whose value the
 receiver already knows, has variance 0 up to round-off (≈1e-16 relative); 1e-9 separates it from
 any genuinely informative measurement."""
+
+FIXED_GAIN_PRECISION = 1e-6
+"""(appended, the Markov-mode filters) A fixed-gain filter's per-run error covariance C M Cᵀ read off the
+joint second moment M of [plant state; filter state] is reported as ``inf`` (lost, counted as diverged)
+when its round-off bound ε_mach·‖C‖_F²·tr M exceeds this fraction of tr(C M Cᵀ): for an unstable plant
+(A = diag(1e6, 0.5)) M grows without bound and the subtraction cancels every digit — a wrong finite
+number must not be reported. 1e-6 keeps six correct digits; stable plants are ~1e-15 from it."""

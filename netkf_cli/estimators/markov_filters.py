@@ -58,7 +58,7 @@ import numpy as np
 
 from netkf_cli import batched, kalman
 from netkf_cli.errors import ConfigError
-from netkf_cli.tolerances import PSD_INPUT_TOL, ZERO_INNOVATION_RTOL
+from netkf_cli.tolerances import FIXED_GAIN_PRECISION, PSD_INPUT_TOL, ZERO_INNOVATION_RTOL
 
 N_MODES = 4
 
@@ -718,6 +718,19 @@ class MarkovMSEKernel:
         return st
 
 
+def _resolved(P: np.ndarray, C: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """P = C M Cᵀ (+ noise) per run, or ``inf`` where round-off can have cancelled its digits:
+    ε_mach·‖C‖_F²·tr M > FIXED_GAIN_PRECISION·tr P (an unstable plant's second moment M grows without
+    bound; :data:`netkf_cli.tolerances.FIXED_GAIN_PRECISION`)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        noise = np.finfo(float).eps * float(np.sum(C * C)) * batched.trace(M)
+        lost = ~(noise <= FIXED_GAIN_PRECISION * batched.trace(P))
+    if lost.any():
+        P = P.copy()
+        P[:, :, lost] = np.inf
+    return P
+
+
 def linear_filter_covariances(model: AugmentedModel, filt: LinearFilter, modes: np.ndarray, x0, P0, steps,
                               quantities=("filtered",), base: str = "paper"):
     """Per-run error covariances of a fixed-gain filter given its mode path: yield (k, {quantity: P}).
@@ -768,9 +781,9 @@ def linear_filter_covariances(model: AugmentedModel, filt: LinearFilter, modes: 
                 if "filtered" in quantities:
                     Cq = np.concatenate([model.Ex - filt.Lf[t] @ model.H[q], -filt.Ef[t]], axis=1)
                     LJ = filt.Lf[t] @ model.J[q]
-                    got["filtered"] = kalman.predict(Mq, Cq, LJ @ Sig @ LJ.T)
+                    got["filtered"] = _resolved(kalman.predict(Mq, Cq, LJ @ Sig @ LJ.T), Cq, Mq)
                 if "predicted" in quantities:
-                    got["predicted"] = kalman.predict(val, Cp, zero_n)
+                    got["predicted"] = _resolved(kalman.predict(val, Cp, zero_n), Cp, val)
                 for qn, v in got.items():
                     if groups.all_one[q]:
                         out[qn] = v.copy()

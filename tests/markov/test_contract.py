@@ -265,3 +265,24 @@ def test_mode_aware_covariances_compiled_equal_numpy(m):
     for k in a:
         for q in qs:
             np.testing.assert_allclose(b[k][q], a[k][q], rtol=1e-9, atol=1e-12)
+
+
+def test_naive_with_only_mode_1_is_the_kf_and_an_unresolvable_covariance_is_inf():
+    # the naive KF's gains are the KF's when every packet is on time: its exact per-run error covariance
+    # (the joint second moment of [ξ; s], eq. 29) is the kf's P, to the round-off of that route (1e-9 relative
+    # on a stable plant). With A = diag(1e6, 0.5) that second moment grows as 1e12 per step and the readout
+    # C M Cᵀ cancels every digit: reported as inf (diverged), never as a wrong finite number.
+    R, K = 5, 30
+    tr = Trace(runs=R, horizon=K, mode=np.zeros((K, R), np.int8), arrival=np.ones((1, K, R), bool), meta={})
+    ks = range(1, K + 1)
+    qs = ("filtered", "predicted")
+    kf = dict(KalmanFilterEstimator(kind="kf").covariances(EX2, tr, ks, qs))
+    nv = dict(MarkovLMIEstimator(kind="markov_lmi", filter="naive").covariances(EX2, tr, ks, qs))
+    for k in ks:
+        for q in qs:
+            np.testing.assert_allclose(nv[k][q], kf[k][q], rtol=1e-9, atol=1e-12)
+    S = LinearSystem.create([[1e6, 0], [0, 0.5]], [[1, 0]], np.eye(2), 1.0)
+    got = dict(MarkovLMIEstimator(kind="markov_lmi", filter="naive").covariances(S, tr, [1, 5, 30], qs))
+    for k in got:
+        for q in qs:
+            assert np.isinf(got[k][q]).all(), (k, q)
