@@ -39,7 +39,6 @@ from pydantic import Field
 from netkf_cli import batched as bt
 from netkf_cli import kalman
 from netkf_cli.analysis.fusion_bounds import _as2d, p_m
-from netkf_cli.channels.multi import times_since_arrival, times_since_arrival_tr  # noqa: F401 (re-exported)
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators.kf import channel_streams
 from netkf_cli.riccati import initial_covariance
@@ -137,9 +136,7 @@ class FusionEstimator(EstimatorModel):
                                      "of one C, R); these sensors differ — use mf or ibf")
 
     def conventions(self, system, channel) -> dict[str, str]:
-        return {"fusion": self.strategies[0],
-                "sensors": "channel stream i = sensor i's whole measurement (system.sensors)",
-                "P0": "P_{0|0} (system.P0; unset = P̄ of the stacked sensors)"}
+        return {"fusion": self.strategies[0], "streams": "stream i = sensor i of system.sensors"}
 
     def covariances(self, system, trace, steps, quantities=("filtered",)):
         """Yield ``(k, {quantity: P})`` of ``strategies[0]``, P shaped (n, n, runs), for k in ``steps``."""
