@@ -902,6 +902,8 @@ def _numba_kernel():
                         for j in range(n):
                             Pfx[i, j, r] = Pf[i, j]
                 kn.predict(Pf, Fb[q], Qb[q], Pl, tmp)
+            if flag[r]:
+                continue  # left at its input: the numpy path redoes this run from there
             for i in range(d):
                 for j in range(d):
                     P[r, i, j] = Pl[i, j]
@@ -936,7 +938,6 @@ class ModeAwareCompiled:
         n, runs = md.n, modes.shape[1]
         has_x = ref.xi is not None and ys is not None
         K = modes.shape[0]
-        P0, xi0 = ref.P.copy(), (ref.xi.copy() if has_x else None)
         PT = np.ascontiguousarray(np.moveaxis(ref.P, -1, 0))  # (runs, d, d): one run's P contiguous
         xiT = np.ascontiguousarray(ref.xi.T) if has_x else np.zeros((1, md.d))
         Pfx = np.empty((n, n, runs))
@@ -959,8 +960,8 @@ class ModeAwareCompiled:
             idx = np.flatnonzero(flag)
             sub = ModeAwareKFTr.__new__(ModeAwareKFTr)
             sub.__dict__.update(ref.__dict__)
-            sub.P = P0[:, :, idx]
-            sub.xi = xi0[:, idx] if has_x else None
+            sub.P = P[:, :, idx]  # flagged runs were left at their input
+            sub.xi = xi[:, idx] if has_x else None
             for t in range(t0, t1):
                 if has_x:
                     xp, trp[t, idx] = sub.predicted()
