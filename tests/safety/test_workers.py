@@ -113,6 +113,7 @@ WIRED = "workers" in Path(montecarlo.__file__).read_text()
 
 @pytest.mark.xfail(not WIRED, reason="needs the lead to wire workers.pool_kwargs() into montecarlo.py's pool "
                                       "(issue 14.6)", strict=False)
+@pytest.mark.sigkilled
 def test_netkf_run_workers_die_after_sigkill(tmp_path):
     """`netkf run --jobs 2` SIGKILLed mid-run: no worker is left alive a few seconds later."""
     cfg = tmp_path / "long.yaml"
