@@ -149,7 +149,7 @@ class Rescue:
     information form (exact where the standard form cancels every digit: A = diag(1e6, 0.5)); a run
     that is non-finite after the step is set to ``inf`` everywhere (counted as diverged by the
     metrics, never a silent NaN). ``limit = RESCUE_RATIO · tr((CᵀR⁻¹C)⁻¹)`` when C has full column
-    rank, else ``RESCUE_RATIO · 1e8 · tr R`` (:data:`netkf_cli.tolerances.RESCUE_RATIO`).
+    rank, else ``RESCUE_RATIO · tr R / ‖C‖₂²`` (:data:`netkf_cli.tolerances.RESCUE_RATIO`).
     """
 
     C: np.ndarray
@@ -161,8 +161,8 @@ class Rescue:
         info = C.T @ np.linalg.solve(R, C)
         if np.linalg.matrix_rank(info) == C.shape[1]:
             scale = float(np.trace(np.linalg.inv(info)))
-        else:
-            scale = float(np.trace(R)) * 1e8
+        else:  # the noise seen through C: a prior this far above it cancels digits in the measured directions
+            scale = float(np.trace(R)) / max(float(np.linalg.norm(C, 2)) ** 2, 1e-300)
         return cls(C, R, RESCUE_RATIO * scale)
 
     def flag(self, Pm: np.ndarray) -> np.ndarray:

@@ -202,3 +202,18 @@ def test_rescue_gives_the_same_p_through_every_estimator_that_accepts_the_run():
                          ("fusion", {"strategies": ["mf"]})):
         got = dict(_est(kind, **fields).covariances(s, tr, steps, ("filtered",)))
         _check_same(ref, got, f"{kind} (rescue)", ("filtered",))
+
+
+def test_rescue_with_a_rank_deficient_c_is_the_same_through_kf_and_fusion():
+    """C = [1 1] (rank 1 < n = 2): the rescue limit comes from the noise seen through C, so a prior of
+    1e12 is updated in information form by every estimator, not left to cancel digits."""
+    s = LinearSystem.create([[1e6, 0.0], [0.0, 0.5]], [[1.0, 1.0]], np.eye(2), 1.0, np.eye(2))
+    g = _gamma(runs=40, horizon=10, lam=0.3, seed=4)
+    tr = Trace(g.shape[2], g.shape[1], arrival=g)
+    steps = list(range(1, 11))
+    ref = dict(_est("kf").covariances(s, tr, steps, ("filtered",)))
+    for kind, fields in (("fusion", {"strategies": ["mf"]}), ("smoother", {"lag": 0})):
+        got = dict(_est(kind, **fields).covariances(s, tr, steps, ("filtered",)))
+        _check_same(ref, got, f"{kind} (rank-deficient C)", ("filtered",))
+    P = ref[10]["filtered"]
+    assert np.isfinite(P).all() and np.all(np.linalg.eigvalsh(np.moveaxis(P, -1, 0))[:, 0] > 0)
