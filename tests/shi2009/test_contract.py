@@ -421,7 +421,11 @@ def test_bucketed_inverse_cdf_is_searchsorted(ch):
     edge = np.unique(np.concatenate([tab, np.nextafter(tab, 0), np.nextafter(tab, 1), [0.0, 1 - 2**-53]]))
     edge = edge[(edge >= 0) & (edge < 1)]
     u[0, :len(edge)] = edge
-    assert np.array_equal(inverse_cdf(u, tab), np.searchsorted(tab, u, side="right"))
+    ref = np.searchsorted(tab, u, side="right")
+    assert np.array_equal(inverse_cdf(u, tab, compiled=False), ref)  # numpy path
+    assert np.array_equal(inverse_cdf(u, tab), ref)  # default (numpy at this size)
+    assert np.array_equal(inverse_cdf(u, tab, compiled=True), ref)  # compiled where numba imports
+    assert inverse_cdf(u, tab, compiled=True).dtype == np.int32 == inverse_cdf(u, tab, compiled=False).dtype
 
 
 @pytest.mark.filterwarnings("ignore:buffered.*overflowed:UserWarning")  # the metric's one-line summary
