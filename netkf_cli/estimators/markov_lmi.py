@@ -41,6 +41,10 @@ Why this matches the paper: the objective is their eq. (41)/(43) objective, the 
 (34)/(37) and (34a)/(37a), and the recursion is (32). Because A_F,q, B_F,q are affine in the
 gains, the problem is a convex quadratic in (A_s, G_s) (resp. L); :func:`step_closed_form`
 solves its normal equations, which the tests use to check the SDP.
+
+The scenario block ``kind: markov_lmi`` (:class:`MarkovLMIEstimator`, the generic per-run covariances of the
+LMI, naive and mode-aware filters on netkf's time base) lives here, above
+:mod:`netkf_cli.estimators.markov_filters` (which imports nothing of this module).
 """
 
 from __future__ import annotations
