@@ -22,7 +22,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from netkf_cli import __version__
+from netkf_cli._version import __version__
 from netkf_cli.errors import ConfigError, NetkfError, Problem
 
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, the shell convention for a command stopped by Ctrl-C
@@ -428,9 +428,10 @@ def list_kinds(
     as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
 ):
     """List the channel, estimator and analysis kinds, their fields and which combine."""
+    from netkf_cli.compat import compatibility
     from netkf_cli.kinds import describe
 
-    info = describe()
+    info = describe(compatibility())
     if kind is not None:
         found = {fam: entries[kind] for fam, entries in info.items() if kind in entries}
         if not found:

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from netkf_cli import __version__
+from netkf_cli._version import __version__
 from netkf_cli.errors import BusyError, NetkfError, OutputError, ResultExistsError
 
 try:

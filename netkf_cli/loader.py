@@ -396,7 +396,7 @@ def validate_data(data: Any, file: str | None = None, index: dict | None = None,
         from netkf_cli import sweep
 
         try:
-            sweep.expand(scenario, file)
+            sweep.expand(scenario, file, validate_data)
         except ConfigError as exc:
             raise ConfigError(attribute(locate_index(exc, index, file).problems, overrides)) from None
     return scenario

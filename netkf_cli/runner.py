@@ -21,7 +21,7 @@ import pandas as pd
 
 from netkf_cli import io, montecarlo, sweep
 from netkf_cli.errors import ConfigError
-from netkf_cli.loader import load_scenario, locate
+from netkf_cli.loader import load_scenario, locate, validate_data
 from netkf_cli.plotting import save
 from netkf_cli.recipes.base import Artefact, RunContext
 
@@ -71,7 +71,7 @@ def compute(scenario, ctx: RunContext, source: str | Path | None = None) -> Arte
             art = scenario.analysis.compute(scenario, ctx)
             _check_artefact(scenario, art)
             return art
-        points = sweep.expand(scenario, str(source) if source else None)  # validate all before running
+        points = sweep.expand(scenario, str(source) if source else None, validate_data)  # all, before running
         tables, extras, metas = [], {}, []
         done_total = 0  # progress units declared by the points already finished
         for coords, sc in points:

@@ -112,9 +112,12 @@ def _set(data: dict, path: str, value: Any) -> None:
     cur[parts[-1]] = value
 
 
-def expand(scenario, file: str | None = None) -> list[tuple[dict, Any]]:
-    """All sweep points as (coordinates, validated Scenario); every bad point is reported at once."""
-    from netkf_cli.loader import validate_data
+def expand(scenario, file: str | None, validate) -> list[tuple[dict, Any]]:
+    """All sweep points as (coordinates, validated Scenario); every bad point is reported at once.
+
+    ``validate(data, file)`` is the scenario check applied to each point — the loader's own
+    (:func:`netkf_cli.loader.validate_data`: schema, system, channel × estimator × analysis), passed
+    in because the loader sits above this module — so a point gets exactly the checks of a file."""
 
     base = scenario.model_dump(mode="json", by_alias=True, exclude={"sweep"})
     out, problems = [], []
@@ -131,7 +134,7 @@ def expand(scenario, file: str | None = None) -> list[tuple[dict, Any]]:
         if bad:
             continue
         try:  # the same checks as a scenario file (schema, system, channel × estimator × analysis)
-            out.append((coords, validate_data(data, file)))
+            out.append((coords, validate(data, file)))
         except ConfigError as exc:
             for p in exc.problems:
                 problems.append(Problem(p.path, f"{p.message} (sweep point {where})", file))

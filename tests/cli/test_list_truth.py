@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from netkf_cli.cli import app
 from netkf_cli.errors import ConfigError
-from netkf_cli.kinds import _examples, _variants, compatibility
+from netkf_cli.compat import _examples, _variants, compatibility
 from netkf_cli.loader import validate_data
 
 runner = CliRunner()
