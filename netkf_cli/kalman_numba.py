@@ -379,3 +379,28 @@ def filter_advance(P, A, C, Q, R, gamma, starts, lens, t0, t1, limit, flag):
             for i in range(n):
                 for j in range(n):
                     P[i, j, r] = Pl[i, j]
+
+
+# ----------------------------------------------------------------------------------------------
+# appended (issue 19, the Markov-mode filters): the time update with sparse per-mode transitions
+# ----------------------------------------------------------------------------------------------
+
+@nb.njit(**_opts)
+def predict_csr(P, q, rowptr, cols, vals, Q, out, tmp):
+    """out = A_q P A_qᵀ + Q_q (:func:`predict`) with the per-mode A_q in CSR form: row a of A_q has the
+    values ``vals[q, rowptr[q, a]:rowptr[q, a+1]]`` at columns ``cols[q, …]`` (an augmented state's
+    transition is mostly zeros); ``Q`` (modes, n, n). ``tmp`` an n×n work array."""
+    n = P.shape[0]
+    for a in range(n):
+        for j in range(n):
+            acc = 0.0
+            for k in range(rowptr[q, a], rowptr[q, a + 1]):
+                acc += vals[q, k] * P[cols[q, k], j]
+            tmp[a, j] = acc  # (A_q P)[a, j]
+    for a in range(n):
+        for b in range(a, n):
+            acc = Q[q, a, b]
+            for k in range(rowptr[q, b], rowptr[q, b + 1]):
+                acc += tmp[a, cols[q, k]] * vals[q, k]
+            out[a, b] = acc
+            out[b, a] = acc

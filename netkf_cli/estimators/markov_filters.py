@@ -826,8 +826,9 @@ def _numba_kernel():
     from netkf_cli import kalman_numba as kn
 
     @numba.njit(cache=True, nogil=True)
-    def run(P, xi, ys, xs, modes, t0, t1, H, Rq, Fb, D, Qb, scale, rtol, n, has_x, limit,
+    def run(P, xi, ys, xs, modes, t0, t1, H, Rq, rowptr, cols, vals, D, Qb, scale, rtol, n, has_x, limit,
             Pfx, se_p, se_f, trp, trf, flag):  # pragma: no cover - compiled
+        # F̄_q in CSR form (rowptr[q], cols[q], vals[q]): the augmented transition is mostly zeros
         # P (runs, d, d) = P(t0|t0−1) in, P(t1|t1−1) out; xi (runs, d) likewise; Pfx (n, n, runs) = P_x(t1−1|t1−1);
         # modes (runs, T), ys (runs, T, m), xs (runs, T, n), se_p … (runs, T): each run contiguous
         d = P.shape[1]
@@ -892,8 +893,8 @@ def _numba_kernel():
                     trf[r, t] = tf
                     for i in range(d):
                         acc = 0.0
-                        for j in range(d):
-                            acc += Fb[q, i, j] * xfl[j]
+                        for kk in range(rowptr[q, i], rowptr[q, i + 1]):
+                            acc += vals[q, kk] * xfl[cols[q, kk]]
                         for a in range(m):
                             acc += D[q, i, a] * ys[r, t, a]
                         xl[i] = acc
@@ -901,7 +902,7 @@ def _numba_kernel():
                     for i in range(n):
                         for j in range(n):
                             Pfx[i, j, r] = Pf[i, j]
-                kn.predict(Pf, Fb[q], Qb[q], Pl, tmp)
+                kn.predict_csr(Pf, q, rowptr, cols, vals, Qb, Pl, tmp)
             if flag[r]:
                 continue  # left at its input: the numpy path redoes this run from there
             for i in range(d):
@@ -914,6 +915,22 @@ def _numba_kernel():
     return run
 
 
+def _csr(F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rowptr (N, d+1), cols (N, nnz), vals (N, nnz)) of the per-mode matrices F (N, d, d)."""
+    N, d = F.shape[0], F.shape[1]
+    nnz = max(1, int(max((F[q] != 0).sum() for q in range(N))))
+    rowptr, cols, vals = np.zeros((N, d + 1), np.int64), np.zeros((N, nnz), np.int64), np.zeros((N, nnz))
+    for q in range(N):
+        k = 0
+        for a in range(d):
+            for c in range(F.shape[2]):
+                if F[q, a, c] != 0.0:
+                    cols[q, k], vals[q, k] = c, F[q, a, c]
+                    k += 1
+            rowptr[q, a + 1] = k
+    return rowptr, cols, vals
+
+
 class ModeAwareCompiled:
     """The mode-aware KF of :class:`ModeAwareKFTr` compiled (numba, kalman_numba's inlined
     ``update_pinv`` / ``predict``): a run-outer, time-inner loop on one run's d×d covariance at a time,
@@ -924,7 +941,8 @@ class ModeAwareCompiled:
         self.ref = ModeAwareKFTr(model, runs, xhat0, P0, states, base)
         self.model = model
         self._fn = _numba_kernel()
-        self._args = tuple(np.ascontiguousarray(a) for a in (model.H, self.ref.Rq, self.ref.Fb, self.ref.D, self.ref.Qb))
+        self._args = (np.ascontiguousarray(model.H), np.ascontiguousarray(self.ref.Rq), *_csr(self.ref.Fb),
+                      np.ascontiguousarray(self.ref.D), np.ascontiguousarray(self.ref.Qb))
 
     @property
     def P(self):

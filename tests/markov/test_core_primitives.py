@@ -98,3 +98,28 @@ def test_compiled_update_pinv_equals_numpy(m):
             np.testing.assert_allclose(a, Pf[:, :, r], rtol=1e-9, atol=1e-9 * np.abs(P[:, :, r]).max())
             np.testing.assert_allclose(b, dx[:, r], rtol=1e-8, atol=1e-8 * (1 + np.abs(dx[:, r]).max()))
 
+
+
+def test_compiled_sparse_predict_equals_the_dense_predict():
+    pytest.importorskip("numba")
+    import numba
+
+    from netkf_cli import kalman_numba as kn
+    from netkf_cli.estimators.markov_filters import _csr
+
+    @numba.njit
+    def call(P, q, rowptr, cols, vals, Q):
+        n = P.shape[0]
+        out, tmp = np.empty((n, n)), np.empty((n, n))
+        kn.predict_csr(P, q, rowptr, cols, vals, Q, out, tmp)
+        return out
+
+    rng = np.random.default_rng(3)
+    n, modes = 6, 3
+    A = rng.standard_normal((modes, n, n)) * (rng.random((modes, n, n)) < 0.4)
+    rowptr, cols, vals = _csr(A)
+    P = _psd(rng, n)
+    Q = np.stack([_psd(rng, n) for _ in range(modes)])
+    for q in range(modes):
+        np.testing.assert_allclose(call(P, q, rowptr, cols, vals, Q), kalman.one(kalman.predict, P, A[q], Q[q]),
+                                   rtol=1e-13, atol=1e-13)
