@@ -94,6 +94,25 @@ def _delay_cell(c: str, path: Path, line: int, s: int) -> int:
     return int(v)
 
 
+_READ: dict = {}
+
+
+def _read_cached(path: Path, values: str) -> np.ndarray:
+    """:func:`read_recording`, once per file version (a sweep validates every point's channel)."""
+    try:
+        st = path.stat()
+        key = (str(path.resolve()), st.st_mtime_ns, st.st_size, values)
+    except OSError:
+        return read_recording(path, values)  # it says what is wrong with the path
+    if key not in _READ:
+        if len(_READ) > 16:
+            _READ.clear()
+        arr = read_recording(path, values)
+        arr.setflags(write=False)  # shared by every channel that replays this file
+        _READ[key] = arr
+    return _READ[key]
+
+
 def _is_value(c: str) -> bool:
     c = c.strip().lower()
     if c in ("", "lost", "true", "false", "nan", "inf"):
@@ -136,7 +155,7 @@ class TraceChannel(ChannelModel):
         naming it, its row and column — not the first Monte Carlo chunk."""
         if self._data is None and not self.file.startswith("<"):
             try:
-                self._data = read_recording(Path(self.file), self.values)
+                self._data = _read_cached(Path(self.file), self.values)
             except ConfigError as exc:
                 raise ValueError("file: " + "; ".join(p.message for p in exc.problems)) from None
         return self
