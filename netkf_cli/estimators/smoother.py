@@ -177,12 +177,54 @@ def run(system: LinearSystem, gamma: np.ndarray, steps, quantities=("smoothed",)
         return
     N = int(lag) if "smoothed" in qs else 0
     be = resolve_backend(backend)
-    if backend == "auto" and (gamma.shape[-1] > AUTO_NUMBA_MAX_RUNS or N == 0):
-        be = "numpy"  # auto: nothing to smooth (lag 0, or only filtered/predicted) runs kf's own numpy path
-    if be == "numba" and len(f.groups) == 1:
-        yield from _run_numba(f, system, gamma, steps, qs, N, prior)
-    else:
+    runs = gamma.shape[-1]
+    if be == "numba" and len(f.groups) == 1 and (backend == "numba" or (N > 0 and runs <= AUTO_NUMBA_MAX_RUNS)):
+        yield from _run_numba(f, system, gamma, steps, qs, N, prior)  # the per-run compiled kernel
+    elif prior is not None:
         yield from _run_numpy(f, system, gamma, steps, qs, N, prior)
+    else:
+        # the forward pass is kf's own call (Filter.run, the backend kf would choose: its generated
+        # compiled kernel for large batches), the backward pass the batched numpy RTS
+        fwd = kalman.choose_backend("auto" if backend == "auto" else "numpy", f, runs * horizon)
+        yield from _run_core(f, system, gamma, steps, qs, N, fwd)
+
+
+def _run_core(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str):
+    """Forward: :meth:`kalman.Filter.run` (exactly kf's numbers) at the steps the backward pass needs;
+    backward: N :class:`kalman.SmoothStep` steps per requested step."""
+    runs = gamma.shape[-1]
+    n = f.A.shape[0]
+    back = kalman.SmoothStep.of(f.A, f.Q)
+    smooth = "smoothed" in qs and N > 0
+    need = set(steps)
+    if smooth:
+        for k in steps:
+            if k >= N:
+                need.update(range(k - N, k + 1))
+    P0 = initial_covariance(system)
+    store = {0: np.repeat(P0[:, :, None], runs, axis=2)}
+    pos = sorted(k for k in need if k >= 1)
+    forward = f.run(P0, gamma, pos, ("filtered",), backend=fwd) if pos else iter(())
+    last = 0
+    for k in steps:
+        while last < k:
+            last, d = next(forward)
+            store[last] = d["filtered"]
+        P = store[k]
+        out = kalman.report(P, tuple(q for q in qs if q != "smoothed"), f.A, f.Q)
+        if "smoothed" in qs:
+            if N == 0:
+                out["smoothed"] = P
+            elif k < N:
+                out["smoothed"] = np.full((n, n, runs), np.nan)
+            else:
+                Ps = P
+                for t in range(k - 1, k - N - 1, -1):
+                    Ps = back(Ps, store[t])
+                out["smoothed"] = Ps
+        for old in [u for u in store if u < k + 1 - N]:
+            del store[old]
+        yield k, {q: out[q] for q in qs}
 
 
 def _P0(system, runs: int, prior) -> tuple[np.ndarray | None, np.ndarray | None]:
