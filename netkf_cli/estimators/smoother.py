@@ -26,13 +26,15 @@ is inf in every quantity, never NaN.
 Sensors: a channel with one arrival stream carries all of y_k; S streams carry the S sensors of
 ``system.sensors`` (:func:`netkf_cli.kalman.stream_rows`).
 
-Backends: ``numpy`` (the reference, batched over runs) and ``numba`` (one compiled kernel per run
-built from :mod:`netkf_cli.kalman_numba`'s inlined primitives — predict, update, the rescue's
-information update, gain, the RTS step ``smooth``; one arrival stream or one sensor). Equal to rounding (a test).
-``auto`` = numba where it is available, applicable and measured faster (batches of at most
-:data:`AUTO_NUMBA_MAX_RUNS` runs: long runs of few columns), else numpy; with nothing to smooth
-(lag 0, or only ``filtered``/``predicted`` asked) auto is always the numpy core, so those numbers
-are kf's bit for bit.
+Backends: ``numpy`` (the reference: the forward pass :meth:`kalman.Filter.run` on the numpy core,
+the backward pass batched RTS) and ``numba`` (one compiled kernel per run built from
+:mod:`netkf_cli.kalman_numba`'s inlined primitives — predict, update, the rescue's information
+update, gain, the RTS step ``smooth``; one arrival stream or one sensor; equal to rounding, a
+test). ``auto``: the forward pass is kf's own call (``Filter.run`` with the backend kf chooses,
+:func:`kalman.choose_backend`: the generated compiled kernel for large batches), so filtered /
+predicted / lag-0 smoothed are kf's numbers by construction; the per-run compiled kernel only where
+it is measured faster (lag ≥ 1, batches of at most :data:`AUTO_NUMBA_MAX_RUNS` runs: long runs of
+few columns, the paper's-way run of Table I).
 
 Monte Carlo kernels kept here (picklable, additive statistics): :class:`SmootherMCKernel` (used by
 ``benchmarks/``) and :class:`RetransmissionKernel` (Sec. V: the effective arrival pattern of a
@@ -61,10 +63,10 @@ MAX_LAG = 64
 
 BACKENDS = ("auto", "numpy", "numba")
 AUTO_NUMBA_MAX_RUNS = 256
-"""``backend: auto`` runs the compiled kernel only for batches of at most this many runs (measured,
-README "Speed": the per-run compiled kernel does 1–4e6 run-steps/s for n ≤ 2; the batched numpy
-recursion overtakes it at a few hundred runs and reaches 1–2e7 at 8192 runs). Long runs of few
-columns — the paper's-way run of Table I — are where the compiled kernel wins (10–100×)."""
+"""``backend: auto`` runs the per-run compiled kernel only for batches of at most this many runs
+(measured, experiments/smoothing/README "Speed": it does 1–4e6 run-steps/s for n ≤ 2; the batched
+path overtakes it at a few hundred runs). Long runs of few columns — the paper's-way run of
+Table I — are where it wins (10–100× a numpy loop over the steps)."""
 PRED = -1
 """Lag code of the one-step predictor P_{k|k−1} in column lists."""
 
@@ -88,9 +90,10 @@ class SmootherEstimator(EstimatorModel):
     lag: NonNegInt = Field(1, le=MAX_LAG, description=f"smoothing lag N: smoothed = P_{{k−N|k}}, the estimate of x_{{k−N}} "
                            f"from y_1 … y_k (0 = the filter P_{{k|k}}; at most {MAX_LAG})")
     backend: Literal["auto", "numpy", "numba"] = Field(
-        "auto", description="covariance recursion: numpy (reference, batched over runs), numba (compiled on the "
-        "core's primitives, equal to rounding; one arrival stream or one sensor), auto = numba where measured faster "
-        f"(batches of at most {AUTO_NUMBA_MAX_RUNS} runs, numba importable), else numpy")
+        "auto", description="covariance recursion: numpy (reference, batched over runs), numba (a per-run kernel on "
+        "the core's compiled primitives, equal to rounding; one arrival stream or one sensor), auto = the forward pass "
+        f"exactly as kf runs it (its compiled kernel for large batches) and the per-run kernel only for lag ≥ 1 and at "
+        f"most {AUTO_NUMBA_MAX_RUNS} runs (where it is measured faster)")
 
     @property
     def label(self) -> str:
