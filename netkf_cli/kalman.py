@@ -113,17 +113,57 @@ def joseph(P: np.ndarray, K: np.ndarray, C: np.ndarray, R: np.ndarray, gamma: np
         return batched.sym(out)
 
 
-def information_update(Pm: np.ndarray, info: np.ndarray) -> np.ndarray:
-    """(P⁻⁻¹ + I)⁻¹ per run, ``info`` (n, n) or (n, n, runs) the measurement information C̃ᵀR̃⁻¹C̃
-    (the information form of the update; P⁻ = ∞ ⇒ P⁻⁻¹ = 0)."""
-    X = np.moveaxis(Pm, -1, 0)
-    info_r = np.moveaxis(info, -1, 0) if info.ndim == 3 else np.broadcast_to(info, X.shape)
-    finite = np.isfinite(X).all(axis=(1, 2))
+def prior_information(X: np.ndarray) -> np.ndarray:
+    """P⁻¹ per run for X (k, n, n) whose +∞ entries, if any, are the variances of directions with no
+    information: a run whose non-finite entries all lie in rows/columns with a +∞ diagonal, the rest
+    finite, gets the limit of P⁻¹ as those variances → ∞ — 0 in those directions, the inverse of the
+    finite block elsewhere (its coupling to the ∞ directions vanishes in the limit). Any other
+    non-finite run (a NaN, ∞ coupling two known directions) has no usable prior: information 0."""
+    k, n, _ = X.shape
     Y = np.zeros_like(X)
+    finite = np.isfinite(X).all(axis=(1, 2))
     if finite.any():
         Y[finite] = np.linalg.inv(X[finite])
-    out = np.linalg.inv(Y + info_r)
+    for r in np.flatnonzero(~finite):
+        f = np.isfinite(np.diagonal(X[r]))
+        if f.any() and np.isfinite(X[r][np.ix_(f, f)]).all() and np.all(np.diagonal(X[r])[~f] == np.inf):
+            Y[r][np.ix_(f, f)] = np.linalg.inv(X[r][np.ix_(f, f)])
+    return Y
+
+
+def information_update(Pm: np.ndarray, info: np.ndarray) -> np.ndarray:
+    """(P⁻⁻¹ + I)⁻¹ per run, ``info`` (n, n) or (n, n, runs) the measurement information C̃ᵀR̃⁻¹C̃
+    (the information form of the update; an unknown direction of P⁻, variance ∞, has information 0:
+    :func:`prior_information`). A run whose posterior information is singular (a direction neither the
+    prior nor the measurement knows) is ∞."""
+    X = np.moveaxis(Pm, -1, 0)
+    info_r = np.moveaxis(info, -1, 0) if info.ndim == 3 else np.broadcast_to(info, X.shape)
+    M = prior_information(X) + info_r
+    n = M.shape[-1]
+    ok = np.linalg.matrix_rank(M) == n if M.size else np.zeros(0, dtype=bool)
+    out = np.full_like(M, np.inf)
+    if np.any(ok):
+        out[ok] = np.linalg.inv(M[ok])
     return np.moveaxis(0.5 * (out + out.transpose(0, 2, 1)), 0, -1)
+
+
+def clean_nonfinite(P: np.ndarray) -> np.ndarray:
+    """Runs of P (n, n, runs) that are non-finite in any way other than the ∞ variance of unknown
+    directions (:func:`prior_information`) are set to ∞ everywhere: a diverged run is counted as such,
+    never a NaN."""
+    bad = ~np.isfinite(P).all(axis=(0, 1))
+    if not bad.any():
+        return P
+    P = P.copy()
+    for r in np.flatnonzero(bad):
+        X = P[:, :, r]
+        d = np.diagonal(X)
+        f = np.isfinite(d)
+        clean = (not np.isnan(X).any()) and np.all(d[~f] == np.inf) and np.isfinite(X[np.ix_(f, f)]).all() \
+            and np.isfinite(X[np.ix_(f, ~f)]).all()
+        if not clean:
+            P[:, :, r] = np.inf
+    return P
 
 
 def smooth_step(Ps_next: np.ndarray, Pf: np.ndarray, Pp_next: np.ndarray, A: np.ndarray) -> np.ndarray:
@@ -171,26 +211,27 @@ class Rescue:
             return ~(batched.trace(Pm) <= self.limit)
 
     def apply(self, P: np.ndarray, Pm: np.ndarray, flagged: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """Fix the flagged runs of the updated ``P`` (from prior ``Pm``); ``rows`` (m, runs) the arrived rows."""
+        """Fix the flagged runs of the updated ``P`` (from prior ``Pm``); ``rows`` (m, runs) the arrived rows:
+        no row arrived ⇒ P = P⁻ exactly; else the information form (unknown directions of P⁻ carry
+        information 0, so a run recovers from an overflowed prior as soon as its packets arrive)."""
         idx = np.flatnonzero(flagged)
         if idx.size == 0:
             return P
         P = P.copy()
         w = np.asarray(rows, dtype=float)[:, idx]
         prior = Pm[:, :, idx]
-        finite = np.isfinite(prior).all(axis=(0, 1))
-        redo = finite & (w.sum(axis=0) > 0)
-        if redo.any():
-            ww = w[:, redo]
+        arrived = w.sum(axis=0) > 0
+        P[:, :, idx[~arrived]] = prior[:, :, ~arrived]
+        if arrived.any():
+            ww = w[:, arrived]
             m = self.C.shape[0]
             Rt = self.R[:, :, None] * (ww[:, None, :] * ww[None, :, :])
             Rt[np.arange(m), np.arange(m)] += 1.0 - ww
             Ct = self.C[:, :, None] * ww[:, None, :]  # (m, n, k)
             RiC = np.moveaxis(np.linalg.solve(np.moveaxis(Rt, -1, 0), np.moveaxis(Ct, -1, 0)), 0, -1)
             info = np.einsum("min,mjn->ijn", Ct, RiC)
-            P[:, :, idx[redo]] = information_update(prior[:, :, redo], info)
-        bad = idx[~np.isfinite(P[:, :, idx]).all(axis=(0, 1))]
-        P[:, :, bad] = np.inf
+            P[:, :, idx[arrived]] = information_update(prior[:, :, arrived], info)
+        P[:, :, idx] = clean_nonfinite(P[:, :, idx])
         return P
 
 

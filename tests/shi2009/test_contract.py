@@ -300,10 +300,9 @@ def test_overflow_system_monte_carlo_matches_exact_without_warnings():
     assert np.array_equal(st["count_0"], st["count_1"]) and st["nonfinite_0"][0] == 0
 
 
-@pytest.mark.xfail(strict=True, reason="kalman.Rescue: a prior that overflowed to ∞ (> ~26 lost steps at a = 1e6) "
-                                       "stays ∞ after an arrival (the old private information-form state recovered it)")
 def test_overflow_system_recovers_after_an_overflowed_prior():
-    """k = 120: most runs have met a gap of > 26 lost packets; the exact answer is still 0.05."""
+    """k = 120: most runs have met a gap of > 26 lost packets (P_11 overflowed to ∞); the exact answer is
+    still 0.05: kalman.Rescue gives the unknown direction information 0 and recovers at the next arrival."""
     n = 10_000
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -223,3 +223,19 @@ def test_manifest_says_which_backend_ran(tmp_path):
                "estimator": {"kind": "kf", "backend": "numpy"}, "analysis": {"kind": "distribution", "M": [2, 5]},
                "montecarlo": {"runs": 500, "horizon": 20}})
     assert run(sc).meta["backends"] == {"kf": "numpy"}
+
+
+def test_rescue_recovers_from_an_overflowed_prior():
+    """A = diag(1e6, 0.5), C = I: 60 lost steps overflow P_11 to ∞ while P_22 stays finite (the prior
+    knows x₂ but nothing of x₁); the next arrival gives exactly P = diag(1, (1/P⁻₂₂ + 1)⁻¹)."""
+    s = LinearSystem.create([[1e6, 0.0], [0.0, 0.5]], np.eye(2), np.eye(2), np.eye(2), np.eye(2))
+    f = kalman.Filter.of(s, 1)
+    gam = np.zeros((1, 61, 1), dtype=bool)
+    gam[0, 60, 0] = True
+    out = dict(f.run(np.eye(2), gam, [60, 61]))
+    P60, P61 = out[60]["filtered"][:, :, 0], out[61]["filtered"][:, :, 0]
+    assert P60[0, 0] == np.inf and np.isfinite(P60[1, 1]) and P60[0, 1] == 0
+    p22 = 1.0
+    for _ in range(61):
+        p22 = 0.25 * p22 + 1.0
+    np.testing.assert_allclose(P61, np.diag([1.0, 1.0 / (1.0 / p22 + 1.0)]), rtol=1e-12)
