@@ -370,8 +370,9 @@ class Filter:
         for k in want:
             out = advance(t, k)
             new = np.setdiff1d(np.flatnonzero(flag), idx)
-            for tt in range(t, k):  # runs already on the numpy core: one step at a time
-                _, Pn = self.step(Pn, gamma[:, tt][:, idx])
+            if idx.size:  # runs already on the numpy core: one step at a time
+                for tt in range(t, k):
+                    _, Pn = self.step(Pn, gamma[:, tt][:, idx])
             if new.size:  # newly flagged: the numpy core from their P0 up to k
                 Pnew = P_init[:, :, new]
                 for tt in range(k):

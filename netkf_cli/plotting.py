@@ -35,6 +35,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib import cycler  # noqa: E402  (matplotlib re-exports its cycler dependency)
 from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.transforms import offset_copy  # noqa: E402
 
 #: Okabe & Ito (2008) colour-blind-safe palette; yellow last (weak on white).
 PALETTE: tuple[str, ...] = (
@@ -124,8 +125,11 @@ def legend_outside(ax, *, loc: str = "right", **kw):
     if loc == "right":
         kw = {"loc": "upper left", "bbox_to_anchor": (1.02, 1.0), "borderaxespad": 0.0, **kw}
     elif loc == "below":
-        kw = {"loc": "upper center", "bbox_to_anchor": (0.5, -0.16), "borderaxespad": 0.0,
-              "ncol": kw.pop("ncol", 2), **kw}
+        # a fixed distance (in points) under the axes, whatever their height: clears the tick labels
+        # and the x-axis label even when a long footnote shrinks the axes
+        kw = {"loc": "upper center", "bbox_to_anchor": (0.5, 0.0),
+              "bbox_transform": offset_copy(ax.transAxes, fig=ax.figure, y=-40, units="points"),
+              "borderaxespad": 0.0, "ncol": kw.pop("ncol", 2), **kw}
     else:
         raise ValueError("loc must be 'right' or 'below'")
     return ax.legend(**kw)

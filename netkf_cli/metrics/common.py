@@ -90,8 +90,13 @@ def step_of(at, horizon: int, path: str = "analysis.at") -> int:
 
 
 def p0_label(system) -> str:
-    """What P0 = P_{0|0} is, in words."""
+    """What P0 = P_{0|0} is, in words (CSV text; figures draw it with :func:`math_text`)."""
     return "P0 = P̄ (steady state, every packet received)" if system.P0 is None else "P0 = system.P0"
+
+
+def math_text(label: str) -> str:
+    """A CSV label for a figure: P̄ (a combining macron most fonts drop) as mathtext."""
+    return label.replace("P̄", r"$\bar{P}$").replace("P0 =", "$P_0$ =")
 
 
 def channel_words(ch) -> str:
@@ -108,7 +113,9 @@ def conventions_label(system, channel, est) -> str:
     if callable(ch_conv):
         conv.update(ch_conv())
     conv.update(est.conventions(system, channel))
-    return "; ".join([channel_words(channel)] + [f"{k}: {v}" for k, v in conv.items()])
+    if not conv:  # nothing stated by the estimator: the channel's own parameters say it
+        return channel_words(channel)
+    return f"{channel.kind} channel; " + "; ".join(f"{k}: {v}" for k, v in conv.items())
 
 
 def describe(scenario, system, ests, quantity: str) -> list[dict]:
@@ -137,6 +144,17 @@ def horizon_of(scenario, metric) -> int:
     """The horizon the engine simulated for this metric (``at`` for distribution/compare, else the horizon)."""
     at = getattr(metric, "at", None)
     return step_of(at, scenario.montecarlo.horizon) if at is not None else scenario.montecarlo.horizon
+
+
+def conventions_note(labels_by_estimator: dict[str, str]) -> str:
+    """One footnote line from per-estimator convention labels: what all share once, then what each adds."""
+    parts = {lab: [p for p in str(c).split("; ") if p] for lab, c in labels_by_estimator.items()}
+    if not parts:
+        return ""
+    common = [p for p in next(iter(parts.values())) if all(p in v for v in parts.values())]
+    extra = [f"{lab}: " + "; ".join(p for p in v if p not in common) for lab, v in parts.items()
+             if any(p not in common for p in v)]
+    return "; ".join(common) + ("" if not extra else " — " + " | ".join(extra))
 
 
 def quantity_text(quantity: str, what: str = "P_k") -> str:

@@ -19,8 +19,8 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine
-from netkf_cli.metrics.common import (backends, horizon_of, n_runs_of, LABEL_COLUMNS, GenericMetric, PaperRef, channel_words, describe, labels, quantity_text,
-                                      step_of)
+from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, channel_words, describe, GenericMetric, horizon_of,
+                                      labels, math_text, n_runs_of, PaperRef, quantity_text, step_of)
 from netkf_cli.stats import mean_se, proportion_stderr, wilson_interval
 from netkf_cli.plotting import footnote, new_figure, paper_title, series_style
 from netkf_cli.artefact import Artefact, RunContext
@@ -125,7 +125,7 @@ class Compare(GenericMetric):
                              f"{channel_words(scenario.channel)}"
         fig.suptitle(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
         mtxt = ", ".join(f"{r.estimator}: {r.value:.4g} ± {1.96 * r.stderr:.2g}" for r in means.itertuples())
-        note = (f"{self.quantity} ${pk}$ at k = {int(t.k.iloc[0])}, n = {int(t.n.max()):,} runs; {means.P0.iloc[0]}; "
+        note = (f"{self.quantity} ${pk}$ at k = {int(t.k.iloc[0])}, n = {int(t.n.max()):,} runs; {math_text(means.P0.iloc[0])}; "
                 f"E[tr] (± 1.96 s.e.): {mtxt}")
         if left_out:
             note += f"; {left_out} unreliable differences not drawn (heavy-tailed or rare-event dominated, see CSV)"

@@ -29,8 +29,8 @@ from pydantic import Field, model_validator
 
 from netkf_cli import engine, riccati
 from netkf_cli.errors import ConfigError
-from netkf_cli.metrics.common import (backends, horizon_of, n_runs_of, LABEL_COLUMNS, GenericMetric, MGrid, PaperRef, describe, labels, m_values, needs,
-                                      quantity_text, step_of)
+from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels, m_values,
+                                      math_text, MGrid, n_runs_of, needs, PaperRef, quantity_text, step_of)
 from netkf_cli.stats import mean_se, proportion_stderr, wilson_interval
 from netkf_cli.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.artefact import Artefact, RunContext
@@ -253,9 +253,9 @@ class Distribution(GenericMetric):
         legend_outside(ax, loc="below", ncol=1)
         k = int(t.k.iloc[0])
         lab = t.iloc[0]
-        conv = "; ".join(dict.fromkeys(str(c) for c in t.conventions)) if "conventions" in t else ""
+        conv = conventions_note(dict(zip(t.estimator, t.conventions))) if "conventions" in t else ""
         footnote(fig, f"{self.quantity} ${pk}$ at k = {k}" + (" (stationary: after the burn-in from P0)" if self.at == "stationary" else "")
-                 + (f"; {lab.P0}\n{conv}" if "P0" in t else ""))
+                 + (f"; {math_text(lab.P0)}\n{conv}" if "P0" in t else ""))
         return fig
 
 

@@ -19,7 +19,8 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine
-from netkf_cli.metrics.common import backends, horizon_of, n_runs_of, LABEL_COLUMNS, GenericMetric, PaperRef, describe, labels, quantity_text
+from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels,
+                                      math_text, n_runs_of, PaperRef, quantity_text)
 from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.spec import PositiveInt
@@ -122,7 +123,8 @@ class MeanVsTime(GenericMetric):
                     transform=ax.transAxes, ha="center", va="center", fontsize=10)
         n = int(t.n.max()) if len(t) else 0
         lab0 = t.iloc[0] if len(t) else None
-        labels_ = (f"{self.quantity} ${quantity_text(self.quantity)}$; {lab0.P0}; {lab0.conventions}"
+        labels_ = (f"{self.quantity} ${quantity_text(self.quantity)}$; {math_text(lab0.P0)}; "
+                   f"{conventions_note(dict(zip(t.estimator, t.conventions)))}"
                    if lab0 is not None and "P0" in t else "")
         footnote(fig, ("one run: the covariance sequence itself" if one else f"n = {n:,} runs per step")
                  + (f"; {left_out} unreliable step means not drawn (heavy-tailed or rare-event dominated: CSV columns "
