@@ -32,12 +32,6 @@ def covariances(estimator, system, trace, steps, quantity: str = "filtered"):
     ``w`` is ``None``, or the per-run importance weights (runs,) of a variance-reduced estimator
     (E[w] = 1): every statistic is then a mean of w·x (unbiased), its standard error that of w·x.
     """
-    import inspect  # noqa: PLC0415 — TRANSITION (removed when every estimator is on the core contract)
-
-    if "quantities" not in inspect.signature(estimator.covariances).parameters:
-        for k, P in estimator.covariances(system, trace, steps):
-            yield k, P, None
-        return
     for k, out in estimator.covariances(system, trace, steps, (quantity,)):
         yield k, out[quantity], out.get("weight")
 
