@@ -10,10 +10,11 @@ completion order computed the chunks, and memory is bounded by the chunk size.
 
 Where and how chunks run is not the recipe's business: the CLI sets it once with
 :func:`execution` (``--jobs``, ``--executor dask --scheduler …``, ``--resume``) and every
-:func:`run_chunked` call inside uses it. With a cache folder, each finished chunk's
-statistics are stored (keyed by the resolved scenario's hash, the call's position in the
-run and the chunk index) so an interrupted run can be resumed and yields exactly the
-numbers of an uninterrupted one.
+:func:`run_chunked` call inside uses it. With a cache folder (the result folder's own,
+``<parent>/.netkf-cache/<folder>/``, stamped by the runner with the scenario hash so that only the
+identical scenario reuses it), each finished chunk's statistics are stored (keyed by the call's
+position in the run, the stream and the chunk index) so an interrupted run can be resumed and
+yields exactly the numbers of an uninterrupted one.
 """
 
 from __future__ import annotations
