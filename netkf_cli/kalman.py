@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Iterable, Iterator
 
 import numpy as np
+import scipy.linalg
 
 from netkf_cli import batched
 from netkf_cli.errors import ConfigError
@@ -189,7 +190,9 @@ class Rescue:
     information form (exact where the standard form cancels every digit: A = diag(1e6, 0.5)); a run
     that is non-finite after the step is set to ``inf`` everywhere (counted as diverged by the
     metrics, never a silent NaN). ``limit = RESCUE_RATIO · tr((CᵀR⁻¹C)⁻¹)`` when C has full column
-    rank, else ``RESCUE_RATIO · tr R / ‖C‖₂²`` (:data:`netkf_cli.tolerances.RESCUE_RATIO`).
+    rank, else ``RESCUE_RATIO · tr P̄`` (the best posterior, every packet received: a prior that far
+    above it cancels digits where the filter knows the state well), or ``RESCUE_RATIO · tr R / ‖C‖₂²``
+    where P̄ does not exist (:data:`netkf_cli.tolerances.RESCUE_RATIO`).
     """
 
     C: np.ndarray
@@ -197,10 +200,14 @@ class Rescue:
     limit: float
 
     @classmethod
-    def of(cls, C: np.ndarray, R: np.ndarray) -> "Rescue":
+    def of(cls, C: np.ndarray, R: np.ndarray, floor: float | None = None) -> "Rescue":
+        """``floor``: the smallest posterior the filter reaches (tr P̄, :meth:`Filter.of`), used when C is
+        rank-deficient; without it, the noise seen through C, tr R / ‖C‖₂²."""
         info = C.T @ np.linalg.solve(R, C)
         if np.linalg.matrix_rank(info) == C.shape[1]:
             scale = float(np.trace(np.linalg.inv(info)))
+        elif floor is not None and np.isfinite(floor) and floor > 0:
+            scale = float(floor)
         else:  # the noise seen through C: a prior this far above it cancels digits in the measured directions
             scale = float(np.trace(R)) / max(float(np.linalg.norm(C, 2)) ** 2, 1e-300)
         return cls(C, R, RESCUE_RATIO * scale)
@@ -261,6 +268,18 @@ def row_mask(gamma_t: np.ndarray, groups: tuple[tuple[int, ...], ...], m: int) -
     return out
 
 
+def _pbar_trace(A, C, Q, R) -> float | None:
+    """tr P̄ (P̄ = g̃(P*), the filtered steady state with every packet) when C is rank-deficient and the
+    DARE has a stabilizing solution; None otherwise (full-rank C needs no floor)."""
+    if np.linalg.matrix_rank(C) == A.shape[0]:
+        return None
+    try:
+        X = scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    return float(np.trace(one(update, X, C, R)))
+
+
 def _block_diagonal(R: np.ndarray, groups) -> bool:
     mask = np.zeros(R.shape, dtype=bool)
     for g in groups:
@@ -290,7 +309,7 @@ class Filter:
     def of(cls, system, streams: int = 1, path: str = "channel") -> "Filter":
         groups = stream_rows(system, streams, path)
         A, C, Q, R = (np.ascontiguousarray(x, dtype=float) for x in (system.A, system.C, system.Q, system.R))
-        return cls(A, C, Q, R, groups, Rescue.of(C, R), _block_diagonal(R, groups))
+        return cls(A, C, Q, R, groups, Rescue.of(C, R, _pbar_trace(A, C, Q, R)), _block_diagonal(R, groups))
 
     def correct(self, Pm: np.ndarray, gamma_t: np.ndarray) -> np.ndarray:
         """P_{k|k} from P_{k|k−1} and the stream arrivals ``gamma_t`` (S, runs) of step k."""
@@ -453,12 +472,26 @@ def rescue_noisy(rescue: Rescue, P: np.ndarray, Pm: np.ndarray, flagged: np.ndar
                  extra_R: np.ndarray) -> np.ndarray:
     """:meth:`Rescue.apply` for one packet carrying all of y_k with noise R + ``extra_R`` (m, m, runs)
     per run (communication noise on top of the sensor noise; Mostofi & Murray 2009 eqs 27–28,
-    σ_z² = σ_n² I + R): flagged runs with a finite prior whose packet arrived (``gamma`` (runs,))
-    are redone as (P⁻⁻¹ + Cᵀ (R + extra_R)⁻¹ C)⁻¹ (:func:`information_update`); a run non-finite
-    after the step is ``inf``. With ``extra_R`` = 0 this is :meth:`Rescue.apply` with every row arrived."""
+    σ_z² = σ_n² I + R): a flagged run whose packet was lost (``gamma`` (runs,) = 0) keeps P⁻ exactly;
+    one whose packet arrived is redone as (P⁻⁻¹ + Cᵀ (R + extra_R)⁻¹ C)⁻¹ (:func:`information_update`,
+    unknown directions of P⁻ carry information 0); then :func:`clean_nonfinite`. With ``extra_R`` = 0
+    this is :meth:`Rescue.apply` with every row arrived."""
     idx = np.flatnonzero(flagged)
     if idx.size == 0:
         return P
+    P = P.copy()
+    prior = Pm[:, :, idx]
+    arrived = np.asarray(gamma)[idx] > 0
+    P[:, :, idx[~arrived]] = prior[:, :, ~arrived]
+    if arrived.any():
+        C = rescue.C
+        Rt = rescue.R[:, :, None] + extra_R[:, :, idx[arrived]]
+        Ct = np.broadcast_to(C[:, :, None], C.shape + (int(arrived.sum()),))
+        RiC = np.moveaxis(np.linalg.solve(np.moveaxis(Rt, -1, 0), np.moveaxis(Ct, -1, 0)), 0, -1)
+        info = np.einsum("min,mjn->ijn", Ct, RiC)
+        P[:, :, idx[arrived]] = information_update(prior[:, :, arrived], info)
+    P[:, :, idx] = clean_nonfinite(P[:, :, idx])
+    return P
     P = P.copy()
     prior = Pm[:, :, idx]
     redo = np.isfinite(prior).all(axis=(0, 1)) & (np.asarray(gamma)[idx] > 0)

@@ -29,8 +29,9 @@ import numpy as np
 
 MAX_N = 6
 """Largest state dimension a kernel is generated for (the expression size grows as n³)."""
-MAX_GROUP = 2
-"""Largest sensor group (rows per stream) with a closed-form S⁻¹."""
+MAX_GROUP = 4
+"""Largest sensor group (rows per stream) a kernel is generated for: S⁻¹ in closed form for one or two
+rows, through an unrolled Cholesky factor S = L Lᵀ (correction W Wᵀ, W = U L⁻ᵀ) for three or four."""
 
 
 def supported(n: int, groups) -> bool:
@@ -104,6 +105,23 @@ def source(A, C, Q, R, groups, limit: float) -> str:
         for a in range(mg):
             for b in range(a, mg):
                 L.append(f"            s{a}_{b} = {_lin([(Cg[a, k], f'u{k}_{b}') for k in range(n)])} + {_num(Rg[a, b])}")
+        if mg >= 3:  # Cholesky S = L Lᵀ; U S⁻¹ Uᵀ = W Wᵀ with W = U L⁻ᵀ
+            for j in range(mg):
+                acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
+                L.append(f"            l{j}_{j} = np.sqrt({acc})")
+                for i in range(j + 1, mg):
+                    acc = " - ".join([f"s{j}_{i}"] + [f"l{i}_{k} * l{j}_{k}" for k in range(j)])
+                    L.append(f"            l{i}_{j} = ({acc}) / l{j}_{j}")
+            for i in range(n):
+                for a in range(mg):
+                    acc = " - ".join([f"u{i}_{a}"] + [f"w{i}_{b} * l{a}_{b}" for b in range(a)])
+                    L.append(f"            w{i}_{a} = ({acc}) / l{a}_{a}")
+            nxt = f"q{g_idx}_"
+            for i, j in tri:
+                corr = " + ".join(f"w{i}_{a} * w{j}_{a}" for a in range(mg))
+                L.append(f"            {p(nxt, i, j)} = {p(cur, i, j)} - g * ({corr})")
+            cur = nxt
+            continue
         if mg == 1:
             L.append("            i0_0 = g / s0_0")
             inv = {(0, 0): "i0_0"}
@@ -122,6 +140,8 @@ def source(A, C, Q, R, groups, limit: float) -> str:
             corr = " + ".join(f"k{i}_{a} * u{j}_{a}" for a in range(mg))
             L.append(f"            {p(nxt, i, j)} = {p(cur, i, j)} - ({corr})")
         cur = nxt
+    L.append("            tr = " + " + ".join(p(cur, i, i) for i in range(n)))
+    L.append("            flag[r] = flag[r] or not (tr == tr)  # a NaN from the update: the numpy core redoes it")
     for (i, j), k in pos.items():
         L.append(f"            P[{k}, r] = {p(cur, i, j)}")
     return "\n".join(L) + "\n"
