@@ -291,7 +291,8 @@ kn = None
 _JIT: dict[str, object] = {}
 
 
-def _nb_kernel(A, C, Q, R, info, limit, info_s, limit_s, P0, Pm1, use_prior, gamma, slot, N, wf, wp, ws, outF, outP, outS):
+def _nb_kernel(A, C, Q, R, info, limit, info_s, limit_s, P0, Pm1, use_prior, gamma, slot, N, wf, wp, ws, outF, outP, outS,
+               flag):
     """Per run (outer loop), per step: predict, update, the rescue (as :class:`kalman.Rescue` for one
     sensor group), the output slots, and N :func:`kalman_numba.smooth` steps back over the ring buffer
     of P_{t|t} — all kalman_numba primitives, inlined."""
@@ -328,7 +329,9 @@ def _nb_kernel(A, C, Q, R, info, limit, info_s, limit_s, P0, Pm1, use_prior, gam
             else:
                 kn.predict(Pf[(t - 1) % W], A, Q, Pm, tmp)
             g = 1.0 if gamma[r, t - 1] else 0.0
-            _correct(Pm, C, R, g, info, limit, Pn, PCt, S, X, w1, w2)
+            if _correct(Pm, C, R, g, info, limit, Pn, PCt, S, X, w1, w2):
+                flag[r] = True  # non-finite: this run is redone on the numpy core (the rescue policy's)
+                break
             for i in range(n):
                 for j in range(n):
                     Pf[t % W, i, j] = Pn[i, j]
@@ -371,29 +374,26 @@ def _nb_kernel(A, C, Q, R, info, limit, info_s, limit_s, P0, Pm1, use_prior, gam
 
 def _nb_correct(Pm, C, R, g, info, limit, Pn, PCt, S, X, w1, w2):
     """Pn = P_{k|k} from Pm = P_{k|k−1}: kalman_numba.update, then :class:`kalman.Rescue` for one sensor
-    group (tr Pm > limit: redo in information form if Pm is finite and the packet arrived; non-finite ⇒ inf)."""
+    group with a finite prior (tr Pm > limit: redo in information form if the packet arrived; lost: Pm
+    exactly). Returns True when Pm or Pn is non-finite: the caller hands that run to the numpy core,
+    whose rescue policy decides (an overflowed prior recovers at the next arrival)."""
     n = Pm.shape[0]
     tr = 0.0
     for i in range(n):
         tr += Pm[i, i]
     kn.update(Pm, C, R, g, Pn, PCt, S, X)
     if not (tr <= limit):
-        finite = True
         for i in range(n):
             for j in range(n):
                 if not np.isfinite(Pm[i, j]):
-                    finite = False
-        if finite and g != 0.0:
+                    return True
+        if g != 0.0:
             kn.information_update(Pm, info, Pn, w1, w2)
-        bad = False
-        for i in range(n):
-            for j in range(n):
-                if not np.isfinite(Pn[i, j]):
-                    bad = True
-        if bad:
-            for i in range(n):
-                for j in range(n):
-                    Pn[i, j] = np.inf
+    for i in range(n):
+        for j in range(n):
+            if not np.isfinite(Pn[i, j]):
+                return True
+    return False
 
 
 def _nb_smooth(Ps, Pf, A, Q, info_s, limit_s, out, w1, w2, w3, w4, w5, w6):
@@ -442,12 +442,27 @@ def _run_numba(f: kalman.Filter, system, gamma, steps, qs, N, prior):
     back = kalman.SmoothStep.of(f.A, f.Q)
     info_s = f.A.T @ np.linalg.solve(f.Q, f.A) if back.rescue is not None else np.zeros((n, n))
     limit_s = float(back.rescue.limit) if back.rescue is not None else np.inf
+    flag = np.zeros(runs, dtype=np.bool_)
     if K:
         g = np.ascontiguousarray(gamma[0, :T].T, dtype=np.bool_)  # (runs, T)
         _kernel()(f.A, f.C, f.Q, f.R, info, float(f.rescue.limit), info_s, limit_s, np.ascontiguousarray(P0, dtype=float),
-                  np.ascontiguousarray(Pm1), use_prior, g, slot, N, wf, wp, ws, outF, outP, outS)
+                  np.ascontiguousarray(Pm1), use_prior, g, slot, N, wf, wp, ws, outF, outP, outS, flag)
     # back to the core layout (K, n, n, runs), run axis innermost
     outF, outP, outS = (np.ascontiguousarray(np.moveaxis(o, 0, -1)) for o in (outF, outP, outS))
+    idx = np.flatnonzero(flag)
+    if idx.size and K:  # runs that met a non-finite covariance: the numpy core from the start (its rescue policy)
+        sub = np.ascontiguousarray(gamma[:, :, idx])
+        redo = _run_numpy if use_prior else (lambda *a: _run_core(*a[:-1], "numpy"))
+        for k, d in redo(f, system, sub, pos, tuple(dict.fromkeys(q for q in ("filtered", "predicted", "smoothed")
+                                                               if (q == "filtered" and wf) or (q == "predicted" and wp)
+                                                               or (q == "smoothed" and ws))), N, prior):
+            i = slot[k]
+            if wf:
+                outF[i][..., idx] = d["filtered"]
+            if wp:
+                outP[i][..., idx] = d["predicted"]
+            if ws:
+                outS[i][..., idx] = d["smoothed"]
     for k in steps:
         if k == 0:  # P_{0|0} (lag 0 only): the prior itself
             P = np.repeat(initial_covariance(system)[:, :, None], runs, axis=2)

@@ -143,25 +143,30 @@ def test_forward_pass_is_kf_and_lag0_is_the_filter(A, backend):
                     assert riccati.psd_leq(np.moveaxis(got[k]["smoothed"], -1, 0), np.moveaxis(Pf, -1, 0), tol=1e-9).all()
 
 
-def test_overflowed_forward_pass_is_inf_in_every_quantity():
-    """A = 30, 260 losses: P_{k|k−1} overflows (900²⁶⁰); the rescue policy makes the run inf (never NaN)
-    from then on, and the backward pass returns inf for it; the other runs stay finite."""
+def test_overflowed_forward_pass_is_inf_in_every_quantity_until_an_arrival():
+    """A = 30: P_{k|k−1} overflows after ~105 losses (900¹⁰⁵ > 1.8e308). The rescue policy keeps the
+    run inf (never NaN) while its packets are lost, and an arrival recovers it (the unknown direction
+    carries information 0: P_{k|k} = r/c² = 1); the backward pass is inf for a window that holds an
+    inf forward covariance and finite once the window is past it. Both backends (the compiled kernel
+    hands a run that met a non-finite covariance to the numpy core)."""
     s = LinearSystem.create(30.0, 1, 1, 1, 1.0)
     arr = np.zeros((1, 260, 3), bool)
     arr[0, :, 1] = True
-    arr[0, 150, 2] = True  # an arrival after 150 losses: prior 900¹⁵⁰ ≈ 1e443 has overflowed already
+    arr[0, 150:, 2] = True  # y_151 … arrive after 150 losses: the prior 900¹⁵⁰ has overflowed
     tr = Trace(runs=3, horizon=260, arrival=arr)
     for backend in ["numpy"] + ([] if numba_missing else ["numba"]):
         with np.errstate(all="raise"):
-            out = dict(est(2, backend).covariances(s, tr, [90, 200, 260], QS))
+            out = dict(est(2, backend).covariances(s, tr, [90, 150, 151, 152, 153, 260], QS))
         for k, d in out.items():
             for q, P in d.items():
-                assert not np.isnan(P).any(), (k, q)
+                assert not np.isnan(P).any(), (backend, k, q)
                 assert np.isfinite(P[..., 1]).all()
-                if k >= 200:
-                    assert np.isinf(P[..., [0, 2]]).all(), (k, q)
-        # before the overflow (k = 90: 900⁹⁰ ≈ 1e266, finite) everything is finite
-        assert np.isfinite(out[90]["predicted"]).all() and np.isfinite(out[90]["smoothed"]).all()
+                assert (k == 90) == bool(np.isfinite(P[..., 0]).all()), (backend, k, q)  # run 0: all lost
+        assert np.isinf(out[150]["filtered"][..., 2]).all()
+        assert out[151]["filtered"][0, 0, 2] == pytest.approx(1.0, rel=1e-12)  # recovered at the arrival
+        assert np.isinf(out[152]["smoothed"][..., 2]).all()  # window 150 … 152 holds P_{150|150} = inf
+        assert np.isfinite(out[153]["smoothed"][..., 2]).all()  # window 151 … 153: finite
+        np.testing.assert_allclose(out[260]["smoothed"][..., 2], out[260]["smoothed"][..., 1], rtol=1e-9)
 
 
 def test_rescue_recovers_a_huge_finite_prior():
@@ -410,6 +415,21 @@ def test_huge_a_bernoulli_monte_carlo_matches_the_exact_probability():
         p1 = st["leq_lag1"] / st["n"]
         q1 = 1 - (1 - lam) ** 2
         assert abs(p1 - q1) < 5 * np.sqrt(q1 * (1 - q1) / runs)
+
+
+def test_huge_a_overflowed_runs_recover_at_their_next_arrival():
+    """A = 10⁶, λ = 0.05: P_{k|k−1} overflows in long loss bursts (≥ 26 losses), and the rescue policy
+    recovers the run at its next arrival (information 0 in the unknown direction), so P_{k|k} = r/(c² +
+    r/Σ) ≤ 1 after any arrival and ≥ q·10¹² after a loss: Pr[P_{k|k} ≤ 10] = λ exactly. 5 binomial s.e."""
+    s = LinearSystem.create(1e6, 1, 0.5, 1, None)
+    runs, lam = 20_000, 0.05
+    for backend in ("numpy",) + (() if numba_missing else ("numba",)):
+        ker = SmootherMCKernel(system=s, channel=BernoulliChannel(kind="bernoulli", arrival=lam), k=200, lags=(PRED, 0),
+                               M=np.array([[10.0]]), backend=backend)
+        with np.errstate(all="raise"):
+            st = ker(np.random.default_rng(3), runs)
+        assert abs(st["leq_lag0"] / st["n"] - lam) < 5 * np.sqrt(lam * (1 - lam) / runs)
+        assert st["overflow_pred"] > 0 and st["overflow_lag0"] > 0  # some runs were overflowed at k, and counted
 
 
 def test_future_information_recursion_equals_the_batch_form_and_survives_huge_a():

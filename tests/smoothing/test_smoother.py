@@ -95,8 +95,9 @@ def test_lost_packet_propagates_the_previous_estimate_covariance():
 
 
 def test_overflow_is_inf_never_nan_and_a_huge_prior_is_rescued():
-    """The one rescue policy (kalman.Rescue): a prior that overflowed stays inf (never NaN); a huge but
-    finite prior (900⁹⁹ ≈ 1e292) is updated in information form, exact: P_{k|k} = 1/(1/Σ + 1) = 1."""
+    """The one rescue policy (kalman.Rescue): a prior that overflowed is inf (never NaN) until a packet
+    arrives, then P_{k|k} = r/c² = 1 (the unknown direction carries information 0); a huge but finite
+    prior (900⁹⁹ ≈ 1e292) is updated in information form, exact: P_{k|k} = 1/(1/Σ + 1) = 1."""
     s = LinearSystem.create(30.0, 1, 1, 1, 1.0)
     g = np.zeros((3, 260), bool)
     g[1, 100] = True  # after 100 losses (prior finite)
@@ -109,7 +110,10 @@ def test_overflow_is_inf_never_nan_and_a_huge_prior_is_rescued():
     for _ in range(50):  # then 50 losses: h⁵⁰(1) = 900⁵⁰ + …, finite (≈ 5e147)
         x = 900.0 * x + 1.0
     np.testing.assert_allclose(res.pred[1, 0, 0, 1], x, rtol=1e-12)
-    assert np.isinf(res.pred[2:, :, :, [0, 2]]).all() and np.isinf(res.smooth[2:, :, :, :, [0, 2]]).all()
+    assert np.isinf(res.pred[2:, :, :, 0]).all() and np.isinf(res.smooth[2:, :, :, :, 0]).all()  # never an arrival
+    assert np.isinf(res.pred[2, 0, 0, 2]) and res.filt[2, 0, 0, 2] == pytest.approx(1.0, rel=1e-12)  # recovered
+    # x at that arrival is known with variance 1 and the later losses add nothing: P_{t|t+N} = 1 for N = 0, 1, 2
+    np.testing.assert_allclose(res.smooth[2, :, 0, 0, 2], 1.0, rtol=1e-9)
 
 
 def test_bad_input():
