@@ -126,6 +126,61 @@ class NoiseModel(StrictModel):
 
 
 @dataclass(frozen=True)
+class NoiseFn:
+    """σ_n²(Υ) as a picklable callable: ``ber`` α + δ Ω(√Υ) (Sec. 3.1) or ``inverse_snr`` β/Υ (eq. 50).
+
+    It travels with the trace (``Trace.meta['noise']``): the channel defines what a kept packet's
+    communication noise is, every receiver reads it from there."""
+
+    model: str
+    alpha: float = 0.0
+    delta: float = 0.0
+    beta: float = 0.0
+
+    @classmethod
+    def of(cls, noise) -> "NoiseFn":
+        """From a channel's ``NoiseModel``."""
+        if noise.model == "ber":
+            a, d = noise.params
+            return cls("ber", alpha=float(a), delta=float(d))
+        return cls("inverse_snr", beta=float(noise.beta))
+
+    def __call__(self, snr):
+        snr = np.asarray(snr, dtype=float)
+        if self.model == "ber":
+            return fa.sigma2_n(snr, self.alpha, self.delta)
+        with np.errstate(divide="ignore"):
+            return self.beta / snr
+
+    def mean_given_kept(self, threshold, snr_avg):
+        """E[σ_n²(Υ) | Υ ≥ Υ_T] = σ²_n,ave(Υ_T)/(1 − μ_ave(Υ_T)) (eqs 15–16); ``None`` unless ``ber``."""
+        if self.model != "ber":
+            return None
+        T = np.asarray(threshold, dtype=float)
+        return fa.sigma2_n_ave(T, snr_avg, self.alpha, self.delta) / np.exp(-T / snr_avg)
+
+
+def snr_given_kept(snr, threshold: float, snr_avg: float) -> np.ndarray:
+    """Υ' per entry: Υ itself where Υ ≥ Υ_T (kept), else an SNR with the law of Υ | Υ ≥ Υ_T made from
+    the same Υ — for i.i.d. exponential Υ (mean Υ_ave) independent of whether the packet was kept.
+
+    With F the exponential cdf and μ = F(Υ_T): given a drop, V = F(Υ)/μ is uniform, so
+    Υ' = F⁻¹(μ + (1 − μ) V) = Υ_T + Υ_ave·(−log(1 − V)) (memoryless), written with expm1 for
+    accuracy; given a keep, (F(Υ) − μ)/(1 − μ) is uniform and Υ' = Υ. Either way Υ' ~ Υ | Υ ≥ Υ_T and
+    Υ' is independent of the keep decision (the burst-conditioned receiver estimator needs both)."""
+    Y = np.asarray(snr, dtype=float)
+    T, a = float(threshold), float(snr_avg)
+    drop = Y < T
+    if T <= 0 or not drop.any():
+        return Y
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = T / a - np.log(np.expm1((T - Y[drop]) / a)) + np.log(-np.expm1(-T / a))  # −log(1 − V) ~ Exp(1)
+    out = Y.copy()
+    out[drop] = T + a * np.maximum(e, 0.0)
+    return out
+
+
+@dataclass(frozen=True)
 class FadingTrace:
     """Linear SNR Υ[k] per run, shape ``(horizon, runs)`` (time-major: ``snr[k]`` is contiguous over runs)."""
 
@@ -187,8 +242,6 @@ class FadingChannel(ChannelModel):
         Same random numbers as :meth:`sample`. A receiver turns Υ_t into the drop (Υ_t < Υ_T, eq. 5)
         and the communication-noise variance σ_n²(Υ_t) of each step.
         """
-        from netkf_cli.estimators.fading_receivers import NoiseFn
-
         return Trace(runs=runs, horizon=horizon, snr=self.sample(rng, runs, horizon).snr,
                      meta={"noise": NoiseFn.of(self.noise), "snr_avg": self.mean_snr,
                            "correlation": self.correlation.model})

@@ -1,69 +1,78 @@
 """Receivers of Mostofi & Murray 2009: scenario 1 (eqs 7–8), 2 (eqs 10–13) and 3 (eqs 27–28).
 
-A packet is kept iff Υ[k] ≥ Υ_T (eq. 5). What happens to a kept packet:
+A packet carries all of y_k (one arrival stream); it is kept iff Υ[k] ≥ Υ_T (eq. 5). Every recursion
+is written on the Kalman core (:mod:`netkf_cli.kalman`): a dropped packet is γ = 0 (the correction
+is multiplied by γ), the communication noise of a kept packet is the core's per-run ``extra_R``
+= σ_n²(Υ) I, a suboptimal receiver's true error covariance is :func:`kalman.joseph` of its gain, and
+every step goes through the one overflow policy (:class:`kalman.Rescue`; non-finite ⇒ ``inf``):
 
-* scenario 1 — "ideal noise": the kept packet is noise-free apart from the observation noise R
-  (eq. 7 with S₁ = 0): P⁺ = (P⁻¹ + Cᵀ R⁻¹ C)⁻¹.
-* scenario 2 — no cross-layer path: the estimator does not know σ_n² and treats a kept packet
-  as noise-free, x̂[k+1] = A C⁻¹ ŷ[k] (eq. 10). For an invertible C the error covariance is
-  eq. (12) with the footnote's σ_n² I + R: P[k+1] = A C⁻¹(σ_n²(Υ) I + R)C⁻ᵀ Aᵀ + Q.
-  For a non-invertible C (Sec. 4.2) we use the same estimator idea as a Kalman filter that
-  believes the measurement noise is zero: its own covariance P_f gives the gain
-  K = P_f Cᵀ (C P_f Cᵀ)⁻¹, and the true error covariance follows the Joseph form
-  P⁺ = (I − KC) P (I − KC)ᵀ + K(σ_n² I + R)Kᵀ. With an invertible C, K = C⁻¹ and this is eq. (12).
-* scenario 3 — cross-layer path: the Kalman filter uses σ_z² = σ_n²(Υ) I + R (eqs 27–28),
-  P⁺ = (P⁻¹ + Cᵀ σ_z⁻² C)⁻¹ (information form: exact even when P is huge after a drop burst).
+* scenario 1 — "ideal noise": the kept packet is noise-free apart from R (eq. 7 with S₁ = 0):
+  the Kalman filter with intermittent observations (:func:`kalman.update`, γ = keep).
+* scenario 2 — no cross-layer path: the estimator treats a kept packet as noise-free. Its gain is
+  the optimal gain of its own covariance P_f with zero noise, K = P_f Cᵀ (C P_f Cᵀ)⁻¹
+  (:func:`kalman.gain` with R = 0; K = C⁻¹ for an invertible C, eq. 10), and the true error
+  covariance is the Joseph form with the true noise, P⁺ = (I − KC) P (I − KC)ᵀ + K(σ_n² I + R)Kᵀ;
+  for an invertible C this is eq. (12) with the footnote's σ_n² I + R.
+* scenario 3 — cross-layer path: the Kalman filter knows σ_z² = σ_n²(Υ) I + R (eqs 27–28),
+  :func:`kalman.update` with ``extra_R`` = σ_n² I (rescue: :func:`kalman.rescue_noisy`).
 
-A dropped packet always gives P[k+1] = A P Aᵀ + Q.
+Time base (netkf's one): P0 = P_{0|0} (:func:`riccati.initial_covariance`); step k uses Υ of trace
+step k − 1; ``filtered`` is P_{k|k}, ``predicted`` P_{k+1|k} — the paper's P[k+1] (eqs 6, 12, 28),
+which its figures plot. (The paper-figure analyses ``fading_*`` keep the paper's own start:
+P[0] = P0 is the prior of the first packet; their kernels drive :class:`Stepper` from that prior.)
 
-All recursions are batched: matrices are ``(n, n, B)`` with the batch index (runs × thresholds)
-innermost; the loop is over time only. Overflow of an unstable run gives ``inf``, never a crash.
+All recursions are batched over runs (``(n, n, B)``, run axis innermost); the compiled backend
+(:mod:`netkf_cli.estimators._fading_numba`) runs the same primitives from :mod:`netkf_cli.kalman_numba`.
 
-Two Monte Carlo estimators of E P[k] are provided:
+Two Monte Carlo estimators of E P[k]:
 
-* **naive**: the sample mean of P[k] over runs (works for any channel, heavy-tailed near the
-  stability limit: its variance is infinite once μ ρ⁴ ≥ 1 in scenario 2).
-* **burst-conditioned** (i.i.d. channel only): condition on the final drop burst. With
-  μ = Pr[drop] and F(P, Υ) the kept-packet update, for i.i.d. Υ
-  E[P[k+1] | P[k]] = μ (A P[k] Aᵀ + Q) + (1 − μ) E[F(P[k], Υ') ], Υ' ~ Υ | Υ ≥ Υ_T = Υ_T + Exp(Υ_ave),
-  so U[k+1] = μ (A U[k] Aᵀ + Q) + (1 − μ) F(P[k], Υ'[k]), U[0] = P[0], is an unbiased estimate
-  of E P[k+1] for every run (induction on k; Υ'[k] is independent of P[k]). The long drop
-  bursts that make P[k] heavy-tailed enter U only through their exact probabilities μ^L,
-  and F(P, Υ') is bounded by A C⁻¹σ_z²C⁻ᵀAᵀ + Q whatever P is (invertible C), so U has a
-  small variance. The path P itself is simulated with keep = (uniform ≥ μ) and Υ' as the
-  SNR of kept packets, i.e. the exact i.i.d. channel.
+* **naive**: the sample mean of P[k] over runs (any channel; heavy-tailed near the stability limit:
+  its variance is infinite once μ ρ⁴ ≥ 1 in scenario 2).
+* **burst-conditioned** (i.i.d. channel only; ``variance_reduction: conditioned``): condition on the
+  final drop burst. With μ = Pr[drop] and F(P, Υ) the kept-packet update, for i.i.d. Υ
+  E[P_{k|k} | P_{k|k−1}] = μ P_{k|k−1} + (1 − μ) E[F(P_{k|k−1}, Υ')], Υ' ~ Υ | Υ ≥ Υ_T,
+  so U_{k|k} = μ U_{k|k−1} + (1 − μ) F(P_{k|k−1}, Υ'_k), U_{k+1|k} = A U_{k|k} Aᵀ + Q, U_{0|0} = P0,
+  is an unbiased estimate of E P_{k|k} (and of E P_{k+1|k}) for every run (induction on k; Υ'_k is
+  independent of P_{k|k−1}). The long drop bursts that make P heavy-tailed enter U only through
+  their exact probabilities μ^L, and F(P, Υ') is bounded whatever P is (invertible C), so U has a
+  small variance. On a channel trace, Υ'_k is made from the trace's own Υ_k
+  (:func:`netkf_cli.channels.fading.snr_given_kept`: Υ itself when kept). For scenario 2 with the
+  ``ber`` noise, σ_n²(Υ') in U is replaced by its conditional mean E[σ_n² | kept] (eqs 15–16: exact
+  Rao–Blackwellization, the Joseph form is affine in σ_n² with a σ_n²-independent gain).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
 
-from netkf_cli import batched
+from netkf_cli import kalman
 from netkf_cli.analysis import fading as fa
-from netkf_cli.channels.fading import Snr
+from netkf_cli.channels.fading import NoiseFn, Snr, snr_given_kept  # noqa: F401 (NoiseFn re-exported)
 from netkf_cli.errors import ConfigError
+from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
 
 BackendKind = Literal["auto", "numpy", "numba"]
+VarianceReduction = Literal["none", "conditioned"]
 
 
 class ReceiverEstimator(EstimatorModel):
     """``kind: receiver`` — Mostofi & Murray 2009 receiver scenario 1, 2 or 3 with drop threshold Υ_T (eq. 5).
 
-    Works from the ``snr`` trace of a ``fading`` channel: per step, a packet with Υ_t < Υ_T is
-    dropped, a kept one carries communication noise of variance σ_n²(Υ_t) (the channel's noise
-    model). Reports the one-step prediction error covariance after y_k, P_{k+1|k} — the paper's
-    P[k+1] (eqs 6, 12, 28). ``system.P0`` is P_{0|0} as everywhere in netkf (P̄ when left out), so
-    the prior of y_1 is A P0 Aᵀ + Q. (The paper-figure analyses ``fading_*`` use the paper's own
-    convention instead: P[0] = P0 is the prior of the first packet.)
+    Works from the ``snr`` trace of a ``fading`` channel (one packet per step carrying all of y_k):
+    a packet with Υ_t < Υ_T is dropped, a kept one carries communication noise of variance σ_n²(Υ_t)
+    (the channel's noise model). Reports ``filtered`` P_{k|k} and ``predicted`` P_{k+1|k} (the
+    paper's P[k+1], eqs 6, 12, 28) from P0 = P_{0|0}. On a perfect channel (every packet kept, no
+    communication noise) scenarios 1 and 3 are ``kind: kf``, number for number.
     """
 
     accepts: ClassVar[frozenset[str]] = frozenset({"snr"})
-    quantity: ClassVar[str] = "P_{k+1|k}"
+    quantities: ClassVar[tuple[str, ...]] = ("filtered", "predicted")
 
     kind: Literal["receiver"]
     scenario: Literal[1, 2, 3] = Field(description="1: drop erroneous packets (eqs 7–8); 2: no cross-layer path "
@@ -71,9 +80,14 @@ class ReceiverEstimator(EstimatorModel):
     threshold: Snr | None = Field(None, description="drop threshold Υ_T with unit (analyses that sweep Υ_T ignore it)")
     backend: BackendKind = Field("auto", description="numpy (reference) | numba (compiled, equal to rounding) | "
                                                      "auto = numba when importable")
+    variance_reduction: VarianceReduction = Field(
+        "none", description="none: P_k of each run (every metric). conditioned: the burst-conditioned estimate of "
+                            "E P_k per run (i.i.d. channel only; unbiased for MEANS — mean_vs_time, compare's "
+                            "E tr P — with a far smaller variance; not a per-run covariance, so not for distribution)")
 
     def check(self, system, channel) -> None:
-        """Refuse pairs that cannot work: a channel without SNR, a missing Υ_T, scenario 2 with m > n."""
+        """Refuse pairs that cannot work: a channel without SNR, a missing Υ_T, scenario 2 with m > n,
+        a conditioned estimate on a correlated channel."""
         if "snr" not in getattr(channel, "trace_kinds", frozenset()):
             raise ConfigError.at("estimator.kind", "the fading receivers need a channel with an SNR trace "
                                                    "(kind: fading); compatible trace kinds: snr")
@@ -81,88 +95,68 @@ class ReceiverEstimator(EstimatorModel):
             raise ConfigError.at("estimator.threshold", "give the drop threshold Υ_T, e.g. {value: 14, unit: linear}")
         if self.scenario == 2 and system.m > system.n:
             raise ConfigError.at("system.C", "scenario 2 needs at most as many outputs as states")
+        kalman.stream_rows(system, 1, "estimator.kind")  # one packet per step carries all of y_k
+        corr = getattr(getattr(channel, "correlation", None), "model", "iid")
+        if self.variance_reduction == "conditioned" and corr != "iid":
+            raise ConfigError.at("estimator.variance_reduction",
+                                 f"conditioned needs an i.i.d. channel (correlation model iid), got {corr}; "
+                                 "use variance_reduction: none (or the fading_correlation analysis' SMC)")
         if self.backend == "numba":
             resolve_backend("numba")
+
+    def conventions(self, system, channel) -> dict[str, str]:
+        out = {"packet": "one packet per step carries all of y_k",
+               "threshold": "kept iff Υ_t ≥ Υ_T (eq. 5)",
+               "receiver": {1: "scenario 1: noise-free kept packets (eq. 7)",
+                            2: "scenario 2: no cross-layer path, Joseph form of the noise-free gain (eqs 10–12)",
+                            3: "scenario 3: cross-layer path, σ_z² = σ_n² I + R (eqs 27–28)"}[self.scenario]}
+        if self.variance_reduction == "conditioned":
+            out["variance_reduction"] = "burst-conditioned per-run estimate of E P_k (means only)"
+        return out
 
     def model(self, system, noise) -> "ReceiverModel":
         return ReceiverModel(self.scenario, system.A, system.C, system.Q, system.R, noise)
 
-    def covariances(self, system, trace, steps):
-        """Yield (k, P_{k+1|k}) for k in ``steps`` (ascending, 1..horizon), shaped (n, n, runs); overflow → inf/NaN."""
+    def covariances(self, system, trace, steps, quantities=("filtered",)):
+        """Yield (k, {quantity: P}) for k in ``steps`` (1 ≤ k ≤ horizon); P (n, n, runs); overflow → inf."""
+        qs = kalman.check_quantities(quantities, self.quantities, "receiver")
         noise = trace.meta.get("noise")
         if noise is None or trace.snr is None:
             raise ConfigError.at("channel", "the receiver needs an SNR trace with its noise model (channel kind fading)")
         rm = self.model(system, noise)
-        from netkf_cli import riccati
-
-        P00 = riccati.pbar(system) if system.P0 is None else np.asarray(system.P0, dtype=float)
-        P10 = rm.A @ P00 @ rm.A.T + rm.Q  # prior of y_1 (one prediction from P_{0|0})
-        st = Stepper(rm, 0.5 * (P10 + P10.T), trace.runs, self.backend)
         T = self.threshold.linear
-        todo = sorted(int(k) for k in steps)
-        k = 0
-        for t in range(trace.horizon):
-            if not todo:
-                return
-            snr = trace.snr[t]
-            keep = snr >= T
-            st.step(keep, rm.noise(np.where(keep, snr, 1.0)))
-            k = t + 1
-            while todo and todo[0] == k:
-                todo.pop(0)
-                yield k, np.array(st.true)
-
-
-# --------------------------------------------------------------------------- batched linear algebra
-
-
-def _mm(X, Y):
-    return batched.matmul(X, Y)
-
-
-def _cmm(A, X):
-    return np.einsum("ij,jkb->ikb", A, X)
-
-
-def _mmc(X, A):
-    return np.einsum("ijb,jk->ikb", X, A)
-
-
-def _sym(X):
-    return batched.sym(X)
-
-
-def inv_small(X: np.ndarray) -> np.ndarray:
-    """Inverse of a batch ``(m, m, B)`` of symmetric positive-definite matrices.
-
-    Closed form (adjugate/determinant) for m ≤ 3 after scaling each matrix by its largest
-    entry (no overflow of the m-fold products); ``np.linalg.inv`` otherwise.
-    """
-    m = X.shape[0]
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        s = np.max(np.abs(X), axis=(0, 1))
-        s = np.where(s > 0, s, 1.0)
-        Y = X / s
-        if m == 1:
-            out = 1.0 / Y
-        elif m == 2:
-            a, b, c, d = Y[0, 0], Y[0, 1], Y[1, 0], Y[1, 1]
-            det = a * d - b * c
-            out = np.empty_like(Y)
-            out[0, 0], out[0, 1], out[1, 0], out[1, 1] = d / det, -b / det, -c / det, a / det
-        elif m == 3:
-            a, b, c = Y[0, 0], Y[0, 1], Y[0, 2]
-            d, e, f = Y[1, 0], Y[1, 1], Y[1, 2]
-            g, h, i = Y[2, 0], Y[2, 1], Y[2, 2]
-            A_, B_, C_ = e * i - f * h, -(d * i - f * g), d * h - e * g
-            det = a * A_ + b * B_ + c * C_
-            out = np.empty_like(Y)
-            out[0, 0], out[0, 1], out[0, 2] = A_ / det, -(b * i - c * h) / det, (b * f - c * e) / det
-            out[1, 0], out[1, 1], out[1, 2] = B_ / det, (a * i - c * g) / det, -(a * f - c * d) / det
-            out[2, 0], out[2, 1], out[2, 2] = C_ / det, -(a * h - b * g) / det, (a * e - b * d) / det
-        else:
-            out = np.moveaxis(np.linalg.inv(np.moveaxis(Y, 2, 0)), 0, 2)
-        return out / s
+        cond = self.variance_reduction == "conditioned"
+        B = trace.runs
+        if cond:
+            if trace.meta.get("correlation", "iid") != "iid":
+                raise ConfigError.at("estimator.variance_reduction", "conditioned needs an i.i.d. channel")
+            Ya = float(trace.meta["snr_avg"])
+            mu = np.full(B, float(fa.mu_ave(T, Ya)))
+            rb = noise.mean_given_kept(T, Ya) if (self.scenario == 2 and isinstance(noise, NoiseFn)) else None
+        P00 = initial_covariance(system)
+        st = Stepper(rm, kalman.one(kalman.predict, P00, rm.A, rm.Q), B, self.backend, want_u=cond,
+                     U0=P00 if cond else None)
+        t = 0
+        for k in sorted(set(int(k) for k in steps)):
+            if k > t:
+                Y = trace.snr[t:k]
+                keep = Y >= T
+                if rm.scenario == 1:
+                    s2 = np.zeros(Y.shape)
+                    s2u = None
+                elif cond:
+                    s2 = rm.noise(snr_given_kept(Y, T, Ya))  # = σ_n²(Υ) where kept
+                    s2u = None if rb is None else np.full(Y.shape, float(rb))
+                else:
+                    s2 = rm.noise(np.where(keep, Y, 1.0))
+                    s2u = None
+                st.advance(keep, s2, mu if cond else None, s2u)
+                t = k
+            if cond:
+                out = {"filtered": st.cond_filtered, "predicted": st.cond}
+            else:
+                out = {"filtered": st.filtered, "predicted": st.true}
+            yield k, {q: out[q] for q in qs}
 
 
 # --------------------------------------------------------------------------- the model of one receiver
@@ -178,7 +172,11 @@ class ReceiverModel:
     Q: np.ndarray
     R: np.ndarray
     noise: object  # callable snr -> sigma2
-    general_C: bool = False  # scenario 2: force the Kalman-gain form even for an invertible C
+    general_C: bool = False  # scenario 2: force the general-gain form (the filter's own P_f) even for an invertible C
+
+    def __post_init__(self):
+        for name in ("A", "C", "Q", "R"):
+            object.__setattr__(self, name, np.ascontiguousarray(np.atleast_2d(getattr(self, name)), dtype=float))
 
     @property
     def n(self) -> int:
@@ -193,49 +191,53 @@ class ReceiverModel:
         """Number of covariance matrices carried per run (2 for scenario 2 with the general-C form)."""
         return 2 if (self.scenario == 2 and (self.general_C or not self.square_C)) else 1
 
+    @cached_property
+    def rescue(self) -> kalman.Rescue:
+        """The one overflow policy for this (C, R)."""
+        return kalman.Rescue.of(self.C, self.R)
 
-def _drop(rm: ReceiverModel, P):
-    """A P Aᵀ + Q (symmetrized): the shared batched time update."""
-    return batched.riccati_h(P, rm.A, rm.Q)
-
-
-def kept_update(rm: ReceiverModel, state: list[np.ndarray], sigma2: np.ndarray) -> list[np.ndarray]:
-    """Next-step covariance(s) P[k+1] for a KEPT packet with communication-noise variance σ_n² (per batch)."""
-    A, C, Q, R = rm.A, rm.C, rm.Q, rm.R
-    n, m = rm.n, C.shape[0]
-    if rm.scenario == 1 or rm.scenario == 3:
-        P = state[0]
-        if rm.scenario == 1:
-            info = (C.T @ np.linalg.solve(R, C))[:, :, None]
-        else:
-            # Cᵀ (σ² I + R)⁻¹ C = Σ_i c_i c_iᵀ / (r_i + σ²) with R = U diag(r) Uᵀ, c_i = (Uᵀ C)_i
-            r, U = np.linalg.eigh(R)
-            Ct = U.T @ C
-            G = np.einsum("ia,ib->abi", Ct, Ct)  # (n, n, m)
-            with np.errstate(divide="ignore"):
-                w = 1.0 / (r[:, None] + sigma2[None, :])  # (m, B)
-            info = np.tensordot(G, w, axes=([2], [0]))  # (n, n, B)
-        Pp = inv_small(_sym(inv_small(P) + info))
-        return [batched.riccati_h(Pp, A, Q)]
-    # scenario 2
-    if rm.state_size() == 1:
-        Ci = np.linalg.inv(C)
-        M1 = A @ Ci @ Ci.T @ A.T
-        M2 = A @ Ci @ R @ Ci.T @ A.T + Q
-        return [M1[:, :, None] * sigma2[None, None, :] + M2[:, :, None]]
-    Pf, Pt = state
-    S = _sym(_mm(_cmm(C, Pf), np.broadcast_to(C.T[:, :, None], (n, m, 1))))  # C Pf Cᵀ  (m, m, B)
-    K = _mm(_mmc(Pf, C.T), inv_small(S))  # (n, m, B)
-    IKC = np.eye(n)[:, :, None] - _mmc(K, C)
-    Rz = R[:, :, None] + sigma2[None, None, :] * np.eye(m)[:, :, None]
-    KT = np.swapaxes(K, 0, 1)
-    Pt_plus = _sym(_mm(_mm(IKC, Pt), np.swapaxes(IKC, 0, 1)) + _mm(_mm(K, Rz), KT))
-    Pf_plus = _sym(_mm(_mm(IKC, Pf), np.swapaxes(IKC, 0, 1)))  # filter believes zero measurement noise
-    return [_drop(rm, Pf_plus), _drop(rm, Pt_plus)]
+    @cached_property
+    def gain_inv(self) -> np.ndarray:
+        """Scenario 2, invertible C: the receiver's gain C⁻¹ (eq. 10)."""
+        return np.ascontiguousarray(np.linalg.inv(self.C)) if self.square_C else np.zeros((self.n, self.C.shape[0]))
 
 
-def drop_update(rm: ReceiverModel, state):
-    return [_drop(rm, X) for X in state]
+def _nonfinite_inf(P: np.ndarray) -> np.ndarray:
+    """The core's policy for an overflowed run (:func:`kalman.clean_nonfinite`): ∞ variances of unknown
+    directions are kept, any other non-finite run is ``inf`` everywhere (never a silent NaN)."""
+    return kalman.clean_nonfinite(P)
+
+
+def correct(rm: ReceiverModel, state: list[np.ndarray], gamma: np.ndarray, s2: np.ndarray) -> list[np.ndarray]:
+    """The measurement step from the prior(s) ``state`` ([P] or [P_f, P]): γ (B,) keep, σ_n² (B,) per run."""
+    C, R = rm.C, rm.R
+    m, B = C.shape[0], gamma.shape[0]
+    g = np.asarray(gamma, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        extra = None if rm.scenario == 1 else np.asarray(s2, dtype=float)[None, None, :] * np.eye(m)[:, :, None]
+        if rm.scenario in (1, 3):
+            Pm = state[0]
+            flagged = rm.rescue.flag(Pm)
+            P = kalman.update(Pm, C, R, g, extra)
+            if flagged.any():
+                if extra is None:
+                    P = rm.rescue.apply(P, Pm, flagged, np.broadcast_to(g, (m, B)))
+                else:
+                    P = kalman.rescue_noisy(rm.rescue, P, Pm, flagged, g, extra)
+            return [_nonfinite_inf(P)]
+        if rm.state_size() == 1:
+            K = np.broadcast_to(rm.gain_inv[:, :, None], (rm.n, m, B))
+            return [_nonfinite_inf(kalman.joseph(state[0], K, C, R, g, extra))]
+        Pf, Pt = state
+        Z = np.zeros((m, m))
+        K = kalman.gain(Pf, C, Z)  # the receiver believes kept packets are noise-free
+        return [_nonfinite_inf(kalman.joseph(Pf, K, C, Z, g)), _nonfinite_inf(kalman.joseph(Pt, K, C, R, g, extra))]
+
+
+def predict(rm: ReceiverModel, state: list[np.ndarray]) -> list[np.ndarray]:
+    """A P Aᵀ + Q for every carried covariance (the core's time update)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return [_nonfinite_inf(kalman.predict(X, rm.A, rm.Q)) for X in state]
 
 
 def initial_state(rm: ReceiverModel, P0: np.ndarray, B: int) -> list[np.ndarray]:
@@ -246,10 +248,6 @@ def initial_state(rm: ReceiverModel, P0: np.ndarray, B: int) -> list[np.ndarray]
 def true_cov(state):
     """The true error covariance of the state (last element)."""
     return state[-1]
-
-
-def _where(mask, X, Y):
-    return np.where(mask[None, None, :], X, Y)
 
 
 # --------------------------------------------------------------------------- the batched engine (numpy | numba)
@@ -263,128 +261,180 @@ def numba_available() -> bool:
     return True
 
 
-def resolve_backend(backend: str) -> str:
-    """``auto`` → ``numba`` when importable, else ``numpy``; ``numba`` without numba is a ConfigError."""
+def resolve_backend(backend: str, n: int | None = None) -> str:
+    """``auto`` → ``numba`` when importable and measured faster, else ``numpy``; ``numba`` without numba
+    is a ConfigError. Measured (benchmarks: /tmp timing of covariance_paths, 2 loaded cores): compiled
+    ≈ 1.3–2× the numpy core for n ≥ 2 (Fig. 6, Sec. 4.2 systems), slower for a scalar system (n = 1),
+    where the numpy core's few vector operations per step already run near memory speed."""
     if backend == "auto":
-        return "numba" if numba_available() else "numpy"
+        return "numba" if numba_available() and (n is None or n >= 2) else "numpy"
     if backend == "numba" and not numba_available():
         raise ConfigError.at("estimator.backend", "backend numba needs numba: pip install 'netkf[fast]'")
     return backend
 
 
-def _constants(rm: ReceiverModel):
-    """(mode, G, r, M1, M2) for the compiled step (see ``_fading_numba``)."""
-    n = rm.n
-    G = np.zeros((n, n, 1))
-    r = np.ones(1)
-    M1 = M2 = np.zeros((n, n))
-    if rm.scenario in (1, 3):
-        mode = 0
-        r, U = np.linalg.eigh(rm.R)
-        Ct = U.T @ rm.C
-        G = np.ascontiguousarray(np.einsum("ia,ib->abi", Ct, Ct))
-    elif rm.state_size() == 1:
-        mode = 1
-        Ci = np.linalg.inv(rm.C)
-        M1 = rm.A @ Ci @ Ci.T @ rm.A.T
-        M2 = rm.A @ Ci @ rm.R @ Ci.T @ rm.A.T + rm.Q
-    else:
-        mode = 2
-    return mode, G, np.ascontiguousarray(r, dtype=float), np.ascontiguousarray(M1), np.ascontiguousarray(M2)
-
-
 class Stepper:
-    """Batched receiver recursion over B runs (columns): ``step(keep, s2, mu)`` advances one time step.
+    """Batched receiver recursion over B runs from the PRIOR ``P0`` (P_{1|0}): per step, the
+    measurement step (:func:`correct`) then the time update (:func:`predict`).
 
-    ``backend`` ``numpy`` (reference: :func:`kept_update` / :func:`drop_update`) or ``numba``
-    (compiled, same inputs, equal to rounding). With ``want_u`` the burst-conditioned estimate U
-    is advanced as well (module doc). ``true`` is the true error covariance P[k] (n, n, B).
+    ``true`` is the prior (the paper's P[k], = P_{k|k−1}), ``filtered`` the last P_{k|k}. With
+    ``want_u`` the burst-conditioned estimate is advanced as well: ``cond`` U_{k+1|k}, ``cond_filtered``
+    U_{k|k} (start ``U0`` = U_{0|0}, else the prior P0 is U's prior). ``backend`` ``numpy`` (reference)
+    or ``numba`` (the same primitives compiled; equal to rounding).
     """
 
-    def __init__(self, rm: ReceiverModel, P0, B: int, backend: str = "numpy", want_u: bool = False):
-        self.rm, self.backend, self.want_u = rm, resolve_backend(backend), want_u
+    def __init__(self, rm: ReceiverModel, P0, B: int, backend: str = "numpy", want_u: bool = False, U0=None):
+        self.rm, self.backend, self.want_u = rm, resolve_backend(backend, rm.n), want_u
         self.state = initial_state(rm, P0, B)
-        self.U = true_cov(self.state).copy() if want_u else None
+        self._filtered = None
+        self.U = self.Uf = None
+        if want_u:
+            if U0 is None:
+                self.U = true_cov(self.state).copy()
+            else:
+                self.Uf = np.repeat(np.asarray(U0, dtype=float)[:, :, None], B, axis=2)
+                self.U = predict(rm, [self.Uf])[0]
         if self.backend == "numba":
             from netkf_cli.estimators import _fading_numba as fnb
 
-            self._c = _constants(rm)
-            self._nb_generic = fnb.step
-            spec = fnb.specialized_step(self._c[0], rm.n, rm.C.shape[0])
-            self._nb = (lambda mode, *a: spec(*a)) if spec is not None else fnb.step
-            self._A, self._Q = np.ascontiguousarray(rm.A), np.ascontiguousarray(rm.Q)
-            self._C, self._R = np.ascontiguousarray(rm.C), np.ascontiguousarray(rm.R)
-            self._dummy_u = np.zeros((1, rm.n, rm.n))
-            # run-major copies for the compiled loop (see _fading_numba.step)
-            self.state = [np.ascontiguousarray(np.moveaxis(X, 2, 0)) for X in self.state]
+            self._fnb = fnb
+            self._mode = fnb.mode_of(rm)
+            run_major = (lambda X: np.ascontiguousarray(np.moveaxis(X, 2, 0)))
+            self._Pt = run_major(self.state[-1])
+            self._Pf = run_major(self.state[0]) if self._mode == 2 else np.zeros((1, rm.n, rm.n))
+            self._Ft = np.empty_like(self._Pt)
             if want_u:
-                self.U = np.ascontiguousarray(np.moveaxis(self.U, 2, 0))
+                self._U = run_major(self.U)
+                self._Uf = run_major(self.Uf) if self.Uf is not None else np.empty_like(self._U)
+            else:
+                self._U = self._Uf = np.zeros((1, rm.n, rm.n))
 
+    # ---- (n, n, B) arrays (copies for the compiled backend, whose run-major state is updated in place)
     @property
     def true(self) -> np.ndarray:
-        """P[k], shape (n, n, B)."""
-        X = true_cov(self.state)
-        return np.moveaxis(X, 0, 2) if self.backend == "numba" else X
+        """The prior P_{k+1|k} (paper: P[k+1]), shape (n, n, B)."""
+        return np.moveaxis(self._Pt, 0, 2).copy() if self.backend == "numba" else true_cov(self.state)
+
+    @property
+    def filtered(self) -> np.ndarray:
+        """P_{k|k} of the last step, shape (n, n, B)."""
+        return np.moveaxis(self._Ft, 0, 2).copy() if self.backend == "numba" else self._filtered
 
     @property
     def cond(self) -> np.ndarray:
-        """U[k] (burst-conditioned estimate), shape (n, n, B)."""
-        return np.moveaxis(self.U, 0, 2) if self.backend == "numba" else self.U
+        """U_{k+1|k} (burst-conditioned estimate of E P_{k+1|k}), shape (n, n, B)."""
+        return np.moveaxis(self._U, 0, 2).copy() if self.backend == "numba" else self.U
+
+    @property
+    def cond_filtered(self) -> np.ndarray:
+        """U_{k|k} (burst-conditioned estimate of E P_{k|k}), shape (n, n, B)."""
+        return np.moveaxis(self._Uf, 0, 2).copy() if self.backend == "numba" else self.Uf
 
     def kept_true(self, s2: np.ndarray) -> np.ndarray:
-        """P[k+1] (n, n, B) if every run's packet were KEPT with noise variance s2; the state is unchanged."""
+        """The next prior (n, n, B) if every run's packet were KEPT with noise variance s2; the state is unchanged."""
+        B = np.asarray(s2).shape[0]
         if self.backend == "numba":
-            mode, G, r, M1, M2 = self._c
-            Pf, Pt = (np.array(X) for X in (self.state[0], self.state[-1]))
-            s2_ = np.zeros(Pt.shape[0]) if self.rm.scenario == 1 else np.ascontiguousarray(s2, dtype=float)
-            keep = np.ones(Pt.shape[0], dtype=bool)
-            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-                self._nb(mode, Pf, Pt, self._dummy_u, keep, s2_, s2_, False,
-                         self._A, self._Q, self._C, self._R, G, r, M1, M2)
-            return np.moveaxis(Pt, 0, 2)
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            return true_cov(kept_update(self.rm, self.state, s2))
+            st = [np.moveaxis(self._Pf, 0, 2), np.moveaxis(self._Pt, 0, 2)] if self._mode == 2 else [np.moveaxis(self._Pt, 0, 2)]
+        else:
+            st = self.state
+        s2_ = np.zeros(B) if self.rm.scenario == 1 else np.asarray(s2, dtype=float)
+        return true_cov(predict(self.rm, correct(self.rm, st, np.ones(B, dtype=bool), s2_)))
 
     def step(self, keep: np.ndarray, s2: np.ndarray, mu: np.ndarray | None = None) -> None:
+        """One step: keep (B,) bool, s2 (B,) σ_n² of the packet, mu (B,) drop probability (U only)."""
+        self.advance(np.asarray(keep)[None, :], np.asarray(s2, dtype=float)[None, :], mu)
+
+    def advance(self, keep: np.ndarray, s2: np.ndarray, mu: np.ndarray | None = None,
+                s2u: np.ndarray | None = None) -> None:
+        """Advance len(keep) steps: keep (T, B) bool, s2 (T, B) σ_n² of the packets (path, and U's kept
+        term), ``s2u`` (T, B) a different σ_n² for U's kept term (Rao–Blackwellized), mu (B,)."""
         rm = self.rm
+        keep = np.ascontiguousarray(keep, dtype=bool)
+        s2 = np.zeros(keep.shape) if rm.scenario == 1 else np.ascontiguousarray(s2, dtype=float)
         if self.backend == "numba":
-            mode, G, r, M1, M2 = self._c
-            Pt = self.state[-1]
-            Pf = self.state[0]
-            s2_ = np.zeros(keep.shape[0]) if rm.scenario == 1 else np.ascontiguousarray(s2, dtype=float)
-            U = self.U if self.want_u else self._dummy_u
-            mu_ = np.ascontiguousarray(mu, dtype=float) if self.want_u else s2_
-            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-                self._nb(mode, Pf, Pt, U, np.ascontiguousarray(keep), s2_, mu_, self.want_u,
-                         self._A, self._Q, self._C, self._R, G, r, M1, M2)
+            self._advance_numba(keep, s2, mu, s2u)
             return
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            ku = kept_update(rm, self.state, s2)
-            du = drop_update(rm, self.state)
+        self._advance_numpy(keep, s2, mu, s2u)
+
+    def _advance_numba(self, keep, s2, mu, s2u) -> None:
+        rm = self.rm
+        B = self._Pt.shape[0]
+        start = (self._Pt.copy(), self._Pf.copy(), self._U.copy())
+        flags = np.zeros(B, dtype=np.int8)
+        mu_ = np.ascontiguousarray(mu, dtype=float) if self.want_u else np.zeros(1)
+        s2u_ = s2 if s2u is None else np.ascontiguousarray(s2u, dtype=float)
+        tr = (lambda X: np.ascontiguousarray(X.T))  # run-major (B, T): each run's inputs contiguous
+        self._fnb.kernel(self._mode, rm.n, rm.C.shape[0])(
+            tr(keep), tr(s2), tr(s2u_), s2u is not None, mu_, self.want_u,
+            rm.A, rm.Q, rm.C, rm.R, rm.gain_inv, rm.rescue.limit, self._Pt, self._Pf, self._Ft, self._U, self._Uf, flags)
+        idx = np.flatnonzero(flags == 1)
+        if idx.size:  # the runs that met a prior needing the rescue: redo their block with the rescue inline
+            sub = lambda X: np.ascontiguousarray(X[idx])  # noqa: E731
+            Pt0, Pf0, U0 = start
+            Pt, Ft = sub(Pt0), np.empty((idx.size, rm.n, rm.n))
+            U, Uf = (sub(U0), np.empty((idx.size, rm.n, rm.n))) if self.want_u else (self._U, self._Uf)
+            f2 = np.zeros(idx.size, dtype=np.int8)
+            self._fnb.kernel(self._mode, rm.n, rm.C.shape[0], rescue=True)(
+                tr(keep[:, idx]), tr(s2[:, idx]), tr(s2u_[:, idx]), s2u is not None, mu_[idx] if self.want_u else mu_,
+                self.want_u, rm.A, rm.Q, rm.C, rm.R, rm.gain_inv, rm.rescue.limit, Pt, self._Pf, Ft, U, Uf, f2)
+            self._Pt[idx], self._Ft[idx] = Pt, Ft
             if self.want_u:
-                self.U = mu[None, None, :] * _drop(rm, self.U) + (1.0 - mu[None, None, :]) * true_cov(ku)
-            self.state = [_where(keep, a, b) for a, b in zip(ku, du)]
+                self._U[idx], self._Uf[idx] = U, Uf
+            flags[idx[f2 == 2]] = 2
+        idx = np.flatnonzero(flags == 2)
+        if idx.size:  # a non-finite value appeared: the numpy core owns what an overflow means
+            sub = Stepper(rm, np.eye(rm.n), idx.size, "numpy", want_u=self.want_u)
+            Pt0, Pf0, U0 = (np.moveaxis(X, 0, 2) for X in start)
+            sub.state = [Pf0[:, :, idx], Pt0[:, :, idx]] if self._mode == 2 else [Pt0[:, :, idx]]
+            if self.want_u:
+                sub.U = U0[:, :, idx]
+            sub._advance_numpy(keep[:, idx], s2[:, idx], None if mu is None else np.asarray(mu)[idx],
+                               None if s2u is None else s2u[:, idx])
+            self._Pt[idx] = np.moveaxis(true_cov(sub.state), 2, 0)
+            if self._mode == 2:
+                self._Pf[idx] = np.moveaxis(sub.state[0], 2, 0)
+            self._Ft[idx] = np.moveaxis(sub._filtered, 2, 0)
+            if self.want_u:
+                self._U[idx] = np.moveaxis(sub.U, 2, 0)
+                self._Uf[idx] = np.moveaxis(sub.Uf, 2, 0)
+
+    def _advance_numpy(self, keep, s2, mu, s2u) -> None:
+        rm = self.rm
+        for t in range(keep.shape[0]):
+            F = correct(rm, self.state, keep[t], s2[t])
+            if self.want_u:
+                if s2u is None:
+                    Fk = true_cov(correct(rm, self.state, np.ones_like(keep[t]), s2[t]))
+                else:
+                    Fk = true_cov(correct(rm, self.state, np.ones_like(keep[t]), s2u[t]))
+                m_ = mu[None, None, :]
+                with np.errstate(over="ignore", invalid="ignore"):
+                    self.Uf = m_ * self.U + (1.0 - m_) * Fk
+                self.U = predict(rm, [self.Uf])[0]
+            self._filtered = true_cov(F)
+            self.state = predict(rm, F)
 
 
 def covariance_paths(rm: ReceiverModel, snr: np.ndarray, threshold, P0, record=None, backend: str = "numpy") -> np.ndarray:
-    """Recursion along given SNR traces ``snr`` (horizon, B) with per-column threshold Υ_T.
+    """Recursion along given SNR traces ``snr`` (horizon, B) with per-column threshold Υ_T, from the
+    prior P[0] = ``P0`` (paper convention).
 
-    Returns the true error covariance at the steps in ``record`` (default: every step 0..horizon),
-    shape (len(record), n, n, B).
+    Returns the true error covariance (prior P[k]) at the steps in ``record`` (default: every step
+    0..horizon), shape (len(record), n, n, B).
     """
     H, B = snr.shape
     T = np.broadcast_to(np.asarray(threshold, dtype=float), (B,))
     record = list(range(H + 1)) if record is None else list(record)
     out = np.empty((len(record), rm.n, rm.n, B))
     st = Stepper(rm, P0, B, backend)
-    pos = {k: i for i, k in enumerate(record)}
-    if 0 in pos:
-        out[pos[0]] = st.true
-    for k in range(H):
-        keep = snr[k] >= T
-        st.step(keep, rm.noise(np.where(keep, snr[k], 1.0)))
-        if k + 1 in pos:
-            out[pos[k + 1]] = st.true
+    t = 0
+    for i, k in sorted(enumerate(record), key=lambda x: x[1]):
+        if k > t:
+            Y = snr[t:k]
+            keep = Y >= T[None, :]
+            st.advance(keep, rm.noise(np.where(keep, Y, 1.0)))
+            t = k
+        out[i] = st.true
     return out
 
 
@@ -395,7 +445,8 @@ def burst_conditioned_paths(rm: ReceiverModel, rng: np.random.Generator, thresho
 
     ``thresholds`` and ``mus`` (= μ_ave(Υ_T), eq. 15) have one entry per batch column. Both outputs
     have shape (len(record), n, n, B); both are unbiased for E P[k] (module doc), U with far smaller
-    variance. Per step: keep = (uniform ≥ μ), Υ' = Υ_T + Exp(Υ_ave) for a kept packet.
+    variance. Per step: keep = (uniform ≥ μ), Υ' = Υ_T + Exp(Υ_ave) for a kept packet (the random
+    numbers are drawn step by step in this order, then the recursion runs in blocks).
 
     ``s2_given_kept`` (per column): replace σ_n²(Υ') by its conditional mean E[σ_n²(Υ) | Υ ≥ Υ_T] =
     σ²_n,ave/(1 − μ_ave) (eqs 15–16) — exact Rao–Blackwellization for scenario 2, whose error
@@ -416,27 +467,37 @@ def burst_conditioned_paths(rm: ReceiverModel, rng: np.random.Generator, thresho
         P_out[pos[0]] = st.true
         U_out[pos[0]] = st.cond
     last = max(record) if record else 0
-    for k in range(horizon):
-        keep = rng.random(B) >= mus
-        if s2_given_kept is None:
-            s2 = rm.noise(thresholds + rng.exponential(snr_avg, B))  # memoryless: Υ | Υ ≥ Υ_T
-        else:
-            s2 = s2_given_kept
-        U_strat = None
-        if final_strata and s2_given_kept is None and k + 1 == last:
-            # last recorded step: E over Υ' of the kept update by stratified sampling (K strata of the
-            # exponential's CDF, one uniform each) — still unbiased, and the rare low-SNR last packet that
-            # dominates the variance at small Υ_T enters with its probability instead of as a 0/1 event
-            acc = np.zeros((rm.n, rm.n, B))
-            for i in range(final_strata):
-                u = (i + rng.random(B)) / final_strata
-                acc += st.kept_true(rm.noise(thresholds - snr_avg * np.log1p(-u)))
-            with np.errstate(over="ignore", invalid="ignore"):
-                U_strat = mus[None, None, :] * _drop(rm, st.cond) + (1.0 - mus[None, None, :]) * (acc / final_strata)
-        st.step(keep, s2, mus)
-        if k + 1 in pos:
-            P_out[pos[k + 1]] = st.true
-            U_out[pos[k + 1]] = st.cond if U_strat is None else U_strat
+    k = 0
+    while k < horizon:
+        # one block: up to the next recorded step (or the step before the last one, for the strata)
+        stops = [r for r in record if r > k] + [horizon]
+        end = min(stops)
+        if final_strata and s2_given_kept is None and k < last - 1 < end:
+            end = last - 1
+        L = end - k
+        keep = np.empty((L, B), dtype=bool)
+        s2 = np.empty((L, B))
+        strata = None
+        for j in range(L):
+            keep[j] = rng.random(B) >= mus
+            s2[j] = rm.noise(thresholds + rng.exponential(snr_avg, B)) if s2_given_kept is None else s2_given_kept
+            if final_strata and s2_given_kept is None and k + j + 1 == last:
+                assert j == L - 1
+                # last recorded step: E over Υ' of the kept update by stratified sampling (K strata of the
+                # exponential's CDF, one uniform each) — still unbiased, and the rare low-SNR last packet that
+                # dominates the variance at small Υ_T enters with its probability instead of as a 0/1 event
+                acc = np.zeros((rm.n, rm.n, B))
+                for i in range(final_strata):
+                    u = (i + rng.random(B)) / final_strata
+                    acc += st.kept_true(rm.noise(thresholds - snr_avg * np.log1p(-u)))
+                with np.errstate(over="ignore", invalid="ignore"):
+                    drop_u = predict(rm, [st.cond])[0]
+                    strata = mus[None, None, :] * drop_u + (1.0 - mus[None, None, :]) * (acc / final_strata)
+        st.advance(keep, s2, mus)
+        k = end
+        if k in pos:
+            P_out[pos[k]] = st.true
+            U_out[pos[k]] = st.cond if strata is None else strata
     return P_out, U_out
 
 
@@ -445,7 +506,8 @@ def simulate_states(rm: ReceiverModel, rng: np.random.Generator, snr: np.ndarray
 
     Returns the final error e = x − x̂ (n, B) and the final covariance P (n, n, B) of the same runs,
     so that E[e eᵀ] can be compared with E[P]. The received packet is ŷ = C x + v + n with
-    v ~ N(0, R), n ~ N(0, σ_n²(Υ) I) (Sec. 2.1). x̂ is the prediction x̂[k|k−1] (eq. 6).
+    v ~ N(0, R), n ~ N(0, σ_n²(Υ) I) (Sec. 2.1). x̂ is the prediction x̂[k|k−1] (eq. 6); P0 its prior.
+    The receiver's gain is the core's (:func:`kalman.gain` of the covariance and noise it believes in).
     """
     A, C, Q, R = rm.A, rm.C, rm.Q, rm.R
     n, m = rm.n, C.shape[0]
@@ -461,60 +523,22 @@ def simulate_states(rm: ReceiverModel, rng: np.random.Generator, snr: np.ndarray
         s2 = rm.noise(np.where(keep, snr[k], 1.0))
         y = C @ x + LR @ rng.standard_normal((m, B)) + np.sqrt(s2)[None, :] * rng.standard_normal((m, B))
         if rm.scenario == 2 and rm.state_size() == 1:
-            upd = np.linalg.solve(C, y)  # x̂⁺ = C⁻¹ ŷ (eq. 10)
+            K = np.broadcast_to(rm.gain_inv[:, :, None], (n, m, B))  # x̂⁺ = C⁻¹ ŷ (eq. 10)
+        elif rm.scenario == 2:
+            K = kalman.gain(state[0], C, np.zeros((m, m)))  # the filter's own covariance, noise-free belief
+        elif rm.scenario == 1:
+            K = kalman.gain(state[0], C, R)
         else:
-            P = state[0]  # the filter's own covariance
-            if rm.scenario == 2:
-                Rf = np.zeros((m, m, B))
-            elif rm.scenario == 1:
-                Rf = np.broadcast_to(R[:, :, None], (m, m, B))
-            else:
-                Rf = R[:, :, None] + s2[None, None, :] * np.eye(m)[:, :, None]
-            S = _mm(_cmm(C, P), np.broadcast_to(C.T[:, :, None], (n, m, B))) + Rf
-            K = _mm(_mmc(P, C.T), inv_small(_sym(S)))
-            upd = xh + np.einsum("imb,mb->ib", K, y - C @ xh)
+            K = kalman.gain(state[0], C, R, s2[None, None, :] * np.eye(m)[:, :, None])
+        upd = xh + np.einsum("imb,mb->ib", K, y - C @ xh)
         xh_plus = np.where(keep[None, :], upd, xh)
-        ku = kept_update(rm, state, s2)
-        du = drop_update(rm, state)
-        state = [_where(keep, a, b) for a, b in zip(ku, du)]
+        state = predict(rm, correct(rm, state, keep, np.zeros(B) if rm.scenario == 1 else s2))
         x = A @ x + LQ @ rng.standard_normal((n, B))
         xh = A @ xh_plus
     return {"e": x - xh, "P": true_cov(state)}
 
 
 # --------------------------------------------------------------------------- Monte Carlo kernels (picklable)
-
-
-@dataclass(frozen=True)
-class NoiseFn:
-    """σ_n²(Υ) as a picklable callable: ``ber`` α + δ Ω(√Υ) (Sec. 3.1) or ``inverse_snr`` β/Υ (eq. 50)."""
-
-    model: str
-    alpha: float = 0.0
-    delta: float = 0.0
-    beta: float = 0.0
-
-    @classmethod
-    def of(cls, noise) -> "NoiseFn":
-        """From a channel's ``NoiseModel``."""
-        if noise.model == "ber":
-            a, d = noise.params
-            return cls("ber", alpha=float(a), delta=float(d))
-        return cls("inverse_snr", beta=float(noise.beta))
-
-    def __call__(self, snr):
-        snr = np.asarray(snr, dtype=float)
-        if self.model == "ber":
-            return fa.sigma2_n(snr, self.alpha, self.delta)
-        with np.errstate(divide="ignore"):
-            return self.beta / snr
-
-    def mean_given_kept(self, threshold, snr_avg):
-        """E[σ_n²(Υ) | Υ ≥ Υ_T] = σ²_n,ave(Υ_T)/(1 − μ_ave(Υ_T)) (eqs 15–16); ``None`` unless ``ber``."""
-        if self.model != "ber":
-            return None
-        T = np.asarray(threshold, dtype=float)
-        return fa.sigma2_n_ave(T, snr_avg, self.alpha, self.delta) / np.exp(-T / snr_avg)
 
 
 STAT_KEYS = ("sum", "sumsq", "tr", "tr2", "inf")

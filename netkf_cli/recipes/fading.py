@@ -379,7 +379,7 @@ class FadingReceivers(AnalysisModel):
         square = s.m == s.n and abs(np.linalg.det(s.C)) > 1e-12
         has_exact2 = square and ch.noise.model == "ber"
         models = {sc: _receiver_model(scenario, sc, s) for sc in self.scenarios if not (sc == 2 and has_exact2)}
-        backend = fr.resolve_backend(self.backend)
+        backend = fr.resolve_backend(self.backend, s.n)
         frames, paths = [], []
         if models:
             kern = fr.ReceiverMeanKernel(models, T, Ya, P0, H, backend=backend)
@@ -514,7 +514,7 @@ class FadingCorrelation(AnalysisModel):
         rm = fr.ReceiverModel(rm.scenario, rm.A, rm.C, rm.Q, rm.R, fr.NoiseFn.of(ch.noise))
         lags = np.arange(self.max_lag + 1)
         rho = fa.rho_max(s.A)
-        backend = fr.resolve_backend(self.backend)
+        backend = fr.resolve_backend(self.backend, s.n)
         # ---- plain sample means (diagnostic), burst statistics, autocorrelation: stream 0
         tot = run_chunked(fr.CorrelatedPathKernel(ch, rm, T, P0, H, self.max_lag, backend=backend), N,
                           scenario.montecarlo.chunk, scenario.montecarlo.seed, stream=0, progress=ctx.progress,
