@@ -150,6 +150,26 @@ def recorded_channel(data: Any, horizon: int, *, arg: str = "arrivals", values: 
     return ch.model_copy(update={"file": f"<{arg} array sha256:{digest}>"})
 
 
+def plan(scenario, *, runs: int | None = None, out: str | Path | None = None, jobs: int = 1, force: bool = False,
+         overrides=None, yes: bool = False) -> dict:
+    """What :func:`run` would do, computed and written nothing (``netkf run --dry-run``): the folder,
+    run count, sweep points, run-steps, chunks, executor, ETA and scenario hash, after the same
+    checks a run makes first (the output folder, ``montecarlo.max_runs``)."""
+    from netkf_cli import runner
+
+    if isinstance(scenario, (str, Path, dict)) and not isinstance(scenario, bool):
+        scenario = load(scenario)
+    elif not _is_scenario(scenario):
+        raise _bad("scenario", f"plan() takes a Scenario from load(), got {_got(scenario)}")
+    runs = None if runs is None else _check_int("runs", runs)
+    jobs = min(_check_int("jobs", jobs), montecarlo.usable_cores())
+    if overrides:
+        scenario = with_overrides(scenario, overrides)
+    p = runner.plan_run(scenario, out_dir=out, runs=runs, force=force, executor="process" if jobs > 1 else "serial",
+                        jobs=jobs, yes=yes, runs_option="runs")
+    return p.as_json()
+
+
 def run(scenario, *, runs: int | None = None, arrivals: np.ndarray | None = None, delays: np.ndarray | None = None,
         buffer: int | None = None, out: str | Path | None = None, jobs: int = 1, executor: str = "serial",
         force: bool = False, overrides=None, yes: bool = False) -> Result:

@@ -188,3 +188,16 @@ def test_dry_run_makes_the_pre_run_checks(tmp_path, files):
     r = invoke("run", base, "montecarlo.runs=1e15", "--out", tmp_path / "o", "--dry-run", "--yes")
     assert r.exit_code == 0 and "years" in r.output, r.output
     assert afile.read_text() == "x" and not (tmp_path / "o").exists()
+
+
+def test_the_api_plans_like_the_dry_run(tmp_path, files):
+    from netkf_cli.api import plan
+
+    base = files[0]
+    r = invoke("run", base, "channel.arrival=0.6", "--out", tmp_path / "o", "--dry-run", "--json", "-j", 1)
+    cli = json.loads(r.output)
+    api = plan(load(base), overrides=["channel.arrival=0.6"], out=tmp_path / "o")
+    assert {k: v for k, v in cli.items() if k not in ("scenario", "overrides")} == api
+    with pytest.raises(ConfigError, match="runs"):
+        plan(load(base), runs=0)
+    assert not (tmp_path / "o").exists()
