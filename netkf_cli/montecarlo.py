@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from netkf_cli.stats import mean_se, proportion_stderr, wilson_interval  # noqa: F401 (re-exported: one statistics module)
 from netkf_cli.errors import NetkfError
 
 Stats = Mapping[str, np.ndarray | float | int]
@@ -375,28 +376,6 @@ def _worker_lost(exc: BaseException) -> bool:
 
 
 def mean_and_stderr(total: np.ndarray, total_sq: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sample mean and its standard error from a sum and a sum of squares over ``n`` samples."""
-    mean = np.asarray(total) / n
-    var = np.maximum(np.asarray(total_sq) / n - mean**2, 0.0) * n / max(n - 1, 1)
-    return mean, np.sqrt(var / n)
-
-
-def proportion_stderr(p: np.ndarray | float, n: int) -> np.ndarray:
-    """Standard error √(p(1−p)/n) of an empirical proportion over n independent samples."""
-    p = np.asarray(p, dtype=float)
-    return np.sqrt(np.clip(p * (1 - p), 0, None) / n)
-
-
-def wilson_interval(successes, n, z: float = 1.96) -> tuple[np.ndarray, np.ndarray]:
-    """Wilson score interval for a binomial proportion (never of zero width, also at p̂ ∈ {0, 1}).
-
-    p̃ = (p̂ + z²/2n) / (1 + z²/n),  half-width = z/(1 + z²/n) · √(p̂(1−p̂)/n + z²/4n²).
-    """
-    k = np.asarray(successes, dtype=float)
-    n = np.asarray(n, dtype=float)
-    p = k / n
-    z2 = z * z
-    denom = 1.0 + z2 / n
-    centre = (p + z2 / (2 * n)) / denom
-    half = z / denom * np.sqrt(np.clip(p * (1 - p), 0, None) / n + z2 / (4 * n * n))
-    return np.clip(centre - half, 0.0, 1.0), np.clip(centre + half, 0.0, 1.0)
+    """Sample mean and its standard error from a sum and a sum of squares over ``n`` samples
+    (:func:`netkf_cli.stats.mean_se`, the one rule)."""
+    return mean_se(total, total_sq, n)
