@@ -7,7 +7,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from netkf_cli import kalman
+from netkf_cli import engine, kalman
 from netkf_cli.errors import ConfigError
 from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt, StrictModel
 
@@ -190,8 +190,6 @@ class GenericMetric(AnalysisModel):
 
     def simulate(self, scenario, ctx, reducer, steps, horizon: int):
         """Run the scenario's estimators on its channel's traces (stream 0): (system, estimators, statistics)."""
-        from netkf_cli import engine
-
         s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")
         mc = scenario.montecarlo
         runs = ctx.mc_runs(scenario)

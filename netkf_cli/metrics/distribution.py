@@ -28,6 +28,10 @@ import pandas as pd
 from pydantic import Field, model_validator
 
 from netkf_cli import engine, riccati
+from netkf_cli.analysis import delay_bounds as db
+from netkf_cli.analysis import delay_exact as dx
+from netkf_cli.channels.delay import delay_label
+from netkf_cli.estimators.buffered import packet_span
 from netkf_cli.errors import ConfigError
 from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels, m_values,
                                       math_text, MGrid, n_runs_of, needs, PaperRef, quantity_text, step_of)
@@ -82,14 +86,10 @@ class ClosedForms:
         if not at_stationary:
             self.why = "the closed forms are stationary (analysis.at: stationary)"
             return
-        from netkf_cli.analysis import delay_bounds as db
-
         self.db = db
         self.pbar = riccati.pbar(s)
         try:
             if est.kind == "buffered":
-                from netkf_cli.estimators.buffered import packet_span
-
                 self.span = packet_span(s, est.packet)
                 if self.span == 1 and (s.m != s.n or np.linalg.matrix_rank(s.C) < s.n):
                     self.why = "Thm 3.8 needs C invertible for measurement packets (or packet: pair, Appendix B)"
@@ -119,8 +119,6 @@ class ClosedForms:
             [th(db.k2(m, self.s)) if (o or self.est.kind == "buffered") and m >= self._pbar_max() else np.nan
              for m, o in zip(M, ok)])
         if self.est.kind == "buffered" and self.exact and ok.any():
-            from netkf_cli.analysis import delay_exact as dx
-
             try:
                 ex = dx.exact_probability(self.s, ch, self.span, M[ok], tol=self.tol)
                 v, e = np.full(len(M), np.nan), np.full(len(M), np.nan)
@@ -263,8 +261,6 @@ def _channel_text(ch) -> str:
     if ch is None:
         return ""
     if ch.kind in ("delay", "bernoulli"):
-        from netkf_cli.channels.delay import delay_label
-
         keep = {"delay_le_D": r"kept iff delay $\leq D$", "delay_lt_D": r"kept iff delay $< D$ (eq. 4)"}
         conv = getattr(ch, "convention", None)
         return ((f"$D$ = {ch.buffer} ({keep.get(conv, conv)}), " if ch.kind == "delay" else "")
