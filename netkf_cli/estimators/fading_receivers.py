@@ -52,7 +52,7 @@ from pydantic import Field
 
 from netkf_cli import kalman
 from netkf_cli.analysis import fading as fa
-from netkf_cli.channels.fading import NoiseFn, Snr, snr_given_kept  # noqa: F401 (NoiseFn re-exported)
+from netkf_cli.channels.fading import IidCorrelation, NoiseFn, Snr, sample_gain, snr_given_kept  # noqa: F401
 from netkf_cli.errors import ConfigError
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
@@ -610,16 +610,18 @@ class CorrelatedPathKernel:
         self.P0, self.horizon, self.max_lag, self.backend = np.asarray(P0, float), int(horizon), int(max_lag), backend
 
     def __call__(self, rng: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
-        from netkf_cli.channels.fading import IidCorrelation, sample_gain
-
         ch, T, H = self.channel, self.thresholds, self.horizon
         G = len(T)
         Ya = ch.mean_snr
         lags = np.arange(self.max_lag + 1)
         out = {}
-        for lab, corr in (("jakes", ch.correlation), ("iid", IidCorrelation(model="iid"))):
-            h = sample_gain(rng, runs, H, corr)
-            snr = Ya * (h.real**2 + h.imag**2)
+        iid = ch.model_copy(update={"correlation": IidCorrelation(model="iid")})
+        for lab, corr in (("jakes", ch.correlation), ("iid", iid.correlation)):
+            if lab == "jakes":  # the gain h itself is needed (its sample autocorrelation): the channel's generator
+                h = sample_gain(rng, runs, H, corr)
+                snr = Ya * (h.real**2 + h.imag**2)
+            else:  # the channel's own sampler (same random numbers as sample_gain for i.i.d. gains)
+                snr = iid.sample_trace(rng, runs, H).snr
             Pk = covariance_paths(self.rm, np.tile(snr, (1, G)), np.repeat(T, runs), self.P0, record=[H],
                                   backend=self.backend)[0]
             for k, v in chunk_stats(Pk, G, runs).items():
@@ -649,7 +651,7 @@ class FadingAveragesKernel:
 
     def __call__(self, rng: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
         ch, T = self.channel, self.thresholds
-        Y = ch.sample(rng, runs, 1).snr[0]
+        Y = ch.sample_trace(rng, runs, 1).snr[0]
         keep = Y[None, :] >= T[:, None]
         s2 = np.where(keep, ch.noise.variance(Y)[None, :], 0.0)
         return {"drop": (~keep).sum(1).astype(float), "s2": s2.sum(1), "s2sq": (s2**2).sum(1)}

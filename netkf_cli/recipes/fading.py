@@ -35,6 +35,12 @@ RELIABLE_REL_SE = 0.05  # a Monte Carlo mean is flagged unreliable above 5 % rel
 # ``ess_frac`` = (Σ tr P)²/(N Σ (tr P)²) is reported as a further diagnostic only.
 
 
+PAPER_QUANTITY = ("predicted P_{k+1|k} at k = horizon: the paper's P[k] (eqs 6, 12, 28), which its figures plot; "
+                  "start P[0] = P0 = the prior of y_1 (the paper's convention; the generic receiver estimator "
+                  "starts from P_{0|0} = P0 instead)")
+"""What the fading figures' ‖E P[k]‖ is, in netkf's quantities (manifest ``quantity``, figure footnote)."""
+
+
 class Grid(StrictModel):
     """A grid of SNR values with its unit: ``{unit: linear, values: [...]}`` or ``{unit, start, stop, num}``."""
 
@@ -429,6 +435,7 @@ class FadingReceivers(AnalysisModel):
             extra["path_mean"] = pd.concat(paths, ignore_index=True)
         return Artefact(table, extra_tables=extra,
                         meta={"horizon": H, "runs": N, "snr_avg_linear": Ya, "rho_max": rho, "backend": backend,
+                              "quantity": PAPER_QUANTITY,
                               "reliable_rule": f"stderr/value < {RELIABLE_REL_SE}, no overflow (conditioned estimator)",
                               "path_mean": "plain sample mean of P[k] (diagnostic only, heavy-tailed: not plotted)",
                               "scenario2": "exact eq. (14)" if has_exact2 else
@@ -467,6 +474,7 @@ class FadingReceivers(AnalysisModel):
         n = t.n.dropna()
         note = (f"Monte Carlo: {int(n.iloc[0])} runs, burst-conditioned estimator (exact average over the final drop burst)"
                 if len(n) else "closed forms only")
+        note += f"; P[{H}] = predicted $P_{{k+1|k}}$ at k = {H}, from P[0] = P0 (paper's start)"
         if omitted:
             note += f"; {omitted} Monte Carlo point(s) with relative s.e. ≥ {RELIABLE_REL_SE:.0%} not drawn"
         footnote(fig, note)
@@ -595,6 +603,7 @@ class FadingCorrelation(AnalysisModel):
             extra["bursts"] = pd.concat(bursts, ignore_index=True)
         return Artefact(table, extra_tables=extra,
                         meta={"doppler_hz": ch.correlation.doppler, "horizon": H, "runs_path_mean": N,
+                              "quantity": PAPER_QUANTITY,
                               "smc": meta_smc, "nugget": ch.correlation.nugget,
                               "stability_limit_iid_eq19": fa.max_stable_threshold(Ya, rho),
                               "first_zero_of_J0_s": 2.404825557695773 / (2 * np.pi * ch.correlation.doppler),
@@ -657,7 +666,8 @@ class FadingCorrelation(AnalysisModel):
         ch = scenario.channel
         fig.suptitle(paper_title("fading", 7, rf"correlated vs uncorrelated channel, scenario {self.receiver}, "
                                               rf"$\Upsilon_{{ave}}$ = {ch.snr_avg.value:g} {ch.snr_avg.unit}"))
-        note = "SMC: sequential Monte Carlo of the drop bursts (unbiased); plain sample means are heavy-tailed and not drawn"
+        note = ("SMC: sequential Monte Carlo of the drop bursts (unbiased); plain sample means are heavy-tailed and not drawn; "
+                f"P[{scenario.montecarlo.horizon}] = predicted $P_{{k+1|k}}$, from P[0] = P0 (paper's start)")
         if omitted:
             note += f"; {omitted} SMC point(s) with relative s.e. ≥ {RELIABLE_REL_SE:.0%} not drawn"
         footnote(fig, note)
@@ -703,7 +713,7 @@ class FadingTheorem4(AnalysisModel):
         rows.append(pd.DataFrame({"k": [1, 2], "series": "quadrature",
                                   "value": [fa.theorem4_quadrature(a, beta, Ya, P0, j) for j in (1, 2)], "stderr": 0.0, "n": np.nan}))
         table = pd.concat(rows, ignore_index=True)
-        return Artefact(table, meta={"a": a, "beta": beta, "snr_avg_linear": Ya, "P0": P0,
+        return Artefact(table, meta={"a": a, "beta": beta, "snr_avg_linear": Ya, "P0": P0, "quantity": PAPER_QUANTITY,
                                      "scaled_exp1": "exp(x)*E1(x) for x < 600, asymptotic series beyond"})
 
     def plot(self, tables, scenario):

@@ -21,6 +21,21 @@ def _run(stem, out):
                              overrides=OVERRIDES.get(stem))
 
 
+MC_SE_FRACTION = 0.05
+MC_RTOL = 1e-2
+# Fig. 7's sequential Monte Carlo (and only it, so far) is not bit-reproducible across platforms: its weights
+# come from the non-central χ² cdf deep in its tail (scipy.special.chndtr at p ~ 1e-30 … 1e-300), whose last
+# digits depend on the platform's floating-point code paths, and a weight that moves by one ulp can flip one
+# resampling decision (ESS < K/2) of one cloud, which then follows other random numbers. The golden (generated
+# elsewhere) and this machine differ in one cloud: fig7 jakes Υ_T = 22, value 0.33578 vs 0.33577 (5e-5 of its
+# s.e. 0.254), min_ess_frac by 8.5e-5 relative, a burst probability 5.376e-87 vs 5.419e-87 (0.008 s.e.); the
+# parent commit 069080c fails the same way (checked in a separate worktree), so this is no regression of the
+# Kalman-core port. Monte Carlo rows (finite stderr > 0) therefore compare their value within 0.05 s.e. and their
+# other statistics (stderr, ess, min ess) within 1 % — still far below any real change of an estimator (which
+# moves a mean by O(1) s.e.);
+# closed forms and deterministic rows keep 1e-6 relative.
+
+
 @pytest.mark.parametrize("stem", sorted(RUNS))
 def test_config_matches_golden(stem, tmp_path):
     res = _run(stem, tmp_path / stem)
@@ -31,12 +46,22 @@ def test_config_matches_golden(stem, tmp_path):
         new, old = pd.read_csv(c), pd.read_csv(GOLDEN / c.name)
         assert list(new.columns) == list(old.columns), c.name
         assert len(new) == len(old), c.name
+        mc = np.zeros(len(old), bool)
+        if "stderr" in old.columns:
+            se = old["stderr"].to_numpy(float)
+            mc = np.isfinite(se) & (se > 0)
         for col in new.columns:
-            if new[col].dtype.kind in "fi":
+            if new[col].dtype.kind in "fi" and mc.any() and col in ("value", "stderr", "ess_frac", "min_ess_frac"):
+                x, y = new[col].to_numpy(float), old[col].to_numpy(float)
+                tol = np.where(mc, MC_SE_FRACTION * se if col == "value" else MC_RTOL * np.abs(y), 1e-6 * np.abs(y))
+                same = (x == y) | (np.abs(x - y) <= tol) | (np.isnan(x) & np.isnan(y))
+                assert same.all(), f"{c.name}:{col} rows {np.flatnonzero(~same)}: {x[~same]} vs {y[~same]} (tol {tol[~same]})"
+            elif new[col].dtype.kind in "fi":
                 # identical seed ⇒ deterministic; CSVs are written with 10 significant digits. 1e-6: the goldens
                 # come from backend auto (numba when installed); the numpy path agrees to ≤ 1e-7 relative on
                 # the means (tests/fading/test_engine.py), so the same goldens hold without numba
-                np.testing.assert_allclose(new[col].to_numpy(float), old[col].to_numpy(float), rtol=1e-6, atol=1e-300,
+                np.testing.assert_allclose(new[col].to_numpy(float), old[col].to_numpy(float),
+                                           rtol=1e-6, atol=1e-300,
                                            equal_nan=True, err_msg=f"{c.name}:{col}")
             else:
                 assert (new[col].astype(str) == old[col].astype(str)).all(), f"{c.name}:{col}"
