@@ -12,7 +12,8 @@ eqs. 8–9; Shi, Xie & Murray 2009, eqs. 5–6):
     Joseph    P_{k|k}   = (I − γKC) P (I − γKC)ᵀ + γ K R Kᵀ                         (any K)
     rows      only the rows that arrived: C̃ = W C, R̃ = W R W + (I − W), W = diag(mask)
     rescue    P_{k|k}   = (P_{k|k−1}⁻¹ + C̃ᵀ R̃⁻¹ C̃)⁻¹  for runs with tr P_{k|k−1} > RESCUE_RATIO·scale
-    smoothing P_{t|T}   = P_{t|t} + J (P_{t+1|T} − P_{t+1|t}) Jᵀ,  J = P_{t|t} Aᵀ P_{t+1|t}⁻¹   (RTS)
+    smoothing P_{t|T}   = P_{t|t, x_{t+1}} + J P_{t+1|T} Jᵀ,  J = P_{t|t} Aᵀ P_{t+1|t}⁻¹   (RTS, as the
+              update of P_{t|t} by x_{t+1} = A x_t + w: :class:`SmoothStep`)
 
 Time base (every estimator, every metric): ``P0`` is P_{0|0} (``system.P0``; unset = P̄); step
 k = 1 … horizon is the time of the newest measurement y_k that could have been used; the named
@@ -165,16 +166,6 @@ def clean_nonfinite(P: np.ndarray) -> np.ndarray:
         if not clean:
             P[:, :, r] = np.inf
     return P
-
-
-def smooth_step(Ps_next: np.ndarray, Pf: np.ndarray, Pp_next: np.ndarray, A: np.ndarray) -> np.ndarray:
-    """One Rauch–Tung–Striebel step: P_{t|T} = P_{t|t} + J (P_{t+1|T} − P_{t+1|t}) Jᵀ,
-    J = P_{t|t} Aᵀ P_{t+1|t}⁻¹ (batched; P_{t+1|t} = A P_{t|t} Aᵀ + Q)."""
-    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        APf = batched.left(A, Pf)  # A P_{t|t} = (P_{t|t} Aᵀ)ᵀ
-        Jt = batched.solve_small(Pp_next, APf)  # Jᵀ = P_{t+1|t}⁻¹ A P_{t|t}
-        J = Jt.swapaxes(0, 1)
-        return batched.sym(Pf + batched.matmul(batched.matmul(J, Ps_next - Pp_next), Jt))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -597,7 +588,7 @@ class SmoothStep:
         P_{t|t, x_{t+1}} = P_{t|t} − J A P_{t|t}
 
     P_{t|t, x_{t+1}} is the update of P_{t|t} by the "measurement" x_{t+1} = A x_t + w_t (C = A, R = Q)
-    and J its gain, so this is :func:`smooth_step` (Pf + J (Ps − Pp) Jᵀ, since J Pp Jᵀ = J A Pf)
+    and J its gain, so this is the textbook RTS step Pf + J (Ps − Pp) Jᵀ (since J Pp Jᵀ = J A Pf)
     without the subtraction of the two large terms Pf and J Pp Jᵀ: the update goes through
     :class:`Rescue` ``.of(A, Q)`` (information form (Pf⁻¹ + AᵀQ⁻¹A)⁻¹ for tr Pf > limit — e.g. after a
     loss at A = diag(1e6, 0.5), where the covariance form cancels every digit). Q singular: no rescue.

@@ -9,7 +9,12 @@ on random systems. Import this module only where numba is importable (it is opti
     predict   out = A P Aᵀ + Q
     update    out = P − γ P Cᵀ (C P Cᵀ + R)⁻¹ C P             (optimal gain, any m: Gauss–Jordan)
     joseph    out = (I − γKC) P (I − γKC)ᵀ + γ K R Kᵀ        (any gain)
-    smooth    out = Pf + J (Ps − Pp) Jᵀ, J = Pf Aᵀ Pp⁻¹      (RTS step)
+    smooth    out = P_{t|t, x_{t+1}} + J Ps Jᵀ, J = Pf Aᵀ (A Pf Aᵀ + Q)⁻¹   (RTS step, conditioning form:
+              Pf updated by x_{t+1} = A x_t + w, so no two P-sized numbers are subtracted)
+    information_update, update_pinv, predict_csr, filter_advance   (see each function)
+
+Kernels generated per system with the constants inlined (the fast filter path) are in
+:mod:`netkf_cli.kalman_codegen`.
 """
 
 from __future__ import annotations

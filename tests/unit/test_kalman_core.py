@@ -4,7 +4,7 @@
   with the optimal gain;
 * ``update_rows`` with a row mask = the update with only the observed rows (any R, non-diagonal too);
 * the perfect-channel filter converges to ``scipy.linalg.solve_discrete_are``;
-* ``smooth_step`` (RTS) = the smoothed covariance of the joint Gaussian of (x_t, x_{t+1}, y_{t+1}) by
+* ``SmoothStep`` (RTS, conditioning form) = the smoothed covariance of the joint Gaussian of (x_t, x_{t+1}, y_{t+1}) by
   brute-force conditioning;
 * ``Rescue``: A = diag(1e6, 0.5) stays exact where the standard form cancels every digit;
 * kalman_numba's inlined primitives = the numpy core.
@@ -96,7 +96,7 @@ def test_rts_step_equals_brute_force_conditioning(n, m, seed):
     cov_xy = Pf @ A.T @ C.T                 # Cov(x_t, y_{t+1})
     Syy = C @ Pp @ C.T + R
     brute = Pf - cov_xy @ np.linalg.solve(Syy, cov_xy.T)
-    got = kalman.smooth_step(Pnext[:, :, None], Pf[:, :, None], Pp[:, :, None], A)[:, :, 0]
+    got = kalman.SmoothStep.of(A, Q)(Pnext[:, :, None], Pf[:, :, None])[:, :, 0]
     np.testing.assert_allclose(got, brute, atol=1e-9 * max(1.0, np.abs(Pf).max()), rtol=0)
 
 
