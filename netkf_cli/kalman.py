@@ -259,7 +259,7 @@ def row_mask(gamma_t: np.ndarray, groups: tuple[tuple[int, ...], ...], m: int) -
     return out
 
 
-def _pbar_trace(A, C, Q, R) -> float | None:
+def pbar_trace(A, C, Q, R) -> float | None:
     """tr P̄ (P̄ = g̃(P*), the filtered steady state with every packet) when C is rank-deficient and the
     DARE has a stabilizing solution; None otherwise (full-rank C needs no floor)."""
     if np.linalg.matrix_rank(C) == A.shape[0]:
@@ -300,7 +300,7 @@ class Filter:
     def of(cls, system, streams: int = 1, path: str = "channel") -> "Filter":
         groups = stream_rows(system, streams, path)
         A, C, Q, R = (np.ascontiguousarray(x, dtype=float) for x in (system.A, system.C, system.Q, system.R))
-        return cls(A, C, Q, R, groups, Rescue.of(C, R, _pbar_trace(A, C, Q, R)), _block_diagonal(R, groups))
+        return cls(A, C, Q, R, groups, Rescue.of(C, R, pbar_trace(A, C, Q, R)), _block_diagonal(R, groups))
 
     def correct(self, Pm: np.ndarray, gamma_t: np.ndarray) -> np.ndarray:
         """P_{k|k} from P_{k|k−1} and the stream arrivals ``gamma_t`` (S, runs) of step k."""

@@ -65,6 +65,11 @@ class EstimatorModel(StrictModel):
         """The first step k at which ``quantity`` is defined (a lag-N smoother: N)."""
         return 1
 
+    def per_run_covariance(self) -> bool:
+        """Whether each run's reported P is that run's own covariance (False for a variance-reduced
+        estimator that yields per-run estimates of E[P_k]: only means may then be taken)."""
+        return True
+
     def backend_used(self, system: Any, channel: Any, runs: int, horizon: int) -> str:
         """The recursion backend a chunk of ``runs`` × ``horizon`` runs on (recorded in the manifest)."""
         return str(getattr(self, "backend", "numpy"))

@@ -66,6 +66,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
+from netkf_cli import kalman
 from netkf_cli.analysis.delay_bounds import max_kept_delay
 from netkf_cli.errors import NetkfError
 
@@ -216,10 +217,12 @@ def s_bar(A: np.ndarray, Q: np.ndarray, lam: float) -> np.ndarray:
 
 def modified_riccati(X: np.ndarray, A, C, Q, R, lam: float) -> np.ndarray:
     """g_λ(X) = A X Aᵀ + Q − λ A X Cᵀ (C X Cᵀ + R)⁻¹ C X Aᵀ, the modified Riccati map (Sinopoli et al. 2004, Thm 4)."""
-    AX = A @ X
-    S = C @ X @ C.T + R
-    G = AX @ C.T
-    return _sym(AX @ A.T + Q - lam * G @ np.linalg.solve(S, G.T))
+    # = (1 − λ) h(X) + λ h(g̃(X)): the Kalman core's predict and update (no gain written here)
+    A, C, Q, R = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (A, C, Q, R))
+    X = np.asarray(X, dtype=float)
+    hX = kalman.one(kalman.predict, X, A, Q)
+    hg = kalman.one(kalman.predict, kalman.one(kalman.update, X, C, R), A, Q)
+    return _sym((1 - lam) * hX + lam * hg)
 
 
 def _mare_derivative_solve(V, A, C, R, lam, rhs):
@@ -900,18 +903,10 @@ def _patterns(L: int) -> np.ndarray:
 
 def _riccati_steps(P: np.ndarray, pats: np.ndarray, A, C, Q, R) -> np.ndarray:
     """Apply P ← A (P − γ P Cᵀ(C P Cᵀ + R)⁻¹ C P) Aᵀ + Q along each pattern; P (n, n, r), pats (L, r)."""
-    for t in range(pats.shape[0]):
-        PC = np.einsum("ijr,kj->ikr", P, C)                          # P Cᵀ  (n, m, r)
-        S = np.einsum("kj,jir->kir", C, PC) + R[:, :, None]          # C P Cᵀ + R (m, m, r)
-        if C.shape[0] == 1:
-            upd = P - np.einsum("ir,jr->ijr", PC[:, 0, :], PC[:, 0, :]) / S[0, 0]
-        else:
-            Sm = np.moveaxis(S, -1, 0)
-            G = np.moveaxis(np.linalg.solve(Sm, np.moveaxis(PC, -1, 0).transpose(0, 2, 1)), 0, -1)  # S⁻¹ C P (m, n, r)
-            upd = P - np.einsum("ikr,kjr->ijr", PC, G)
+    for t in range(pats.shape[0]):  # the Kalman core's update (γ per pattern) and predict
+        upd = kalman.update(P, C, R)
         P = np.where(pats[t][None, None, :], upd, P)
-        P = np.einsum("ij,jkr,lk->ilr", A, P, A) + Q[:, :, None]
-        P = 0.5 * (P + P.transpose(1, 0, 2))
+        P = kalman.predict(P, A, Q)
     return P
 
 

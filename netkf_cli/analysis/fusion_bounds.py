@@ -89,8 +89,7 @@ def l_f(P, L, ell, C, R) -> np.ndarray:
 def kalman_gain(P, ell, C, R) -> np.ndarray:
     """K = P Cᵀ (C P Cᵀ + R/ℓ)⁻¹, eq. (13) (gain applied to the average of ℓ measurements)."""
     C, R, P = _as2d(C), _as2d(R), _as2d(P)
-    S = C @ P @ C.T + R / ell
-    return np.linalg.solve(S, C @ P).T
+    return kalman.gain(P[:, :, None], C, R / ell)[:, :, 0]  # the Kalman core's gain
 
 
 # ----------------------------------------------------------------------------------------

@@ -80,6 +80,11 @@ class ReceiverEstimator(EstimatorModel):
     threshold: Snr | None = Field(None, description="drop threshold Υ_T with unit (analyses that sweep Υ_T ignore it)")
     backend: BackendKind = Field("auto", description="numpy (reference) | numba (compiled, equal to rounding) | "
                                                      "auto = numba when importable")
+    def per_run_covariance(self) -> bool:
+        """False under ``variance_reduction: conditioned``: each run then yields an unbiased estimate of
+        E[P_k], not its own covariance, so only means may be taken (not Pr[P_k ≤ M])."""
+        return self.variance_reduction != "conditioned"
+
     variance_reduction: VarianceReduction = Field(
         "none", description="none: P_k of each run (every metric). conditioned: the burst-conditioned estimate of "
                             "E P_k per run (i.i.d. channel only; unbiased for MEANS — mean_vs_time, compare's "
@@ -193,8 +198,8 @@ class ReceiverModel:
 
     @cached_property
     def rescue(self) -> kalman.Rescue:
-        """The one overflow policy for this (C, R)."""
-        return kalman.Rescue.of(self.C, self.R)
+        """The one overflow policy for this (C, R) (the floor tr P̄ where C is rank-deficient, as kf's)."""
+        return kalman.Rescue.of(self.C, self.R, kalman.pbar_trace(self.A, self.C, self.Q, self.R))
 
     @cached_property
     def gain_inv(self) -> np.ndarray:

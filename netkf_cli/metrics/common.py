@@ -180,6 +180,13 @@ class GenericMetric(AnalysisModel):
                 raise ConfigError.at("analysis.quantity", f"{'estimators[%d]' % i if many else 'estimator'} "
                                      f"({e.kind}) does not report {self.quantity} ({kalman.SYMBOL[self.quantity]}); "
                                      f"it reports {', '.join(offered)}")
+        if self.needs_per_run_covariance():
+            for i, e in enumerate(ests):
+                if not e.per_run_covariance():
+                    raise ConfigError.at(f"{'estimators[%d]' % i if many else 'estimator'}.variance_reduction",
+                                         f"{e.kind} yields per-run estimates of E[P_k] here, not each run's covariance: "
+                                         f"{self.kind} needs Pr[P_k ≤ M] of each run; use it with mean_vs_time (or "
+                                         f"compare without M), or set variance_reduction: none")
         if hasattr(self, "at"):
             k = step_of(self.at, scenario.montecarlo.horizon)
             for e in ests:
@@ -187,6 +194,10 @@ class GenericMetric(AnalysisModel):
                 if k < first:
                     raise ConfigError.at("analysis.at", f"{e.kind} defines {self.quantity} from step {first} on "
                                                         f"({kalman.SYMBOL[self.quantity]}), got k = {k}")
+
+    def needs_per_run_covariance(self) -> bool:
+        """Whether this metric takes per-run functionals of P (Pr[P_k ≤ M]), not only means."""
+        return bool(getattr(self, "M", None))
 
     def simulate(self, scenario, ctx, reducer, steps, horizon: int):
         """Run the scenario's estimators on its channel's traces (stream 0): (system, estimators, statistics)."""

@@ -320,7 +320,13 @@ class TailMetric(AnalysisModel):
         return sorted(set(int(round(x)) for x in np.geomspace(2, top, 8)))
 
     def check(self, scenario) -> None:
-        needs(scenario, "channel"), needs(scenario, "estimators")
+        needs(scenario, "channel")
+        for i, e in enumerate(needs(scenario, "estimators")):
+            if not e.per_run_covariance():
+                raise ConfigError.at(f"estimators[{i}].variance_reduction" if scenario.estimators else
+                                     "estimator.variance_reduction",
+                                     f"{e.kind} yields per-run estimates of E[P_k], not each run's covariance: the tail "
+                                     f"Pr[tr P_k > M] needs the latter; set variance_reduction: none")
         self._step(scenario.montecarlo.horizon)
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:

@@ -49,3 +49,22 @@ def test_rare_event_and_heavy_tail_rules_in_both_directions():
     assert rare_event_flag(one.sum(), one.max(), one.size)
     pareto = rng.pareto(1.5, size=20_000) + 1  # infinite variance
     assert heavy_tail_flag(*_sums(pareto), pareto.size, 0)[2]
+
+
+def test_a_means_only_estimator_is_refused_where_each_runs_covariance_is_needed():
+    from netkf_cli.errors import ConfigError
+
+    base = {"name": "vr", "system": {"A": 2, "C": 1, "Q": 0.001, "R": 1e-8},
+            "channel": {"kind": "fading", "snr_avg": {"value": 20, "unit": "dB"},
+                        "noise": {"model": "ber", "N_p": 10, "Delta": 0.0390625}},
+            "estimator": {"kind": "receiver", "scenario": 2, "threshold": {"value": 2, "unit": "linear"},
+                          "variance_reduction": "conditioned"},
+            "montecarlo": {"runs": 200, "horizon": 10}}
+    for analysis in ({"kind": "distribution", "M": [1.0]}, {"kind": "tail", "M": [1.0, 10.0]}):
+        try:
+            load({**base, "analysis": analysis})
+        except ConfigError as exc:
+            assert "variance_reduction" in str(exc)
+        else:
+            raise AssertionError(f"{analysis['kind']} accepted a means-only estimator")
+    load({**base, "analysis": {"kind": "mean_vs_time"}})  # means: fine
