@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from netkf_cli import riccati
+from netkf_cli import kalman, riccati
 from netkf_cli.errors import ConfigError, TheoremConditionError
 from netkf_cli.system import LinearSystem
 
@@ -150,13 +150,13 @@ def future_information(s: LinearSystem, pattern) -> np.ndarray:
         if i:
             al = s.A @ al
             V = riccati.sym(s.A @ V @ s.A.T) + s.Q
-        if b:
-            S = riccati.sym(s.C @ V @ s.C.T) + s.R
+        if b:  # the Kalman core's gain and update on the noise part; J accumulates (Cα)ᵀ S⁻¹ (Cα)
+            Vb = V[:, :, None]
+            S = kalman.innovation(Vb, s.C, s.R)[1][:, :, 0]
             Ca = s.C @ al
             J = J + Ca.T @ np.linalg.solve(S, Ca)
-            VC = V @ s.C.T
-            al = al - VC @ np.linalg.solve(S, Ca)
-            V = riccati.sym(V - VC @ np.linalg.solve(S, VC.T))
+            al = al - kalman.gain(Vb, s.C, s.R)[:, :, 0] @ Ca
+            V = kalman.one(kalman.update, V, s.C, s.R)
     return riccati.sym(J)
 
 
@@ -237,11 +237,9 @@ class _Batch:
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
                 upd = np.where(gam > 0, self.r / (self.c2 + self.r / p), p)
                 return (self.a2 * upd + self.q)[:, None, None]
-        CP = s.C @ P
-        S = CP @ s.C.T + s.R
-        corr = np.swapaxes(CP, -1, -2) @ np.linalg.solve(S, CP)
-        Pu = P - gam[:, None, None] * corr
-        return self.sym(s.A @ Pu @ s.A.T + s.Q)
+        Pr = np.moveaxis(P, 0, -1)  # the Kalman core's layout (n, n, nodes)
+        Pu = kalman.update(Pr, s.C, s.R, np.asarray(gam, dtype=float))
+        return np.moveaxis(kalman.predict(Pu, s.A, s.Q), -1, 0)
 
     def info_step(self, Y: np.ndarray, gam: np.ndarray) -> np.ndarray:
         """Y ← Z (I + Q Z)⁻¹, Z = A⁻ᵀ (Y + γ CᵀR⁻¹C) A⁻¹ (valid for singular Y, i.e. P = ∞ directions)."""
