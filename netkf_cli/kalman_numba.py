@@ -240,9 +240,8 @@ def smooth(Ps, Pf, A, Q, info, limit, out, J, Xn, Sn, PCt, W, Y):
 # ----------------------------------------------------------------------------------------------
 
 @nb.njit(**_opts)
-def gain(P, C, R, K, S, X):
-    """K = P Cᵀ (C P Cᵀ + R)⁻¹ for one run: :func:`netkf_cli.kalman.gain` (the optimal gain of the
-    covariance P and noise R; Sinopoli 2004 eq. 9). K (n, m) out; work arrays S (m, m), X (m, n)."""
+def innovation(P, C, R, X, S):
+    """X = C P (m, n) and S = C P Cᵀ + R (m, m) for one run: :func:`netkf_cli.kalman.innovation`."""
     n = P.shape[0]
     m = C.shape[0]
     for a in range(m):
@@ -250,13 +249,22 @@ def gain(P, C, R, K, S, X):
             acc = 0.0
             for k in range(n):
                 acc += C[a, k] * P[k, j]
-            X[a, j] = acc  # C P
+            X[a, j] = acc
     for a in range(m):
         for b in range(m):
             acc = R[a, b]
             for k in range(n):
                 acc += X[a, k] * C[b, k]
-            S[a, b] = acc  # C P Cᵀ + R
+            S[a, b] = acc
+
+
+@nb.njit(**_opts)
+def gain(P, C, R, K, S, X):
+    """K = P Cᵀ (C P Cᵀ + R)⁻¹ for one run: :func:`netkf_cli.kalman.gain` (the optimal gain of the
+    covariance P and noise R; Sinopoli 2004 eq. 9). K (n, m) out; work arrays S (m, m), X (m, n)."""
+    n = P.shape[0]
+    m = C.shape[0]
+    innovation(P, C, R, X, S)
     solve_inplace(S, X)  # S⁻¹ C P = Kᵀ (P, S symmetric)
     for i in range(n):
         for a in range(m):
@@ -276,18 +284,7 @@ def update_pinv(P, C, R, floor, e, out, dx, S, X):
     overwritten; work arrays S (m, m), X (m, n)."""
     n = P.shape[0]
     m = C.shape[0]
-    for a in range(m):
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += C[a, k] * P[k, j]
-            X[a, j] = acc  # C P
-    for a in range(m):
-        for b in range(m):
-            acc = R[a, b]
-            for k in range(n):
-                acc += X[a, k] * C[b, k]
-            S[a, b] = acc
+    innovation(P, C, R, X, S)
     for i in range(n):
         dx[i] = 0.0
         for j in range(n):
