@@ -110,12 +110,17 @@ def test_all_packets_kept_gives_the_standard_filter():
 
 
 def test_overflow_is_counted_not_nan():
-    """An unstable run with no packets overflows to ∞ in every entry (the core's Rescue policy):
-    λ_max = ∞, counted as P ≰ M (never NaN); a run that keeps receiving stays finite."""
+    """An unstable run with no packets overflows to ∞ (the core's Rescue policy: the variances of the
+    unknown directions are ∞, their decoupled covariances stay 0, nothing is NaN): λ_max = ∞, counted as
+    P ≰ M; a run that keeps receiving stays finite."""
+    from netkf_cli import batched
+
     s = LinearSystem.create(np.diag([3.0, 2.0]), np.eye(2), np.eye(2), np.eye(2))
     with np.errstate(all="ignore"):
         P = covariance_from_kept(s, np.tile(np.array([[False, True]]), (800, 1)), 1, P0=np.eye(2))
-    assert np.all(np.isinf(P[:, :, 0])) and np.all(np.isfinite(P[:, :, 1]))
+    assert np.all(np.isinf(np.diagonal(P[:, :, 0]))) and not np.isnan(P).any()
+    assert np.all(np.isfinite(P[:, :, 1]))
+    assert batched.lambda_max(P)[0] == np.inf and not batched.psd_leq(P, 1e6)[0]
     s1 = LinearSystem.create(3.0, 1, 1, 1)
     with np.errstate(all="ignore"):
         P1 = covariance_from_kept(s1, np.zeros((800, 1), dtype=bool), 1, P0=np.eye(1))
