@@ -115,6 +115,16 @@ def joseph(P: np.ndarray, K: np.ndarray, C: np.ndarray, R: np.ndarray, gamma: np
         return batched.sym(out)
 
 
+def _clean_pattern(P: np.ndarray) -> np.ndarray:
+    """(runs,) bool for P (n, n, runs): every non-finite entry lies where both its row's and its
+    column's variance are +∞ (unknown directions), nothing is NaN — the ∞ pattern the rescue keeps."""
+    d = np.diagonal(P).T  # (n, runs)
+    unknown = ~np.isfinite(d)
+    allowed = unknown[:, None, :] & unknown[None, :, :]
+    bad = ~np.isfinite(P) & ~allowed
+    return ~bad.any(axis=(0, 1)) & ~np.isnan(P).any(axis=(0, 1)) & np.all(~unknown | (d == np.inf), axis=0)
+
+
 def prior_information(X: np.ndarray) -> np.ndarray:
     """P⁻¹ per run for X (k, n, n) whose +∞ entries, if any, are the variances of directions with no
     information: a run whose non-finite entries all lie in rows/columns with a +∞ diagonal, the rest
@@ -126,10 +136,21 @@ def prior_information(X: np.ndarray) -> np.ndarray:
     finite = np.isfinite(X).all(axis=(1, 2))
     if finite.any():
         Y[finite] = np.linalg.inv(X[finite])
-    for r in np.flatnonzero(~finite):
-        f = np.isfinite(np.diagonal(X[r]))
-        if f.any() and np.isfinite(X[r][np.ix_(f, f)]).all() and np.all(np.diagonal(X[r])[~f] == np.inf):
-            Y[r][np.ix_(f, f)] = np.linalg.inv(X[r][np.ix_(f, f)])
+    rest = np.flatnonzero(~finite)
+    if rest.size:
+        Xr = X[rest]
+        clean = _clean_pattern(np.moveaxis(Xr, 0, -1))
+        known = np.isfinite(np.diagonal(Xr, axis1=1, axis2=2))  # (r, n)
+        codes = known @ (1 << np.arange(n))
+        for code in np.unique(codes[clean]):  # one batched inverse per pattern of known directions
+            f = ((code >> np.arange(n)) & 1).astype(bool)
+            if not f.any():
+                continue
+            sel = clean & (codes == code)
+            blk = Xr[sel][:, f][:, :, f]
+            Yr = np.zeros((int(sel.sum()), n, n))
+            Yr[np.ix_(np.arange(Yr.shape[0]), f, f)] = np.linalg.inv(blk)
+            Y[rest[sel]] = Yr
     return Y
 
 
@@ -157,14 +178,8 @@ def clean_nonfinite(P: np.ndarray) -> np.ndarray:
     if not bad.any():
         return P
     P = P.copy()
-    for r in np.flatnonzero(bad):
-        X = P[:, :, r]
-        d = np.diagonal(X)
-        f = np.isfinite(d)
-        clean = (not np.isnan(X).any()) and np.all(d[~f] == np.inf) and np.isfinite(X[np.ix_(f, f)]).all() \
-            and np.isfinite(X[np.ix_(f, ~f)]).all()
-        if not clean:
-            P[:, :, r] = np.inf
+    idx = np.flatnonzero(bad)
+    P[:, :, idx[~_clean_pattern(P[:, :, idx])]] = np.inf
     return P
 
 

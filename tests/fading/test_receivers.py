@@ -60,8 +60,11 @@ def test_scenario3_below_scenario2_and_monotone_in_threshold(seed, t1, dt):
     P2a = fr.covariance_paths(rm(2, A, C, Q, R), snr, t1, P0)
     for X, Y in ((P3a, P3b), (P3a, P2a)):
         D = np.moveaxis(Y - X, (1, 2), (-2, -1))
-        scale = np.abs(np.moveaxis(Y, (1, 2), (-2, -1))).max(axis=(-2, -1))
-        assert np.all(np.linalg.eigvalsh((D + np.swapaxes(D, -1, -2)) / 2).min(-1) >= -1e-9 * (1 + scale))
+        # the forward error of the recursion at step t is relative to the largest covariance the path has
+        # carried up to t (a loss burst grows P⁻ by ρ(A)² per step; the update back to a small posterior
+        # keeps an absolute error ~ ε·max‖P⁻‖·cond), not to the final P: tolerance 1e-9 of that path maximum
+        peak = np.maximum.accumulate(np.maximum(np.abs(X), np.abs(Y)).max(axis=(1, 2)), axis=0)  # (T+1, runs)
+        assert np.all(np.linalg.eigvalsh((D + np.swapaxes(D, -1, -2)) / 2).min(-1) >= -1e-9 * (1 + peak))
 
 
 def _z(X, exact):
