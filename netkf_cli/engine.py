@@ -50,6 +50,8 @@ def _check_pair(channel, estimator) -> None:
 class DistributionReducer:
     """Counts of P_k ≤ M (PSD order; scalar M means M·Iₙ) per estimator, step and M."""
 
+    means_only = False  # Pr[P_k <= M] needs each run's own covariance
+
     def __init__(self, M: np.ndarray, steps: list[int]):
         self.M = np.asarray(M, dtype=float)
         self.steps = list(steps)
@@ -73,6 +75,8 @@ class DistributionReducer:
 
 class MomentReducer:
     """Sums of tr P, λ_max(P), P entries (and squares, 4th powers of tr P) per estimator and step."""
+
+    means_only = True  # only means of P: a variance-reduced estimator may serve them (Estimator.for_means)
 
     def __init__(self, steps: list[int]):
         self.steps = list(steps)
@@ -106,6 +110,8 @@ class MomentReducer:
 
 class PairedReducer:
     """Differences tr P_j − tr P_0 on the same traces (common random numbers), and both moments."""
+
+    means_only = True  # only means of P: a variance-reduced estimator may serve them (Estimator.for_means)
 
     def __init__(self, steps: list[int]):
         self.steps = list(steps)
@@ -142,7 +148,9 @@ class PairKernel:
     def __call__(self, rng: np.random.Generator, runs: int) -> dict:
         trace = self.channel.sample_trace(rng, runs, self.horizon)
         stats: dict = {}
+        means_only = bool(getattr(self.reducer, "means_only", False))
         for j, est in enumerate(self.estimators):
+            est = est.for_means(self.channel) if means_only else est
             for k, P, w in covariances(est, self.system, trace, self.steps, self.quantity):
                 self.reducer.update(stats, j, k, P, w)
         stats.pop("_ref", None)
@@ -200,6 +208,8 @@ def mean_covariance(system, channel, estimator, *, runs: int, horizon: int, burn
 
 class TimeAverageReducer:
     """Per run, the average of tr P_k over ``steps``; sums of it, its square and 4th power."""
+
+    means_only = True  # only means of P: a variance-reduced estimator may serve them (Estimator.for_means)
 
     def __init__(self, steps: list[int]):
         self.steps = list(steps)

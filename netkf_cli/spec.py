@@ -65,6 +65,11 @@ class EstimatorModel(StrictModel):
         """The first step k at which ``quantity`` is defined (a lag-N smoother: N)."""
         return 1
 
+    def for_means(self, channel: Any) -> "EstimatorModel":
+        """The estimator to use where only means of P are taken (a metric of means): itself, or a
+        variance-reduced twin whose per-run values are unbiased estimates of E[P_k] (``auto`` options)."""
+        return self
+
     def per_run_covariance(self) -> bool:
         """Whether each run's reported P is that run's own covariance (False for a variance-reduced
         estimator that yields per-run estimates of E[P_k]: only means may then be taken)."""

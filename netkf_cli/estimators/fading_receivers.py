@@ -58,7 +58,7 @@ from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
 
 BackendKind = Literal["auto", "numpy", "numba"]
-VarianceReduction = Literal["none", "conditioned"]
+VarianceReduction = Literal["auto", "none", "conditioned"]
 
 
 class ReceiverEstimator(EstimatorModel):
@@ -80,15 +80,26 @@ class ReceiverEstimator(EstimatorModel):
     threshold: Snr | None = Field(None, description="drop threshold Υ_T with unit (analyses that sweep Υ_T ignore it)")
     backend: BackendKind = Field("auto", description="numpy (reference) | numba (compiled, equal to rounding) | "
                                                      "auto = numba when importable")
+    def for_means(self, channel) -> "ReceiverEstimator":
+        """``auto``: the burst-conditioned estimator where only means are taken on an i.i.d. channel (the
+        rare long drop bursts that dominate E[P_k] at a high threshold are then integrated, not sampled),
+        else none."""
+        if self.variance_reduction != "auto":
+            return self
+        corr = getattr(getattr(channel, "correlation", None), "model", "iid")
+        return self.model_copy(update={"variance_reduction": "conditioned" if corr == "iid" else "none"})
+
     def per_run_covariance(self) -> bool:
         """False under ``variance_reduction: conditioned``: each run then yields an unbiased estimate of
         E[P_k], not its own covariance, so only means may be taken (not Pr[P_k ≤ M])."""
         return self.variance_reduction != "conditioned"
 
     variance_reduction: VarianceReduction = Field(
-        "none", description="none: P_k of each run (every metric). conditioned: the burst-conditioned estimate of "
-                            "E P_k per run (i.i.d. channel only; unbiased for MEANS — mean_vs_time, compare's "
-                            "E tr P — with a far smaller variance; not a per-run covariance, so not for distribution)")
+        "auto", description="auto (default): conditioned where a metric takes only means on an i.i.d. channel, "
+                            "none otherwise. none: P_k of each run (every metric). conditioned: the burst-conditioned "
+                            "estimate of E P_k per run (i.i.d. channel only; unbiased for MEANS — mean_vs_time, "
+                            "compare's E tr P — with a far smaller variance; not a per-run covariance, so not for "
+                            "distribution)")
 
     def check(self, system, channel) -> None:
         """Refuse pairs that cannot work: a channel without SNR, a missing Υ_T, scenario 2 with m > n,
@@ -117,6 +128,8 @@ class ReceiverEstimator(EstimatorModel):
                             3: "scenario 3: cross-layer path, σ_z² = σ_n² I + R (eqs 27–28)"}[self.scenario]}
         if self.variance_reduction == "conditioned":
             out["variance_reduction"] = "burst-conditioned per-run estimate of E P_k (means only)"
+        elif self.variance_reduction == "auto":
+            out["variance_reduction"] = "auto (burst-conditioned for means on an i.i.d. channel, else none)"
         return out
 
     def model(self, system, noise) -> "ReceiverModel":

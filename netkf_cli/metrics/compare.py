@@ -35,6 +35,7 @@ class BothReducer:
     def __init__(self, M, steps):
         self.paired = engine.PairedReducer(steps)
         self.dist = engine.DistributionReducer(M, steps) if len(M) else None
+        self.means_only = self.dist is None
 
     def update(self, stats, j, k, P, w=None):
         self.paired.update(stats, j, k, P, w)
