@@ -106,20 +106,10 @@ def update(P, C, R, gamma, out, PCt, S, X):
             for j in range(n):
                 out[i, j] = P[i, j]
         return
+    innovation(P, C, R, X, S)  # X = C P, S = C P Cᵀ + R
     for i in range(n):
         for a in range(m):
-            acc = 0.0
-            for k in range(n):
-                acc += P[i, k] * C[a, k]
-            PCt[i, a] = acc
-    for a in range(m):
-        for b in range(m):
-            acc = R[a, b]
-            for k in range(n):
-                acc += C[a, k] * PCt[k, b]
-            S[a, b] = acc
-        for j in range(n):
-            X[a, j] = PCt[j, a]  # C P
+            PCt[i, a] = X[a, i]  # P Cᵀ (P symmetric)
     solve_inplace(S, X)  # S⁻¹ C P
     for i in range(n):
         for j in range(i, n):
