@@ -64,3 +64,53 @@ class KalmanFilterEstimator(EstimatorModel):
         S = channel_streams(channel) or 1
         return kalman.choose_backend(self.backend, kalman.Filter.of(system, S), runs * horizon)
 
+    def estimates(self, system, trace, y, steps, quantities=("filtered",)):
+        """Yield (k, {quantity: (x̂ (n, runs), P (n, n, runs))}): the state estimate beside the covariance of
+        :meth:`covariances` (the same recursion: :func:`filter_estimates`; numpy path). ``y`` (m, horizon+1,
+        runs) is what the receiver sees at each step (:mod:`netkf_cli.state`), x̂_{0|0} = 0."""
+        qs = kalman.check_quantities(quantities, self.quantities, "kf")
+        f = kalman.Filter.of(system, trace.arrival.shape[0], "estimator.kind")
+        yield from filter_estimates(f, initial_covariance(system), trace.arrival, y, steps, qs)
+
+
+def filter_estimates(f: "kalman.Filter", P0, gamma, y, steps, quantities=("filtered",), x0=None):
+    """x̂ and P of the Kalman filter with intermittent observations ``f`` (the steps of ``Filter.step``:
+    the covariance is ``f.correct`` itself; the gain of each arrived sensor group is ``kalman.gain`` of
+    the covariance that group's update starts from). ``gamma`` (S, horizon, runs); step k uses
+    gamma[:, k − 1] and y[:, k]. Yields (k, {quantity: (x̂, P)}); ``predicted`` is (A x̂_{k|k}, A P Aᵀ + Q)."""
+    want = sorted({int(k) for k in steps})
+    runs = gamma.shape[-1]
+    n = f.A.shape[0]
+    P = np.repeat(np.asarray(P0, float)[:, :, None], runs, axis=2)
+    x = np.zeros((n, runs)) if x0 is None else np.array(x0, float)
+    t = 0
+    for k in want:
+        while t < k:
+            g, yt = gamma[:, t], y[:, t + 1]
+            with np.errstate(over="ignore", invalid="ignore"):
+                Pm = kalman.predict(P, f.A, f.Q)
+                x = f.A @ x
+                if len(f.groups) == 1 or f.sequential:
+                    Pg = Pm
+                    for s, rows in enumerate(f.groups):
+                        r = list(rows)
+                        K = kalman.gain(Pg, f.C[r], f.R[np.ix_(r, r)])
+                        innov = (yt[r] - f.C[r] @ x) * g[s].astype(float)[None, :]
+                        x = x + np.einsum("nmr,mr->nr", K, innov)
+                        if s < len(f.groups) - 1:
+                            Pg = kalman.update(Pg, f.C[r], f.R[np.ix_(r, r)], g[s])
+                else:  # correlated sensors: one joint update of the arrived rows, per arrival pattern
+                    mask = kalman.row_mask(g, f.groups, f.C.shape[0])
+                    pats, inv = np.unique(mask, axis=1, return_inverse=True)
+                    for j in range(pats.shape[1]):
+                        r, idx = np.flatnonzero(pats[:, j]), np.flatnonzero(inv.ravel() == j)
+                        if r.size:
+                            K = kalman.gain(Pm[:, :, idx], f.C[r], f.R[np.ix_(r, r)])
+                            x[:, idx] += np.einsum("nmr,mr->nr", K, yt[np.ix_(r, idx)] - f.C[r] @ x[:, idx])
+                P = f.correct(Pm, g)
+            t += 1
+        out = {}
+        for q, Pq in kalman.report(P, quantities, f.A, f.Q).items():
+            out[q] = (x if q == "filtered" else f.A @ x, Pq)
+        yield k, out
+

@@ -456,23 +456,60 @@ class MarkovLMIEstimator(EstimatorModel):
         if self.filter == "mode_aware":
             yield from self._mode_aware(model, x0, P0, modes, steps, qs)
             return
-        K = steps[-1]
+        filt = self._fixed_gain(model, x0, P0, trace, steps[-1])
+        yield from linear_filter_covariances(model, filt, modes, x0, P0, steps, qs, base="contract")
+
+    def estimates(self, system, trace, y, steps, quantities=("filtered",)):
+        """Yield (k, {quantity: (x̂ (n, runs), P (n, n, runs))}): the estimate of ``filter`` beside the P of
+        :meth:`covariances` (numpy path; x̂ from the same gains). ``y`` (m, horizon+1, runs) is what the
+        receiver sees (:func:`netkf_cli.state.received`: the mode's packet). Every P here is the filter's
+        error covariance given the mode path (the naive KF's own Riccati P, which assumes mode 1, is not
+        reported), so a NEES check passes for every ``filter``."""
+        qs = kalman.check_quantities(quantities, self.quantities, "markov_lmi")
+        self.check(system, None)
+        modes = _modes_of(trace)
+        model, x0, P0 = self._model(system)
+        want = sorted({int(k) for k in steps})
+        if not want:
+            return
+        n = model.n
+        if self.filter == "mode_aware":
+            kf = ModeAwareKFTr(model, modes.shape[1], x0, P0, states=True, base="contract")
+            wset = set(want)
+            for t in range(want[-1]):
+                xf, _, Pfx = kf.step(y[:, t + 1], modes[t], want_cov=(t + 1) in wset)
+                if t + 1 in wset:
+                    Ps = kalman.report(Pfx, qs, model.A, model.Q)
+                    yield t + 1, {q: (xf if q == "filtered" else kf.xi[:n].copy(), P) for q, P in Ps.items()}
+            return
+        filt = self._fixed_gain(model, x0, P0, trace, want[-1])
+        s = np.repeat(filt.s0[:, None], modes.shape[1], axis=1)
+        t = 0
+        for k, Ps in linear_filter_covariances(model, filt, modes, x0, P0, want, qs, base="contract"):
+            while t < k:  # trace step t carries z_{t+1}: x̂(t+1|t+1) = E_f s + L_f z, s ← A_s s + G_s z
+                z = y[:, t + 1]
+                xf = filt.Ef[t] @ s + filt.Lf[t] @ z
+                s = filt.As[t] @ s + filt.Gs[t] @ z
+                t += 1
+            yield k, {q: (xf if q == "filtered" else filt.Ep @ s, P) for q, P in Ps.items()}
+
+    def _fixed_gain(self, model, x0, P0, trace, K: int):
+        """The naive KF or the LMI filter (data-independent gains) for K steps on netkf's time base."""
         if self.filter == "naive":
             prior_x = model.prior_moments(x0, P0, "contract")[1][: model.n, : model.n]
-            filt = naive_filter(model, x0, prior_x, K)
+            return naive_filter(model, x0, prior_x, K)
+        if self.rho == "stationary":
+            rho = np.asarray(trace.meta.get("rho"), float) if trace.meta.get("rho") is not None else None
+            if rho is None:
+                raise ConfigError.at("estimator.rho", "the trace carries no mode marginals; give rho explicitly")
         else:
-            if self.rho == "stationary":
-                rho = np.asarray(trace.meta.get("rho"), float) if trace.meta.get("rho") is not None else None
-                if rho is None:
-                    raise ConfigError.at("estimator.rho", "the trace carries no mode marginals; give rho explicitly")
-            else:
-                rho = np.asarray(self.rho, float)
-            try:
-                filt = lmi_design(model, rho, x0, P0, K, design=self.design, solver=self.solver, tol=self.solver_tol,
-                                  eps=self.eps, precedence=self.precedence, sdp_check=0, base="contract").filter
-            except RuntimeError as e:
-                raise ConfigError.at("estimator", f"{e}; try `solver: SCS`, a larger `eps` or `design: closed_form`") from None
-        yield from linear_filter_covariances(model, filt, modes, x0, P0, steps, qs, base="contract")
+            rho = np.asarray(self.rho, float)
+        try:
+            filt = lmi_design(model, rho, x0, P0, K, design=self.design, solver=self.solver, tol=self.solver_tol,
+                              eps=self.eps, precedence=self.precedence, sdp_check=0, base="contract").filter
+        except RuntimeError as e:
+            raise ConfigError.at("estimator", f"{e}; try `solver: SCS`, a larger `eps` or `design: closed_form`") from None
+        return filt
 
     def _mode_aware(self, model, x0, P0, modes, steps, qs):
         runs = modes.shape[1]
