@@ -22,6 +22,8 @@ class RunContext:
     quick: bool = False
     progress: Callable[[int], None] | None = None
     set_total: Callable[[int], None] | None = None
+    stream: int = 0
+    """The random stream of this run's Monte Carlo (allocated by the runner: an ``over`` grid's point)."""
 
     def mc_runs(self, scenario: Any) -> int:
         return int(self.runs or scenario.montecarlo.runs)

@@ -151,15 +151,32 @@ class PairKernel:
         means_only = bool(getattr(self.reducer, "means_only", False))
         for j, est in enumerate(self.estimators):
             est = est.for_means(self.channel) if means_only else est
-            for k, P, w in covariances(est, self.system, trace, self.steps, self.quantity):
-                self.reducer.update(stats, j, k, P, w)
+            if isinstance(self.quantity, str):
+                for k, P, w in covariances(est, self.system, trace, self.steps, self.quantity):
+                    self.reducer.update(stats, j, k, P, w)
+                continue
+            # several quantities in one pass: each estimator reports those it offers, in column (j, q)
+            qs = [q for q in self.quantity if q in getattr(est, "quantities", ("filtered",))]
+            for k, out in est.covariances(self.system, trace, self.steps, tuple(qs)):
+                for q in qs:
+                    if q in out:
+                        self.reducer.update(stats, column(j, self.quantity.index(q), len(self.quantity)), k,
+                                            out[q], out.get("weight"))
+        finish = getattr(self.reducer, "finish", None)
+        if finish is not None:
+            finish(stats)
         stats.pop("_ref", None)
         stats["n"] = np.asarray(runs)
         return stats
 
 
+def column(j: int, qi: int, nq: int) -> int:
+    """The reducer column of estimator j's quantity qi (of nq) in a several-quantities pass."""
+    return j * nq + qi
+
+
 def simulate(system, channel, estimators, reducer, *, steps, runs: int, horizon: int, seed: int, chunk: int,
-             stream: int = 0, progress=None, label: str = "", quantity: str = "filtered") -> dict:
+             stream: int = 0, progress=None, label: str = "", quantity: str | tuple = "filtered") -> dict:
     """Run the generic kernel over all chunks (on the current executor) and return summed statistics."""
     for es in estimators:
         _check_pair(channel, es)
@@ -204,6 +221,60 @@ def mean_covariance(system, channel, estimator, *, runs: int, horizon: int, burn
     return {"mean_trace": float(mean) if bad == 0 else float("inf"), "stderr": se, "n": n,
             "heavy_tail": bool(heavy), "rare_event": rare, "nonfinite": bad, "rse_variance": rse,
             "quantity": quantity}
+
+
+class StationaryReducer:
+    """Per run and column, the time averages over ``steps`` of tr P_k and of 1[P_k ≤ M] (PSD order, one per M).
+
+    Each run's average is one sample (runs are independent), so its mean's standard error is exact for
+    the time-averaged quantity. The per-run sums accumulate across the chunk's steps and :meth:`finish`
+    (called by the kernel at the end of a chunk) turns them into additive statistics: per column j,
+    ``sum/sumsq/sum3/sum4/max`` of the average trace (``_avg_j``), ``sum/sumsq`` of each M's average
+    indicator (``_ind_j``, shape (nM,)), ``nonfinite_j`` (runs with a non-finite P at some step: left out
+    of the trace mean, counted as not ≤ M) and ``max_nsteps_j``. A column may cover fewer steps than
+    ``steps`` (a smoother's lag): the average is over the steps it reported."""
+
+    def __init__(self, steps: list[int], M=None):
+        self.steps = list(steps)
+        self.M = None if M is None else np.atleast_1d(np.asarray(M, dtype=float))
+        self.means_only = self.M is None  # Pr[P_k ≤ M] needs each run's own covariance
+
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
+        if k not in self.steps:
+            return
+        acc = stats.setdefault("_acc", {})
+        runs = P.shape[-1]
+        a = acc.get(j)
+        if a is None:
+            a = acc[j] = {"tr": np.zeros(runs), "bad": np.zeros(runs, dtype=bool), "steps": 0,
+                          "ind": None if self.M is None else np.zeros((len(self.M), runs))}
+        tr = batched.trace(P)
+        finite = np.isfinite(P).all(axis=(0, 1))
+        a["bad"] |= ~finite
+        x = np.where(finite, tr, 0.0)
+        a["tr"] += x if w is None else x * w
+        if self.M is not None:
+            lm = batched.lambda_max(P)
+            ok = (lm[None, :] <= (self.M + batched.PSD_TOL * np.maximum(1.0, self.M))[:, None]) & finite[None, :]
+            a["ind"] += ok if w is None else ok * w[None, :]
+        a["steps"] += 1
+
+    def finish(self, stats: dict) -> None:
+        for j, a in stats.pop("_acc", {}).items():
+            T = max(a["steps"], 1)
+            ok = ~a["bad"]
+            avg = np.where(ok, a["tr"] / T, 0.0)
+            with np.errstate(over="ignore"):
+                for key, val in (("sum", avg.sum()), ("sumsq", (avg * avg).sum()), ("sum3", (avg**3).sum()),
+                                 ("sum4", (avg**4).sum())):
+                    stats[f"{key}_avg_{j}"] = stats.get(f"{key}_avg_{j}", 0.0) + val
+            stats[f"max_avg_{j}"] = max(stats.get(f"max_avg_{j}", 0.0), float(avg.max()) if avg.size else 0.0)
+            stats[f"nonfinite_{j}"] = stats.get(f"nonfinite_{j}", 0) + int((~ok).sum())
+            stats[f"max_nsteps_{j}"] = np.asarray(a["steps"])
+            if a["ind"] is not None:
+                ind = a["ind"] / T
+                stats[f"sum_ind_{j}"] = stats.get(f"sum_ind_{j}", 0.0) + ind.sum(axis=1)
+                stats[f"sumsq_ind_{j}"] = stats.get(f"sumsq_ind_{j}", 0.0) + (ind * ind).sum(axis=1)
 
 
 class TimeAverageReducer:

@@ -392,11 +392,14 @@ def validate_data(data: Any, file: str | None = None, index: dict | None = None,
     except ConfigError as exc:
         raise ConfigError(attribute([p if p.file else Problem(p.path, p.message, file, line_of(index, _keys(p.path)))
                                      for p in exc.problems], overrides)) from None
-    if scenario.sweep is not None:  # every point gets these same checks, now (as `netkf validate` promises)
-        from netkf_cli import sweep
+    if scenario.sweep is not None or getattr(scenario.analysis, "over", None):  # every point gets these same
+        from netkf_cli import sweep  # checks, now (as `netkf validate` promises)
 
         try:
-            sweep.expand(scenario, file, validate_data)
+            if scenario.sweep is not None:
+                sweep.expand(scenario, file, validate_data)
+            else:
+                sweep.expand_over(scenario, file, validate_data)
         except ConfigError as exc:
             raise ConfigError(attribute(locate_index(exc, index, file).problems, overrides)) from None
     return scenario
@@ -692,6 +695,12 @@ def locate_index(exc: ConfigError, index: dict, path: str | None) -> ConfigError
         line = None
         if p.path.startswith("sweep."):  # sweep keys are dotted paths themselves
             line = index.get(("sweep", p.path.removeprefix("sweep.")))
+        elif p.path.startswith("analysis.over."):  # so are an over grid's keys
+            line = index.get(("analysis", "over", p.path.removeprefix("analysis.over.")))
+        elif "(over point " in p.message:
+            m = re.search(r"\(over point (.*)\)", p.message)
+            keys_ = [kv.split("=", 1)[0].strip() for kv in m[1].split(", ")] if m else []
+            line = next((index[("analysis", "over", k)] for k in keys_ if ("analysis", "over", k) in index), None)
         elif "(sweep point " in p.message:  # a bad value at a sweep point: the sweep entry's line
             line = next((index[("sweep", k)] for k in _sweep_keys(p.message) if ("sweep", k) in index), None)
         probs.append(Problem(p.path, p.message, p.file or str(path), line or line_of(index, keys)))

@@ -66,33 +66,14 @@ def _covers(old, new) -> bool:
 
 def compute(scenario, ctx: RunContext, source: str | Path | None = None) -> Artefact:
     """Run the scenario's analysis (every sweep point); ConfigErrors get file and line."""
+    file = str(source) if source else None
     try:
         if scenario.sweep is None:
-            art = scenario.analysis.compute(scenario, ctx)
-            _check_artefact(scenario, art)
-            return art
-        points = sweep.expand(scenario, str(source) if source else None, validate_data)  # all, before running
-        tables, extras, metas = [], {}, []
-        done_total = 0  # progress units declared by the points already finished
-        for coords, sc in points:
-            declared = [0]
-
-            def point_total(n: int, _d=declared, _base=done_total) -> None:
-                _d[0] = n
-                ctx.total(_base + n)
-
-            art = sc.analysis.compute(sc, replace(ctx, set_total=point_total if ctx.set_total else None))
-            done_total += declared[0]
-            _check_artefact(sc, art)
-            if not tables:  # plot.where / plot.series name columns and series: the first table tells
-                sweep.check_plot(scenario.sweep, sweep.add_coords(art.table, coords))
-            tables.append(sweep.add_coords(art.table, coords))
-            for k, df in art.extra_tables.items():
-                extras.setdefault(k, []).append(sweep.add_coords(df, coords))
-            metas.append({"point": coords, **art.meta})
-        return Artefact(pd.concat(tables, ignore_index=True),
-                        meta={"sweep": {"mode": scenario.sweep.mode, "axes": scenario.sweep.axes}, "points": metas},
-                        extra_tables={k: pd.concat(v, ignore_index=True) for k, v in extras.items()})
+            return _analysis(scenario, ctx, file)
+        points = sweep.expand(scenario, file, validate_data)  # all, before running
+        return _points(points, ctx, lambda sc, c, i: _analysis(sc, c, file),
+                       lambda art, coords: sweep.check_plot(scenario.sweep, sweep.add_coords(art.table, coords)),
+                       {"sweep": {"mode": scenario.sweep.mode, "axes": scenario.sweep.axes}})
     except ConfigError as exc:
         if source is not None:
             raise locate(exc, source) from None
@@ -126,6 +107,49 @@ class ProgressTotals:
         self.planned += int(n)
         if self._update:
             self._update(self.total)
+
+
+def _analysis(scenario, ctx: RunContext, file: str | None) -> Artefact:
+    """One scenario's analysis; an ``analysis.over`` grid runs the metric at every point (validated first,
+    like a file), on a stream allocated here: 0 at every point (``streams: common``, common random
+    numbers) or the point's index (``streams: independent``)."""
+    over = getattr(scenario.analysis, "over", None)
+    if not over:
+        art = scenario.analysis.compute(scenario, ctx)
+        _check_artefact(scenario, art)
+        return art
+    points = sweep.expand_over(scenario, file, validate_data)
+    independent = getattr(scenario.analysis, "streams", "common") == "independent"
+    art = _points(points, ctx, lambda sc, c, i: _analysis(sc, replace(c, stream=i if independent else 0), file),
+                  None, {"over": {"paths": list(over), "points": len(points),
+                                  "streams": "independent (stream i at point i)" if independent else
+                                  "common (stream 0 at every point: common random numbers)"}})
+    finish = getattr(scenario.analysis, "finish_over", None)
+    return finish(scenario, art) if finish is not None else art
+
+
+def _points(points, ctx: RunContext, run, check_first, meta: dict) -> Artefact:
+    """Run ``run(scenario, ctx, i)`` at every (coords, scenario) point; one table with a column per path."""
+    tables, extras, metas = [], {}, []
+    done_total = 0  # progress units declared by the points already finished
+    for i, (coords, sc) in enumerate(points):
+        declared = [0]
+
+        def point_total(n: int, _d=declared, _base=done_total) -> None:
+            _d[0] = n
+            ctx.total(_base + n)
+
+        art = run(sc, replace(ctx, set_total=point_total if ctx.set_total else None), i)
+        done_total += declared[0]
+        _check_artefact(sc, art)
+        if not tables and check_first is not None:  # plot.where / plot.series name columns and series
+            check_first(art, coords)
+        tables.append(sweep.add_coords(art.table, coords))
+        for k, df in art.extra_tables.items():
+            extras.setdefault(k, []).append(sweep.add_coords(df, coords))
+        metas.append({"point": coords, **art.meta})
+    return Artefact(pd.concat(tables, ignore_index=True), meta={**meta, "points": metas},
+                    extra_tables={k: pd.concat(v, ignore_index=True) for k, v in extras.items()})
 
 
 def _check_artefact(scenario, art) -> None:
@@ -194,10 +218,13 @@ def result_paths(scenario, out_dir: str | Path | None = None, runs: int | None =
 
 
 def sweep_points(scenario) -> int:
+    """Points a run computes: sweep points × the analysis's ``over`` points."""
+    over = getattr(scenario.analysis, "over", None)
+    n_over = len(next(iter(over.values()))) if over else 1
     if scenario.sweep is None:
-        return 1
+        return n_over
     sizes = [len(v) for v in scenario.sweep.axes.values()] or [1]
-    return max(sizes) if scenario.sweep.mode == "zip" else int(np.prod(sizes, dtype=float))
+    return n_over * (max(sizes) if scenario.sweep.mode == "zip" else int(np.prod(sizes, dtype=float)))
 
 
 def run_counts(scenario, runs: int | None = None, quick: bool = False) -> list[int]:

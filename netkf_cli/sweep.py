@@ -120,8 +120,28 @@ def expand(scenario, file: str | None, validate) -> list[tuple[dict, Any]]:
     in because the loader sits above this module — so a point gets exactly the checks of a file."""
 
     base = scenario.model_dump(mode="json", by_alias=True, exclude={"sweep"})
+    return _expand(base, scenario.sweep.points(), "sweep", file, validate)
+
+
+def over_points(over: dict[str, list[Any]]) -> list[dict[str, Any]]:
+    """The points of an analysis's ``over:`` grid (several paths: zipped, equal lengths)."""
+    keys = list(over)
+    return [dict(zip(keys, c)) for c in zip(*over.values())]
+
+
+def expand_over(scenario, file: str | None, validate) -> list[tuple[dict, Any]]:
+    """The points of ``analysis.over`` as (coordinates, validated Scenario), like :func:`expand`.
+
+    Each point is the scenario with the paths set and ``over`` removed, checked exactly as a file."""
+    base = scenario.model_dump(mode="json", by_alias=True, exclude={"sweep"})
+    base["analysis"].pop("over", None)
+    return _expand(base, over_points(scenario.analysis.over), "analysis.over", file, validate)
+
+
+def _expand(base: dict, points: list[dict], prefix: str, file: str | None, validate) -> list[tuple[dict, Any]]:
     out, problems = [], []
-    for coords in scenario.sweep.points():
+    what = "sweep point" if prefix == "sweep" else "over point"
+    for coords in points:
         data = _deep_copy(base)
         where = ", ".join(f"{k}={v}" for k, v in coords.items())
         bad = False
@@ -129,7 +149,7 @@ def expand(scenario, file: str | None, validate) -> list[tuple[dict, Any]]:
             try:
                 _set(data, path, v)
             except KeyError:
-                problems.append(Problem(f"sweep.{path}", "is not a field path of this scenario", file))
+                problems.append(Problem(f"{prefix}.{path}", "is not a field path of this scenario", file))
                 bad = True
         if bad:
             continue
@@ -137,7 +157,7 @@ def expand(scenario, file: str | None, validate) -> list[tuple[dict, Any]]:
             out.append((coords, validate(data, file)))
         except ConfigError as exc:
             for p in exc.problems:
-                problems.append(Problem(p.path, f"{p.message} (sweep point {where})", file))
+                problems.append(Problem(p.path, f"{p.message} ({what} {where})", file))
     if problems:
         # de-duplicate (a bad path repeats at every point)
         seen, uniq = set(), []

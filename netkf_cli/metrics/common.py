@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
 
 from netkf_cli import engine, kalman
+from netkf_cli.analysis import references
 from netkf_cli.errors import ConfigError
 from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt, StrictModel
 
@@ -164,17 +165,59 @@ def quantity_text(quantity: str, what: str = "P_k") -> str:
 
 
 class GenericMetric(AnalysisModel):
-    """What distribution, mean_vs_time and compare share: the quantity, validation and the engine call."""
+    """What the generic metrics share: the quantity, an ``over`` grid, closed-form references, validation
+    and the engine call."""
 
     quantity: Quantity = Field("filtered", description="which covariance: filtered P_{k|k}, predicted P_{k+1|k} or "
                                                        "smoothed P_{k-N|k} (a smoother's lag N); `netkf list` shows what "
                                                        "each estimator reports")
+    over: dict[str, list[Any]] | None = Field(
+        None, description="a grid of scenario parameters, e.g. {channel.arrival: [0.5, 0.6]}: the metric at every point "
+                          "(several paths are zipped: equal lengths), one table with a column per path; the figure "
+                          "draws against the first path where the metric has no x-axis of its own")
+    streams: Literal["common", "independent"] = Field(
+        "common", description="random streams of the over points: common (stream 0 at every point: common random "
+                              "numbers, smooth curves) or independent (stream i at point i: independent errors)")
+    references: list[str] = Field(default_factory=list,
+                                  description="closed-form rows beside the Monte Carlo (`netkf list` analysis "
+                                              "references names them): each adds rows with source = closed_form")
+
+    @model_validator(mode="after")
+    def _over_grid(self):
+        if self.over is not None:
+            if not self.over:
+                raise ValueError("over: give at least one dotted path with a list of values")
+            lens = {k: len(v) for k, v in self.over.items()}
+            if any(n == 0 for n in lens.values()):
+                raise ValueError(f"over: every path needs at least one value, got {lens}")
+            if len(set(lens.values())) > 1:
+                raise ValueError(f"over: the paths are zipped and need lists of equal length, got {lens}")
+            bad = [k for k in self.over if k.split(".")[0] not in ("system", "channel", "estimator", "estimators",
+                                                                   "montecarlo")]
+            if bad:
+                raise ValueError(f"over: paths start with system., channel., estimator(s). or montecarlo., got {bad}")
+        for name in self.references:
+            if name not in references.REGISTRY:
+                raise ValueError(f"references: unknown closed form {name!r}; known: {', '.join(sorted(references.REGISTRY))}")
+        return self
+
+    def quantity_list(self) -> list[str]:
+        """The quantities this metric reports (one, unless the metric takes ``quantities``)."""
+        qs = getattr(self, "quantities", None)
+        return list(qs) if qs else [self.quantity]
 
     def check(self, scenario) -> None:
         needs(scenario, "channel")
         ests = needs(scenario, "estimators")
         many = bool(scenario.estimators)
-        for i, e in enumerate(ests):
+        qs = self.quantity_list()
+        if len(qs) > 1:  # several quantities: each estimator reports those it offers, each is offered by one
+            for q in qs:
+                if not any(q in getattr(e, "quantities", ("filtered",)) for e in ests):
+                    raise ConfigError.at("analysis.quantities", f"no estimator reports {q} ({kalman.SYMBOL[q]}); "
+                                         + "; ".join(f"{e.kind} reports {', '.join(getattr(e, 'quantities', ('filtered',)))}"
+                                                     for e in ests))
+        for i, e in enumerate(ests if len(qs) == 1 else []):
             offered = getattr(e, "quantities", ("filtered",))
             if self.quantity not in offered:
                 raise ConfigError.at("analysis.quantity", f"{'estimators[%d]' % i if many else 'estimator'} "
@@ -199,12 +242,44 @@ class GenericMetric(AnalysisModel):
         """Whether this metric takes per-run functionals of P (Pr[P_k ≤ M]), not only means."""
         return bool(getattr(self, "M", None))
 
-    def simulate(self, scenario, ctx, reducer, steps, horizon: int):
-        """Run the scenario's estimators on its channel's traces (stream 0): (system, estimators, statistics)."""
+    def simulate(self, scenario, ctx, reducer, steps, horizon: int, quantities=None):
+        """Run the scenario's estimators on its channel's traces (the stream the runner allocated, 0 unless an
+        ``over`` grid says otherwise): (system, estimators, statistics). With ``quantities`` (a tuple), the
+        reducer's column of (estimator j, quantity q) is ``engine.column(j, qi, len(quantities))``."""
         s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")
         mc = scenario.montecarlo
         runs = ctx.mc_runs(scenario)
         ctx.total(runs)
         st = engine.simulate(s, ch, ests, reducer, steps=steps, runs=runs, horizon=horizon, seed=mc.seed,
-                             chunk=mc.chunk, stream=0, progress=ctx.progress, label=self.kind, quantity=self.quantity)
+                             chunk=mc.chunk, stream=ctx.stream, progress=ctx.progress, label=self.kind,
+                             quantity=tuple(quantities) if quantities else self.quantity)
         return s, ests, st
+
+    def reference_rows(self, scenario, labs: list[str]) -> list[dict]:
+        """The closed-form rows of ``references`` at this scenario (source = closed_form, no standard error)."""
+        if not self.references:
+            return []
+        ests = scenario.estimator_list()
+        point = references.Point(system=needs(scenario, "system"),
+                                 channel=scenario.channel.model_dump() if scenario.channel is not None else {},
+                                 estimators=[e.model_dump() for e in ests], labels=list(labs),
+                                 quantities=self.quantity_list(), metric=self.model_dump(), coords={})
+        rows = []
+        for name in self.references:
+            for r in references.evaluate(name, point):
+                rows.append(dict(r, reference=name))
+        return rows
+
+
+def fold_over(t, over: dict | None):
+    """A table of an ``over`` grid for a figure whose x-axis is the metric's own (M, k): the point joins the
+    estimator's label, so each point is its own line."""
+    if not over or t is None or not len(t):
+        return t
+    cols = [c for c in over if c in t.columns]
+    if not cols:
+        return t
+    t = t.copy()
+    t["estimator"] = t["estimator"].astype(str) + " (" + t[cols].astype(str).apply(
+        lambda r: ", ".join(f"{c.split('.')[-1]} = {v}" for c, v in r.items()), axis=1) + ")"
+    return t

@@ -19,7 +19,7 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine
-from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, channel_words, describe, GenericMetric, horizon_of,
+from netkf_cli.metrics.common import (fold_over, LABEL_COLUMNS, backends, channel_words, describe, GenericMetric, horizon_of,
                                       labels, math_text, n_runs_of, PaperRef, quantity_text, step_of)
 from netkf_cli.stats import mean_se, proportion_stderr, wilson_interval
 from netkf_cli.plotting import footnote, new_figure, paper_title, series_style
@@ -87,7 +87,7 @@ class Compare(GenericMetric):
                               "common_random_numbers": "every estimator runs on the same sampled traces"})
 
     def plot(self, tables, scenario):
-        t = tables["main"]
+        t = fold_over(tables["main"], self.over)
         has_m = (t.statistic == "prob_leq_M").any()
         fig, axes = new_figure(ncols=2 if has_m else 1, width=5.4 if has_m else 7.0, height=4.6)
         axes = np.atleast_1d(axes)

@@ -33,7 +33,7 @@ from netkf_cli.analysis import delay_exact as dx
 from netkf_cli.channels.delay import delay_label
 from netkf_cli.estimators.buffered import packet_span
 from netkf_cli.errors import ConfigError
-from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels, m_values,
+from netkf_cli.metrics.common import (fold_over, LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels, m_values,
                                       math_text, MGrid, n_runs_of, needs, PaperRef, quantity_text, step_of)
 from netkf_cli.stats import mean_se, proportion_stderr, wilson_interval
 from netkf_cli.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
@@ -216,8 +216,8 @@ class Distribution(GenericMetric):
         return Artefact(table, meta=meta, extra_tables=extra)
 
     def plot(self, tables, scenario):
-        t = tables["main"]
-        cur = tables.get("curves")
+        t = fold_over(tables["main"], self.over)
+        cur = fold_over(tables.get("curves"), self.over)
         fig, ax = new_figure(width=7.4, height=5.6)
         styles = {"lower_bound": dict(ls="--", lw=1.3, lab=r"lower bound $1-\theta(k_1, D)$ (Thm 3.8)"),
                   "upper_bound": dict(ls="-.", lw=1.3, lab=r"upper bound $1-\theta(k_2, D)$ (Thm 3.8)"),

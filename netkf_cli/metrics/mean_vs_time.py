@@ -19,7 +19,7 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine
-from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels,
+from netkf_cli.metrics.common import (fold_over, LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels,
                                       math_text, n_runs_of, PaperRef, quantity_text)
 from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.artefact import Artefact, RunContext
@@ -91,7 +91,7 @@ class MeanVsTime(GenericMetric):
                                      "rare_event_rule": "one run carries more than half of the sum", "warnings": warnings_})
 
     def plot(self, tables, scenario):
-        t = tables["main"]
+        t = fold_over(tables["main"], self.over)
         fig, ax = new_figure(width=7.4, height=4.6)
         one = len(t) > 0 and int(t.n.max()) == 1  # one run (e.g. a replayed recording): the sequence itself
         left_out = 0

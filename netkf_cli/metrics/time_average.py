@@ -1,0 +1,199 @@
+"""``kind: time_average`` — stationary statistics of P_k: the time average over k in (burn_in, horizon].
+
+Per run, the average over the steps k = burn_in + 1 … horizon of tr P_k (series ``E[tr P]``) and,
+when ``M`` is given, of 1[P_k ≤ M·I] (series ``Pr[P<=M]``: the stationary Pr[P_k ≤ M] when the chain
+is ergodic); one sample per run, so the mean over runs has an exact standard error. ``quantities``
+reports several covariances in one pass (predicted P_{k+1|k}, filtered P_{k|k}, a smoother's
+P_{k−N|k}): each estimator reports those it offers, on the same traces (common random numbers).
+
+With ``over`` (a grid of a channel, estimator or system parameter) the figure draws every series
+against the grid's first path; ``references`` adds closed-form rows (``source = closed_form``) drawn
+as dashed lines beside the Monte Carlo. Unreliable means (heavy-tailed, rare-event dominated or any
+run non-finite) are flagged in the CSV and drawn hollow, off the line.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+from pydantic import Field, model_validator
+
+from netkf_cli import engine, kalman
+from netkf_cli.artefact import Artefact, RunContext
+from netkf_cli.errors import ConfigError
+from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, labels,
+                                      math_text, PaperRef, Quantity)
+from netkf_cli.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
+from netkf_cli.stats import heavy_tail_flag, mean_se, rare_event_flag
+
+TRACE, PROB = "E[tr P]", "Pr[P<=M]"
+COLUMNS = ["estimator", "quantity", "series", "M", "value", "stderr", "n", "nonfinite", "heavy_tail", "rare_event",
+           "source", "reference"] + LABEL_COLUMNS[1:]
+
+
+class TimeAverage(GenericMetric):
+    """``kind: time_average`` — time-averaged E[tr P_k] (and Pr[P_k ≤ M]) after a burn-in, per estimator and quantity."""
+
+    kind: Literal["time_average"]
+    quantities: list[Quantity] | None = Field(None, description="several quantities in one pass (default: `quantity`); "
+                                                                "each estimator reports those it offers")
+    M: float | list[float] | None = Field(None, description="also the time-averaged Pr[P_k ≤ M·I] (PSD order) for each M")
+    log_x: bool = Field(False, description="logarithmic x axis (the over grid's first path)")
+    log_y: bool = Field(True, description="logarithmic y axis for E[tr P]")
+    x_label: str = Field("", description="x-axis label for the over grid (default: its first path)")
+    paper: PaperRef | None = Field(None, description="the paper figure this reproduces (title only)")
+    title: str = Field("", description="what the figure shows")
+
+    @model_validator(mode="after")
+    def _m_positive(self):
+        ms = [] if self.M is None else np.atleast_1d(np.asarray(self.M, dtype=float))
+        if any(not (m > 0 and np.isfinite(m)) for m in ms):
+            raise ValueError(f"M must be finite and > 0, got {self.M}")
+        if self.quantities is not None and (not self.quantities or len(set(self.quantities)) < len(self.quantities)):
+            raise ValueError(f"quantities: a non-empty list without repeats, got {self.quantities}")
+        return self
+
+    def needs_per_run_covariance(self) -> bool:
+        return self.M is not None
+
+    def check(self, scenario) -> None:
+        super().check(scenario)
+        mc = scenario.montecarlo
+        if mc.burn_in >= mc.horizon:
+            raise ConfigError.at("montecarlo.burn_in", f"must be < montecarlo.horizon = {mc.horizon} (the average is "
+                                                       f"over k in (burn_in, horizon]), got {mc.burn_in}")
+        for e in scenario.estimator_list():
+            for q in self.quantity_list():
+                if q in getattr(e, "quantities", ("filtered",)) and e.first_step(q) > mc.horizon:
+                    raise ConfigError.at("montecarlo.horizon", f"{e.kind} defines {q} from step {e.first_step(q)} on "
+                                                               f"({kalman.SYMBOL[q]}); the horizon is {mc.horizon}")
+
+    def compute(self, scenario, ctx: RunContext) -> Artefact:
+        mc = scenario.montecarlo
+        qs = self.quantity_list()
+        steps = list(range(mc.burn_in + 1, mc.horizon + 1))
+        Ms = None if self.M is None else np.atleast_1d(np.asarray(self.M, dtype=float))
+        s, ests, st = self.simulate(scenario, ctx, engine.StationaryReducer(steps, Ms), steps, mc.horizon, quantities=qs)
+        labs = labels(ests)
+        n = int(st["n"])
+        rows = []
+        for j, (e, lab) in enumerate(zip(ests, labs)):
+            for qi, q in enumerate(qs):
+                c = engine.column(j, qi, len(qs))
+                if f"sum_avg_{c}" not in st:
+                    continue  # this estimator does not report q
+                lab_cols = describe(scenario, s, [e], q)[0]
+                bad = int(st[f"nonfinite_{c}"])
+                m_ok = max(n - bad, 1)
+                mean, se = (float(x) for x in mean_se(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], m_ok))
+                _, _, heavy = heavy_tail_flag(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], st[f"sum3_avg_{c}"],
+                                              st[f"sum4_avg_{c}"], m_ok, bad)
+                rare = bool(rare_event_flag(st[f"sum_avg_{c}"], st[f"max_avg_{c}"], m_ok))
+                base = dict(estimator=lab, quantity=q, n=n, nonfinite=bad, source="monte_carlo", reference="",
+                            P0=lab_cols["P0"], conventions=lab_cols["conventions"])
+                rows.append(dict(base, series=TRACE, M=np.nan, value=mean if bad == 0 else np.inf, stderr=se,
+                                 heavy_tail=bool(heavy), rare_event=rare))
+                if Ms is not None:  # a non-finite run counts as not ≤ M: the probability is over every run
+                    pm, pse = mean_se(st[f"sum_ind_{c}"], st[f"sumsq_ind_{c}"], n)
+                    for i, m in enumerate(Ms):
+                        rows.append(dict(base, series=PROB, M=float(m), value=float(pm[i]), stderr=float(pse[i]),
+                                         heavy_tail=False, rare_event=False))
+        for r in self.reference_rows(scenario, labs):
+            rows.append(dict(estimator=r.get("estimator", ""), quantity=r.get("quantity", qs[0]),
+                             series=r["series"], M=r.get("M", np.nan), value=r["value"], stderr=np.nan, n=0,
+                             nonfinite=0, heavy_tail=False, rare_event=False, source="closed_form",
+                             reference=r["reference"], P0="", conventions=""))
+        table = pd.DataFrame(rows, columns=COLUMNS)
+        return Artefact(table, meta={"runs": n, "estimators": labs, "quantities": qs,
+                                     "average": f"per run over k = {steps[0]}…{steps[-1]} (burn-in {mc.burn_in})",
+                                     "backends": backends(scenario, s, ests, labs, n, mc.horizon),
+                                     "references": list(self.references),
+                                     "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE} "
+                                                        f"or any non-finite run"})
+
+    # --- the figure -------------------------------------------------------------------------------------
+    def plot(self, tables, scenario):
+        t = tables["main"].copy()
+        t["estimator"] = t["estimator"].fillna("").astype(str)  # a reference for every estimator: ""
+        x = next(iter(self.over)) if self.over else None
+        panels = [TRACE] + ([PROB] if (t.series == PROB).any() else [])
+        fig, axes = new_figure(nrows=len(panels), width=10.5, height=4.4 * len(panels))
+        axes = np.atleast_1d(axes)
+        flagged = 0
+        for ax, series in zip(axes, panels):
+            flagged += self._panel(ax, t, series, x)
+            ax.set_ylabel(r"time-averaged $\mathrm{E}[\mathrm{tr}\,P]$" if series == TRACE
+                          else r"time-averaged $\Pr[P \leq M]$")
+            if series == TRACE and self.log_y and (t[(t.series == TRACE)].value.replace(np.inf, np.nan) > 0).all():
+                ax.set_yscale("log")
+            if x is not None:
+                ax.set_xlabel(self.x_label or x)
+                if self.log_x:
+                    ax.set_xscale("log")
+            if ax.get_legend_handles_labels()[0]:
+                legend_outside(ax, loc="right", fontsize=7)
+        what = self.title or ("stationary " + ("statistics against " + (self.x_label or x) if x else "statistics"))
+        fig.suptitle(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None,
+                                 what), fontsize=11)
+        mcr = t[t.source == "monte_carlo"]
+        n = int(mcr.n.max()) if len(mcr) else 0
+        first = mcr[mcr[x] == mcr[x].iloc[0]] if x is not None and len(mcr) else mcr
+        note = dict(zip(first.estimator, first.conventions))
+        footnote(fig, f"Monte Carlo: n = {n:,} runs, each averaged over k in (burn-in "
+                      f"{scenario.montecarlo.burn_in}, horizon {scenario.montecarlo.horizon}]; error bars ±1.96 s.e."
+                 + (f"; {flagged} unreliable means drawn hollow, off the line (CSV heavy_tail / rare_event)" if flagged else "")
+                 + (f"; dashed: closed form ({', '.join(self.references)})" if self.references else "")
+                 + (f"\n{math_text(mcr.P0.iloc[0])}; {conventions_note(note)}" if len(mcr) else ""))
+        return fig
+
+    def _panel(self, ax, t, series, x) -> int:
+        mc = t[(t.source == "monte_carlo") & (t.series == series)]
+        ref = t[(t.source == "closed_form") & ((t.series != PROB) if series == TRACE else (t.M.notna()))]
+        if series == TRACE:
+            ref = ref[ref.M.isna()]
+        keys = list(dict.fromkeys(zip(mc.estimator, mc.quantity, mc.M.fillna(-1))))
+        colour_of = {}
+        flagged = 0
+        for i, (lab, q, m) in enumerate(keys):
+            g = mc[(mc.estimator == lab) & (mc.quantity == q) & (mc.M.fillna(-1) == m)]
+            colour = PALETTE[i % len(PALETTE)]
+            colour_of.setdefault(lab, colour)
+            name = f"{lab} · {_sym(q)}" + ("" if m < 0 else f", M = {m:g}")
+            bad = g.heavy_tail.astype(bool).to_numpy() | g.rare_event.astype(bool).to_numpy() | ~np.isfinite(g.value.to_numpy())
+            flagged += int(bad.sum())
+            if x is None:
+                xs = np.full(len(g), i, dtype=float)
+            else:
+                g = g.sort_values(x)
+                bad = g.heavy_tail.astype(bool).to_numpy() | g.rare_event.astype(bool).to_numpy() | ~np.isfinite(g.value.to_numpy())
+                xs = g[x].astype(float).to_numpy()
+            y = np.where(bad, np.nan, g.value.to_numpy(dtype=float))
+            ax.errorbar(xs, y, yerr=1.96 * np.where(bad, np.nan, g.stderr.to_numpy(dtype=float)),
+                        marker=MARKERS[i % len(MARKERS)], ms=4, capsize=2, color=colour, lw=1.2,
+                        ls="-" if x is not None else "none", label=f"{name} (Monte Carlo)")
+            if bad.any() and np.isfinite(g.value.to_numpy()[bad]).any():
+                ax.plot(xs[bad], g.value.to_numpy()[bad], ls="none", marker="o", ms=7, mfc="none", color=colour,
+                        label=f"{name}: unreliable (flagged in the CSV)")
+        for i, ((lab, name), g) in enumerate(ref.groupby(["estimator", "series"], sort=False)):
+            colour = colour_of.get(lab, "black")
+            vals = g.value.to_numpy(dtype=float)
+            if not np.isfinite(vals).any():
+                continue
+            if x is None:
+                ax.plot(np.arange(len(keys)), np.full(len(keys), vals[0]), ls="--", color=colour, lw=1.1,
+                        label=f"{(lab + ': ') if lab else ''}{name}")
+            else:
+                g = g.sort_values(x)
+                ax.plot(g[x].astype(float), g.value.astype(float), ls="--", color=colour, lw=1.1,
+                        marker="x" if len(g) < 3 else None, label=f"{(lab + ': ') if lab else ''}{name}")
+        if x is None and keys:
+            ax.set_xticks(range(len(keys)))
+            ax.set_xticklabels([f"{lab}\n{_sym(q)}" + ("" if m < 0 else f"\nM = {m:g}")
+                                for lab, q, m in keys], fontsize=8)
+        return flagged
+
+
+def _sym(q: str) -> str:
+    return f"${kalman.SYMBOL.get(q, q)}$"
