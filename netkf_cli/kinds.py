@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 from pydantic.fields import PydanticUndefined
 
-GENERIC_METRICS = ("distribution", "mean_vs_time", "compare", "tail", "time_average")
+GENERIC_METRICS = ("distribution", "mean_vs_time", "compare", "tail", "time_average", "state_error", "updates")
 
 
 def _type_name(ann: Any) -> str:

@@ -29,14 +29,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from netkf_cli.errors import ConfigError
+from netkf_cli.montecarlo import run_chunked
 from netkf_cli.riccati import initial_covariance
-from netkf_cli.tolerances import PSD_INPUT_TOL
+from netkf_cli.tolerances import PSD_INPUT_TOL, ZERO_INNOVATION_RTOL
 
 
 @dataclass
 class States:
-    """True states and signals of one chunk: ``x`` (n, horizon+1, runs) with x[:, k] = x_k; ``y``
-    (m, horizon+1, runs) the sensor's measurements y_k = C x_k + v_k; ``v`` the measurement noise;
+    """True states and signals of one chunk: ``x`` (n, horizon+2, runs) with x[:, k] = x_k, k = 0 … horizon+1
+    (x_{horizon+1} is what the last predicted estimate x̂_{horizon+1|horizon} aims at); ``y``
+    (m, horizon+2, runs) the sensor's measurements y_k = C x_k + v_k; ``v`` the measurement noise;
     ``z`` what the receiver sees (:func:`received`; ``y`` itself unless the trace has modes)."""
 
     x: np.ndarray
@@ -67,17 +70,17 @@ def noise_covariance(system, S: np.ndarray | None = None) -> np.ndarray:
 
 
 def simulate(system, trace, rng: np.random.Generator, S: np.ndarray | None = None) -> States:
-    """x_0 … x_T, y_0 … y_T and the received signal for the ``trace.runs`` runs of ``trace`` (module docstring)."""
+    """x_0 … x_{T+1}, y_0 … y_{T+1} and the received signal for the ``trace.runs`` runs of ``trace`` (module docstring)."""
     A, C = np.asarray(system.A, float), np.asarray(system.C, float)
     n, m = A.shape[0], C.shape[0]
     T, runs = trace.horizon, trace.runs
     L0 = psd_factor(initial_covariance(system))
     Ls = psd_factor(noise_covariance(system, S))
-    x = np.empty((n, T + 1, runs))
+    x = np.empty((n, T + 2, runs))
     x[:, 0] = L0 @ rng.standard_normal((n, runs))
-    eps = np.einsum("pq,qtr->ptr", Ls, rng.standard_normal((n + m, T + 1, runs)))  # ε_k = [w_k; v_k], k = 0 … T
+    eps = np.einsum("pq,qtr->ptr", Ls, rng.standard_normal((n + m, T + 2, runs)))  # ε_k = [w_k; v_k], k = 0 … T+1
     w, v = eps[:n], np.ascontiguousarray(eps[n:])
-    for k in range(T):
+    for k in range(T + 1):
         x[:, k + 1] = A @ x[:, k] + w[:, k]
     y = np.einsum("mn,ntr->mtr", C, x) + v
     return States(x, y, v, received(trace, y, v))
@@ -91,6 +94,138 @@ def received(trace, y: np.ndarray, v: np.ndarray) -> np.ndarray:
     z[:, 0] = v[:, 0]
     mode = np.asarray(trace.mode)  # (T, runs): mode of step k is trace step k − 1, 0-based (0 on time … 3 dropout)
     for k in range(1, y.shape[1]):
-        q = mode[k - 1]
+        q = mode[min(k, mode.shape[0]) - 1]
         z[:, k] = np.where(q == 0, y[:, k], np.where(q == 1, y[:, k - 1], np.where(q == 2, v[:, k], z[:, k - 1])))
     return z
+
+
+# ---------------------------------------------------------------------------------------------- NEES
+def nees(err: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(eᵀ P⁺ e, rank P) per run for errors ``err`` (n, runs) and covariances ``P`` (n, n, runs).
+
+    P⁺ is the pseudo-inverse (eigenvalues below ``ZERO_INNOVATION_RTOL``·λ_max count as zero): a
+    direction the estimator knows exactly (P singular, e.g. x_0 known) has no error to normalize. If
+    P is the error covariance of a Gaussian error, eᵀ P⁺ e ~ χ²(rank P): mean rank P, variance 2 rank P.
+    """
+    w, V = np.linalg.eigh(np.moveaxis(0.5 * (P + P.swapaxes(0, 1)), -1, 0))  # (runs, n), (runs, n, n)
+    tol = ZERO_INNOVATION_RTOL * np.maximum(w[:, -1:], 0.0)
+    ok = w > np.maximum(tol, 0.0)
+    winv = np.where(ok, 1.0 / np.where(ok, w, 1.0), 0.0)
+    u = np.einsum("rji,jr->ri", V, err)
+    return (u * u * winv).sum(axis=1), ok.sum(axis=1).astype(float)
+
+
+def truth_index(k: int, quantity: str, lag: int = 0) -> int:
+    """The time of the state a quantity at step k estimates: x_k (filtered), x_{k+1} (predicted), x_{k−N}."""
+    return {"filtered": k, "predicted": k + 1, "smoothed": k - lag}[quantity]
+
+
+def _check_estimates(estimator, system, channel) -> None:
+    if not callable(getattr(estimator, "estimates", None)):
+        raise ConfigError.at("estimator.kind", f"estimator {estimator.kind!r} has no state-level estimates() "
+                                               f"(`netkf list` shows which do)")
+    getattr(estimator, "check_estimates", estimator.check)(system, channel)
+
+
+class StateErrorKernel:
+    """Sample a trace, the states behind it (:func:`simulate`), run every estimator's ``estimates`` on the
+    same runs; reduce per estimator j and step: Σ‖e‖², Σ‖e‖⁴, Σ e eᵀ, Σ tr P, Σ (tr P)², Σ NEES, Σ NEES²,
+    Σ rank P, Σ and Σ² of ‖e‖² − tr P (paired), non-finite count; per run the average over ``window`` of
+    ‖e‖², tr P, NEES and rank P (one sample per
+    run: exact standard errors) and the paired difference of the windowed ‖e‖² against estimator 0.
+    ``keep`` > 0: the chunk instead returns its first ``keep`` runs' true states and estimates (trajectories)."""
+
+    def __init__(self, system, channel, estimators, horizon: int, steps, quantity: str = "filtered",
+                 window=(), S=None, keep: int = 0):
+        self.system, self.channel, self.estimators = system, channel, list(estimators)
+        self.horizon, self.steps, self.quantity = int(horizon), sorted(int(k) for k in steps), quantity
+        self.window = sorted(int(k) for k in window)
+        self.S, self.keep = S, int(keep)
+
+    def __call__(self, rng: np.random.Generator, runs: int) -> dict:
+        trace = self.channel.sample_trace(rng, runs, self.horizon)
+        st = simulate(self.system, trace, rng, self.S)
+        want = sorted(set(self.steps) | set(self.window))
+        K, n = len(self.steps), st.x.shape[0]
+        win = set(self.window)
+        out: dict = {"n": np.asarray(runs)}
+        if self.keep:
+            out["traj_x"] = st.x[:, : self.horizon + 1].copy()
+            if trace.mode is not None:
+                out["traj_mode"] = trace.mode.astype(float)
+            elif trace.arrival is not None:
+                out["traj_arrival"] = trace.arrival.astype(float)
+        for j, est in enumerate(self.estimators):
+            lag = int(getattr(est, "lag", 0) or 0)
+            wa = np.zeros((4, runs))  # window averages of ‖e‖², tr P, NEES, rank P per run
+            z = {f"{key}_{j}": np.zeros(shape) for key, shape in (
+                ("sum_e2", K), ("sum_e4", K), ("sum_eeT", (K, n, n)), ("sum_trP", K), ("sumsq_trP", K),
+                ("sum_nees", K), ("sumsq_nees", K), ("sum_rank", K), ("sum_d", K), ("sumsq_d", K), ("nonfinite", K))}
+            traj = np.full((n, len(want), runs), np.nan) if self.keep else None
+            bad_run = np.zeros(runs, bool)
+            for k, res in est.estimates(self.system, trace, st.z, want, (self.quantity,)):
+                xh, P = res[self.quantity]
+                e = st.x[:, truth_index(k, self.quantity, lag)] - xh
+                if traj is not None:
+                    traj[:, want.index(k)] = xh
+                    continue
+                ok = np.isfinite(e).all(axis=0) & np.isfinite(P).all(axis=(0, 1))
+                e = np.where(ok, e, 0.0)
+                Pf = np.where(ok, P, 0.0)
+                e2, trP = (e * e).sum(axis=0), np.trace(Pf)
+                q, rank = nees(e, Pf + (~ok) * np.eye(n)[:, :, None])
+                q = np.where(ok, q, 0.0)
+                rank = np.where(ok, rank, 0.0)
+                if k in win:
+                    wa += np.stack([e2, trP, q, rank]) / len(self.window)
+                    bad_run |= ~ok
+                if k in self.steps:
+                    i = self.steps.index(k)
+                    z[f"sum_e2_{j}"][i] = e2.sum()
+                    z[f"sum_e4_{j}"][i] = (e2 * e2).sum()
+                    z[f"sum_eeT_{j}"][i] = np.einsum("ir,jr->ij", e, e)
+                    z[f"sum_trP_{j}"][i] = trP.sum()
+                    z[f"sumsq_trP_{j}"][i] = (trP * trP).sum()
+                    z[f"sum_nees_{j}"][i] = q.sum()
+                    z[f"sumsq_nees_{j}"][i] = (q * q).sum()
+                    z[f"sum_rank_{j}"][i] = rank.sum()
+                    z[f"sum_d_{j}"][i] = (e2 - trP).sum()
+                    z[f"sumsq_d_{j}"][i] = ((e2 - trP) ** 2).sum()
+                    z[f"nonfinite_{j}"][i] = (~ok).sum()
+            if traj is not None:
+                out[f"traj_{j}"] = traj
+                continue
+            out.update(z)
+            if self.window:
+                wa[:, bad_run] = 0.0
+                out[f"win_sum_{j}"] = wa.sum(axis=1)
+                out[f"win_sumsq_{j}"] = (wa * wa).sum(axis=1)
+                out[f"win_nonfinite_{j}"] = np.asarray(float(bad_run.sum()))
+                if j == 0:
+                    ref, ref_bad = wa[0].copy(), bad_run.copy()
+                both = ~(bad_run | ref_bad)
+                d = np.where(both, wa[0] - ref, 0.0)
+                out[f"diff_sum_{j}"] = np.asarray(d.sum())
+                out[f"diff_sumsq_{j}"] = np.asarray((d * d).sum())
+                out[f"diff_n_{j}"] = np.asarray(float(both.sum()))
+        if self.keep:
+            out = {k: (v[..., : self.keep] if k.startswith("traj") else v) for k, v in out.items()}
+        return out
+
+
+def simulate_errors(system, channel, estimators, *, steps, runs: int, horizon: int, seed: int, chunk: int,
+                    stream: int = 0, quantity: str = "filtered", window=(), S=None, progress=None,
+                    label: str = "state_error") -> dict:
+    """Summed :class:`StateErrorKernel` statistics over all chunks of ``stream`` (any executor, same bits)."""
+    for es in estimators:
+        _check_estimates(es, system, channel)
+    kernel = StateErrorKernel(system, channel, estimators, horizon, steps, quantity, window, S)
+    return run_chunked(kernel, runs, chunk, seed, stream=stream, progress=progress, label=label)
+
+
+def trajectories(system, channel, estimators, *, runs: int, steps, horizon: int, seed: int, stream: int,
+                 quantity: str = "filtered", S=None) -> dict:
+    """The first ``runs`` runs of stream ``stream`` (one chunk): ``traj_x`` (n, horizon+1, runs), per estimator
+    ``traj_j`` (n, len(steps), runs) and the channel's mode or arrival path."""
+    kernel = StateErrorKernel(system, channel, estimators, horizon, steps, quantity, (), S, keep=runs)
+    return run_chunked(kernel, runs, runs, seed, stream=stream, label="trajectories")

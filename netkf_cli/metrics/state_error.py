@@ -1,0 +1,268 @@
+"""``kind: state_error`` — the estimators' actual errors beside the covariances they report (NEES), and trajectories.
+
+The engine simulates the true state behind every channel trace (:mod:`netkf_cli.state`:
+x_0 ~ N(0, P_{0|0}), x_{k+1} = A x_k + w_k, y_k = C x_k + v_k, the receiver's signal per the channel's
+packet model) and runs every estimator's ``estimates`` on the same runs (common random numbers). Per
+estimator and step k it reports
+
+* ``empirical`` — tr E[(x − x̂)(x − x̂)ᵀ] = E‖x − x̂‖², the empirical error covariance's trace (± s.e.);
+* ``reported``  — E[tr P], the mean of the covariance the estimator reports (± s.e.);
+* ``nees``      — the mean normalized estimation error squared eᵀ P⁺ e (± s.e.), beside ``expected`` =
+  E[rank P] (= n for a nonsingular P): if P is each run's error covariance and the error Gaussian,
+  eᵀ P⁺ e ~ χ²(rank P). A mean NEES off its expectation by more than 5 s.e. says P is not the error
+  covariance (an optimistic or a pessimistic P, a biased estimate);
+
+and in ``<name>_summary.csv`` the averages over the window k in (``window_from``, horizon] of the
+three (one sample per run: exact s.e.), the paired difference of the windowed E‖e‖² against the first
+estimator (common random numbers), and per estimator the fraction of steps at which
+|NEES − expected| ≤ 5 s.e. and |E‖e‖² − E tr P| ≤ 5 s.e. (paired): ``nees_consistent_fraction``,
+``empirical_equals_reported_fraction``. ``trajectories: K`` draws the first K runs of stream 1
+(``<name>_trajectories.csv``: true state and every estimate, and the channel's mode or arrival path).
+
+Which x the estimate aims at: ``filtered`` x̂_{k|k} → x_k, ``predicted`` x̂_{k+1|k} → x_{k+1}. The
+state-level recursions are numpy code (the compiled kernels compute covariances only).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+from pydantic import Field
+
+from netkf_cli import state
+from netkf_cli.artefact import Artefact, RunContext
+from netkf_cli.errors import ConfigError
+from netkf_cli.metrics.common import (LABEL_COLUMNS, GenericMetric, PaperRef, conventions_note, describe, labels,
+                                      math_text, needs, quantity_text)
+from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
+from netkf_cli.spec import Matrix, NonNegInt, PositiveInt
+from netkf_cli.stats import mean_se
+
+Z = 5.0  # consistency tolerance in standard errors (a two-sided 5σ event has p ≈ 6e-7 per step)
+TRAJECTORY_STREAM_OFFSET = 1  # trajectories: the stream after the Monte Carlo's
+COLUMNS = ["k", "estimator", "series", "value", "stderr", "expected", "n", "nonfinite"] + LABEL_COLUMNS
+SUMMARY_COLUMNS = ["estimator", "series", "value", "stderr", "expected", "n", "window"] + LABEL_COLUMNS
+SERIES_TEXT = {"empirical": "empirical E‖x − x̂‖²", "reported": "reported E[tr P]", "nees": "mean NEES"}
+
+
+class StateError(GenericMetric):
+    """``kind: state_error`` — empirical error covariance vs reported P, NEES, and trajectories of any estimator."""
+
+    kind: Literal["state_error"]
+    every: PositiveInt | None = Field(None, description="report every this many steps (default: at most 200 points)")
+    window_from: NonNegInt | None = Field(None, description="the summary averages over k in (window_from, horizon] "
+                                                           "(default: montecarlo.burn_in)")
+    trajectories: NonNegInt = Field(0, description="draw the true state and the estimates of this many runs (stream 1, "
+                                                   "the first runs of one chunk)")
+    S: Matrix | None = Field(None, description="cross-covariance E[w_k v_kᵀ] (n×m) of the simulated process and "
+                                               "measurement noise (default 0); the estimators assume 0")
+    log_y: bool = Field(False, description="logarithmic y axis for E‖e‖² and E tr P")
+    paper: PaperRef | None = Field(None, description="the paper figure this reproduces (title only)")
+    title: str = Field("", description="what the figure shows")
+
+    def needs_per_run_covariance(self) -> bool:
+        return False
+
+    def check(self, scenario) -> None:
+        super().check(scenario)
+        s = needs(scenario, "system")
+        for i, e in enumerate(needs(scenario, "estimators")):
+            if not callable(getattr(e, "estimates", None)):
+                raise ConfigError.at(f"estimators[{i}].kind" if scenario.estimators else "estimator.kind",
+                                     f"{e.kind} has no state-level estimates(); state_error needs the estimate x̂ "
+                                     f"(`netkf list` shows which estimators have it)")
+        if self.S is not None and np.asarray(self.S, float).shape != (s.n, s.m):
+            raise ConfigError.at("analysis.S", f"must be {s.n}×{s.m} (rows = states, columns = outputs), "
+                                               f"got {np.asarray(self.S, float).shape}")
+        H = scenario.montecarlo.horizon
+        if self._window_from(scenario) >= H:
+            raise ConfigError.at("analysis.window_from", f"must be < montecarlo.horizon = {H}")
+
+    def _window_from(self, scenario) -> int:
+        return int(self.window_from if self.window_from is not None else getattr(scenario.montecarlo, "burn_in", 0) or 0)
+
+    def steps(self, horizon: int, first: int = 1) -> list[int]:
+        every = self.every or max(1, -(-horizon // 200))
+        ks = [k for k in range(every, horizon + 1, every) if k >= first]
+        return ks if ks and ks[-1] == horizon else ks + [horizon]
+
+    # ------------------------------------------------------------------------------------ compute
+    def compute(self, scenario, ctx: RunContext) -> Artefact:
+        s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")
+        mc = scenario.montecarlo
+        H, q = mc.horizon, self.quantity
+        first = max(e.first_step(q) for e in ests)
+        ks = self.steps(H, first)
+        w0 = max(self._window_from(scenario), first - 1)
+        window = list(range(w0 + 1, H + 1))
+        runs = ctx.mc_runs(scenario)
+        ctx.total(runs)
+        stream = int(getattr(ctx, "stream", 0) or 0)
+        S = None if self.S is None else np.asarray(self.S, float)
+        st = state.simulate_errors(s, ch, ests, steps=ks, runs=runs, horizon=H, seed=mc.seed, chunk=mc.chunk,
+                                   stream=stream, quantity=q, window=window, S=S, progress=ctx.progress,
+                                   label=self.kind)
+        labs = labels(ests)
+        lab_cols = describe(scenario, s, ests, q)
+        n = int(st["n"])
+        rows, summary = [], []
+        wtext = f"k={window[0]}..{window[-1]}"
+        for j, lab in enumerate(labs):
+            bad = st[f"nonfinite_{j}"]
+            m_ok = np.maximum(n - bad, 1)
+            emp, emp_se = mean_se(st[f"sum_e2_{j}"], st[f"sum_e4_{j}"], m_ok)
+            rep, rep_se = mean_se(st[f"sum_trP_{j}"], st[f"sumsq_trP_{j}"], m_ok)
+            ne, ne_se = mean_se(st[f"sum_nees_{j}"], st[f"sumsq_nees_{j}"], m_ok)
+            dd, dd_se = mean_se(st[f"sum_d_{j}"], st[f"sumsq_d_{j}"], m_ok)
+            rank = st[f"sum_rank_{j}"] / m_ok
+            for i, k in enumerate(ks):
+                common = dict(k=k, estimator=lab, n=n, nonfinite=int(bad[i]), **lab_cols[j])
+                rows.append(dict(series="empirical", value=emp[i], stderr=emp_se[i], expected=rep[i], **common))
+                rows.append(dict(series="reported", value=rep[i], stderr=rep_se[i], expected=np.nan, **common))
+                rows.append(dict(series="nees", value=ne[i], stderr=ne_se[i], expected=rank[i], **common))
+            nees_ok = np.abs(ne - rank) <= Z * ne_se + 1e-12 * np.maximum(rank, 1)
+            emp_ok = np.abs(dd) <= Z * dd_se + 1e-12 * np.maximum(rep, 1)
+            wbad = float(st[f"win_nonfinite_{j}"])
+            wn = max(n - wbad, 1)
+            wm, ws = mean_se(st[f"win_sum_{j}"], st[f"win_sumsq_{j}"], wn)
+            base = dict(estimator=lab, n=n, window=wtext, **lab_cols[j])
+            summary += [dict(series="empirical", value=wm[0], stderr=ws[0], expected=wm[1], **base),
+                        dict(series="reported", value=wm[1], stderr=ws[1], expected=np.nan, **base),
+                        dict(series="nees", value=wm[2], stderr=ws[2], expected=wm[3], **base)]
+            if j > 0:
+                dm, ds = mean_se(st[f"diff_sum_{j}"], st[f"diff_sumsq_{j}"], st[f"diff_n_{j}"])
+                summary.append(dict(series=f"empirical minus {labs[0]}", value=float(dm), stderr=float(ds),
+                                    expected=np.nan, **base))
+            summary += [dict(series="nees_consistent_fraction", value=float(nees_ok.mean()), stderr=np.nan,
+                             expected=np.nan, **base),
+                        dict(series="empirical_equals_reported_fraction", value=float(emp_ok.mean()), stderr=np.nan,
+                             expected=np.nan, **base)]
+        table = pd.DataFrame(rows, columns=COLUMNS)
+        extra = {"summary": pd.DataFrame(summary, columns=SUMMARY_COLUMNS)}
+        meta = {"runs": n, "estimators": labs, "quantity": q, "steps": f"{ks[0]}…{ks[-1]}", "window": wtext,
+                "labels": dict(zip(labs, lab_cols)), "truth": {"filtered": "x̂_{k|k} against x_k", "predicted": "x̂_{k+1|k} against x_{k+1}"}.get(q, q),
+                "simulation": "x_0 ~ N(0, P_{0|0}), x_{k+1} = A x_k + w_k, y_k = C x_k + v_k, [w; v] ~ N(0, [[Q, S], [Sᵀ, R]]), "
+                              f"S = {'0' if S is None else S.tolist()}; stream {stream}: the trace, then the states, "
+                              "from each chunk's generator",
+                "consistency_rule": f"|mean NEES − E rank P| ≤ {Z:g} s.e.; |E‖e‖² − E tr P| ≤ {Z:g} s.e. (paired)",
+                "backend": "numpy (state-level recursions)"}
+        if self.trajectories:
+            tstream = stream + TRAJECTORY_STREAM_OFFSET
+            allk = list(range(first, H + 1))
+            tr = state.trajectories(s, ch, ests, runs=self.trajectories, steps=allk, horizon=H, seed=mc.seed,
+                                    stream=tstream, quantity=q, S=S)
+            extra["trajectories"] = _trajectory_table(tr, labs, allk, q)
+            meta["trajectories"] = f"the first {self.trajectories} run(s) of stream {tstream} (SeedSequence(seed, "\
+                                   f"spawn_key=({tstream}, 0)))"
+        return Artefact(table, meta=meta, extra_tables=extra)
+
+    # ------------------------------------------------------------------------------------ plot
+    def plot(self, tables, scenario):
+        t = tables["main"]
+        traj = tables.get("trajectories")
+        comps = sorted(int(c) for c in traj["component"].unique() if c > 0) if traj is not None and len(traj) else []
+        nrow = len(comps) + 2
+        fig, axes = new_figure(nrows=nrow, width=9.0, height=2.8)
+        axes = list(np.atleast_1d(axes))
+        labs = list(dict.fromkeys(t.estimator))
+        q = t["quantity"].iloc[0] if len(t) else self.quantity
+        hat = r"\hat{x}_{k|k}" if q == "filtered" else r"\hat{x}_{k|k-1}"
+        for ax, c in zip(axes, comps):
+            d = traj[(traj.component == c) & (traj.run == 0)]
+            tru = d[d.series == "true"]
+            ax.plot(tru.k, tru.value, color="black", lw=1.8, label="true state")
+            for i, lab in enumerate(labs):
+                e = d[d.series == lab]
+                sty = series_style(i + 1)
+                ax.plot(e.k, e.value, color=sty["color"], ls=sty["linestyle"], lw=1.2, label=lab)
+            _mark_channel(ax, traj)
+            ax.set_xlabel(r"time step $k$")
+            ax.set_ylabel(rf"$x_{c}$, ${hat}$" if q == "filtered" else rf"$x_{c}(k)$, ${hat}$")
+            ax.set_title(f"state {c}: true and estimated (one run)")
+            if c == comps[0]:
+                legend_outside(ax)
+        ax = axes[len(comps)]
+        for i, lab in enumerate(labs):
+            sty = series_style(i + 1)
+            e = t[(t.estimator == lab) & (t.series == "empirical")]
+            r = t[(t.estimator == lab) & (t.series == "reported")]
+            ax.plot(e.k, e.value, color=sty["color"], ls="-", lw=1.3, label=f"{lab}: empirical E‖x − x̂‖² (±1.96 s.e.)")
+            ax.fill_between(e.k, e.value - 1.96 * e.stderr, e.value + 1.96 * e.stderr, color=sty["color"], alpha=0.2, lw=0)
+            ax.plot(r.k, r.value, color=sty["color"], ls=(0, (1, 1.5)), lw=1.6, label=f"{lab}: reported E[tr P]")
+        if self.log_y:
+            ax.set_yscale("log")
+        else:
+            ax.set_ylim(bottom=0)
+        ax.set_xlabel(r"time step $k$")
+        ax.set_ylabel("squared error")
+        ax.set_title(f"empirical error covariance (trace) vs reported {quantity_text(q, '$P_k$')}".replace("$P_", "$P_"))
+        legend_outside(ax)
+        ax = axes[len(comps) + 1]
+        for i, lab in enumerate(labs):
+            sty = series_style(i + 1)
+            e = t[(t.estimator == lab) & (t.series == "nees")]
+            ax.plot(e.k, e.value, color=sty["color"], ls=sty["linestyle"], lw=1.3, label=f"{lab} (band ±{Z:g} s.e.)")
+            ax.fill_between(e.k, e.value - Z * e.stderr, e.value + Z * e.stderr, color=sty["color"], alpha=0.15, lw=0)
+        ex = t[t.series == "nees"].groupby("k").expected.mean()
+        ax.plot(ex.index, ex.values, color="black", lw=0.9, ls="--", label=r"$\chi^2$ expectation E[rank P]")
+        ax.set_xlabel(r"time step $k$")
+        ax.set_ylabel(r"mean NEES $e^\top P^{+} e$")
+        ax.set_title("consistency: mean NEES against its chi-square expectation")
+        legend_outside(ax)
+        what = self.title or "estimation error vs reported covariance (NEES)"
+        fig.suptitle(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
+        n = int(t.n.max()) if len(t) else 0
+        lab0 = t.iloc[0] if len(t) else None
+        note = f"n = {n:,} runs per step; {q} ${quantity_text(q)}$"
+        if lab0 is not None:
+            note += f"; {math_text(lab0.P0)}; {conventions_note(dict(zip(t.estimator, t.conventions)))}"
+        if comps:
+            note += "; trajectories: run 0 of stream 1"
+        footnote(fig, note)
+        return fig
+
+
+def _trajectory_table(tr: dict, labs: list[str], steps: list[int], quantity: str) -> pd.DataFrame:
+    """Tidy rows (run, k, component, series, value): true x_k, each estimate at the time it aims at, the channel."""
+    x = tr["traj_x"]
+    n, T1, R = x.shape
+    shift = state.truth_index(0, quantity)
+    rows = []
+    for r in range(R):
+        for k in range(T1):
+            for c in range(n):
+                rows.append((r, k, c + 1, "true", float(x[c, k, r])))
+        for j, lab in enumerate(labs):
+            xh = tr[f"traj_{j}"]
+            for i, k in enumerate(steps):
+                if k + shift < T1:
+                    for c in range(n):
+                        rows.append((r, k + shift, c + 1, lab, float(xh[c, i, r])))
+        for key, name in (("traj_mode", "mode"), ("traj_arrival", "arrival")):
+            if key in tr:
+                a = tr[key]
+                a = a[0] if a.ndim == 3 else a  # arrival (S, T, R): stream 0
+                rows += [(r, t + 1, 0, name, float(a[t, r] + (1 if name == "mode" else 0))) for t in range(a.shape[0])]
+    return pd.DataFrame(rows, columns=["run", "k", "component", "series", "value"])
+
+
+def _mark_channel(ax, traj: pd.DataFrame) -> None:
+    """Markers under the curve where the channel did not deliver an on-time measurement (run 0)."""
+    d = traj[(traj.run == 0) & (traj.component == 0)]
+    if not len(d):
+        return
+    lo, hi = ax.get_ylim()
+    rug = lo - 0.06 * (hi - lo)
+    if (d.series == "mode").any():
+        m = d[d.series == "mode"]
+        for qq, mk, name in ((2, "^", "delayed"), (3, "x", "missing"), (4, "s", "dropout")):
+            kk = m.k[m.value == qq]
+            if len(kk):
+                ax.plot(kk, np.full(len(kk), rug), mk, ms=4, color="0.35", ls="none", label=f"mode {qq} ({name}) at k")
+    else:
+        a = d[d.series == "arrival"]
+        kk = a.k[a.value < 0.5]
+        if len(kk):
+            ax.plot(kk, np.full(len(kk), rug), "x", ms=4, color="0.35", ls="none", label="packet lost at k")
