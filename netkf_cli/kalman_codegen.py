@@ -147,6 +147,82 @@ def source(A, C, Q, R, groups, limit: float) -> str:
     return "\n".join(L) + "\n"
 
 
+def source_counts(A, C1, Q, R1, limit: float) -> str:
+    """The source of ``advance_counts(P, cnt, t0, t1, flag)``: the count update of N identical sensors
+    (:func:`netkf_cli.kalman.update_counts`, Chiuso & Schenato eq. (14)) after the prediction, per run
+
+        M = A P Aᵀ + Q,  U = M C1ᵀ,  S = c·C1 U + R1,  P ← M − c·U S⁻¹ Uᵀ,   c = cnt[t, r]
+
+    (c = 0 leaves M; S⁻¹ in closed form for one or two rows, the unrolled Cholesky factor for three or
+    four), the upper triangle of P as in :func:`source`, the same rescue flag (prior trace above
+    ``limit`` or non-finite, or a NaN after the update: the caller redoes the run on the numpy core)."""
+    A, C1, Q, R1 = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (A, C1, Q, R1))
+    n, mg = A.shape[0], C1.shape[0]
+    tri = [(i, j) for i in range(n) for j in range(i, n)]
+
+    def p(name, i, j):
+        return f"{name}{min(i, j)}_{max(i, j)}"
+
+    L = ["import numpy as np", "import numba as nb", "",
+         "@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')",
+         "def advance_counts(P, cnt, t0, t1, flag):",
+         "    runs = P.shape[1]",
+         f"    limit = {_num(limit)}",
+         "    for t in range(t0, t1):",
+         "        for r in range(runs):"]
+    for k, (i, j) in enumerate(tri):
+        L.append(f"            {p('p', i, j)} = P[{k}, r]")
+    for i in range(n):
+        for j in range(n):
+            L.append(f"            x{i}_{j} = {_lin([(A[i, k], p('p', k, j)) for k in range(n)])}")
+    for i, j in tri:
+        L.append(f"            {p('m', i, j)} = {_lin([(A[j, k], f'x{i}_{k}') for k in range(n)])} + {_num(Q[i, j])}")
+    L.append("            tr = " + " + ".join(p("m", i, i) for i in range(n)))
+    L.append("            flag[r] = flag[r] or not (tr <= limit)")
+    L.append("            g = float(cnt[t, r])")
+    for i in range(n):
+        for a in range(mg):
+            L.append(f"            u{i}_{a} = {_lin([(C1[a, k], p('m', i, k)) for k in range(n)])}")
+    for a in range(mg):
+        for b in range(a, mg):
+            L.append(f"            s{a}_{b} = g * ({_lin([(C1[a, k], f'u{k}_{b}') for k in range(n)])}) + {_num(R1[a, b])}")
+    if mg >= 3:
+        for j in range(mg):
+            acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
+            L.append(f"            l{j}_{j} = np.sqrt({acc})")
+            for i in range(j + 1, mg):
+                acc = " - ".join([f"s{j}_{i}"] + [f"l{i}_{k} * l{j}_{k}" for k in range(j)])
+                L.append(f"            l{i}_{j} = ({acc}) / l{j}_{j}")
+        for i in range(n):
+            for a in range(mg):
+                acc = " - ".join([f"u{i}_{a}"] + [f"w{i}_{b} * l{a}_{b}" for b in range(a)])
+                L.append(f"            w{i}_{a} = ({acc}) / l{a}_{a}")
+        for i, j in tri:
+            corr = " + ".join(f"w{i}_{a} * w{j}_{a}" for a in range(mg))
+            L.append(f"            {p('q', i, j)} = {p('m', i, j)} - g * ({corr})")
+    else:
+        if mg == 1:
+            L.append("            i0_0 = g / s0_0")
+            inv = {(0, 0): "i0_0"}
+        else:
+            L.append("            det = s0_0 * s1_1 - s0_1 * s0_1")
+            L.append("            i0_0 = g * s1_1 / det")
+            L.append("            i1_1 = g * s0_0 / det")
+            L.append("            i0_1 = -g * s0_1 / det")
+            inv = {(0, 0): "i0_0", (1, 1): "i1_1", (0, 1): "i0_1", (1, 0): "i0_1"}
+        for i in range(n):
+            for a in range(mg):
+                L.append(f"            k{i}_{a} = " + " + ".join(f"u{i}_{b} * {inv[(b, a)]}" for b in range(mg)))
+        for i, j in tri:
+            corr = " + ".join(f"k{i}_{a} * u{j}_{a}" for a in range(mg))
+            L.append(f"            {p('q', i, j)} = {p('m', i, j)} - ({corr})")
+    L.append("            tr = " + " + ".join(p("q", i, i) for i in range(n)))
+    L.append("            flag[r] = flag[r] or not (tr == tr)")
+    for k, (i, j) in enumerate(tri):
+        L.append(f"            P[{k}, r] = {p('q', i, j)}")
+    return "\n".join(L) + "\n"
+
+
 def _cache_dir() -> Path:
     d = Path(os.environ.get("NETKF_KERNEL_CACHE", Path.home() / ".cache" / "netkf" / "kernels"))
     d.mkdir(parents=True, exist_ok=True)
@@ -158,22 +234,30 @@ _LOADED: dict[str, object] = {}
 
 def kernel(A, C, Q, R, groups, limit: float):
     """The compiled ``advance`` for this system (generated, written once, imported, numba-cached)."""
-    src = source(A, C, Q, R, groups, limit)
+    return _load(source(A, C, Q, R, groups, limit), "netkf_kf", "advance")
+
+
+def kernel_counts(A, C1, Q, R1, limit: float):
+    """The compiled ``advance_counts`` (:func:`source_counts`) for N identical sensors (C1, R1)."""
+    return _load(source_counts(A, C1, Q, R1, limit), "netkf_mf", "advance_counts")
+
+
+def _load(src: str, prefix: str, fn: str):
     key = hashlib.sha256(src.encode()).hexdigest()[:20]
     if key in _LOADED:
         return _LOADED[key]
-    path = _cache_dir() / f"netkf_kf_{key}.py"
+    path = _cache_dir() / f"{prefix}_{key}.py"
     if not path.exists():
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
         tmp.write_text(src, encoding="utf-8")
         os.replace(tmp, path)  # atomic: concurrent workers never import half a file
-    name = f"netkf_kf_{key}"
+    name = f"{prefix}_{key}"
     spec = importlib.util.spec_from_file_location(name, path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[name] = mod
     spec.loader.exec_module(mod)
-    _LOADED[key] = mod.advance
-    return mod.advance
+    _LOADED[key] = getattr(mod, fn)
+    return _LOADED[key]
 
 
 def pack(P: np.ndarray) -> np.ndarray:

@@ -16,9 +16,11 @@ unset = one sensor per output row of C). Every estimator refuses another count, 
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import ClassVar, Literal
 
 import numpy as np
+import scipy.stats
 from pydantic import Field, ValidationInfo, field_validator
 
 from netkf_cli.spec import ChannelModel, PositiveInt, Probability
@@ -84,6 +86,121 @@ RAW_BLOCK = 1 << 20
 """Raw 64-bit draws held at once by :func:`sample_multi_trace_arrivals` (8 MB)."""
 
 
+# ----------------------------------------------------------------------------------------
+# The count sampler (``sampling: counts``): one raw draw per run-step
+# ----------------------------------------------------------------------------------------
+
+_CELL_BITS = 16
+"""The count sampler's lookup table has 2¹⁶ cells of the raw draw's top bits (512 kB)."""
+
+
+@lru_cache(maxsize=64)
+def count_tables(N: int, p: float) -> tuple[np.ndarray, np.ndarray]:
+    """(thr, cell) of the inverse-CDF Binomial(N, p) sampler: ``thr`` (N,) uint64 with
+    P(raw < thr_k) = Pr[ℓ ≤ k] (exact to 2⁻⁵³ relative, as :func:`_raw_threshold`), so the count
+    ℓ = #{k : raw ≥ thr_k}; ``cell`` (2¹⁶,) uint8 the count of every raw draw in the cell of its top
+    16 bits, or 255 where a threshold falls inside the cell (those draws are resolved exactly)."""
+    cdf = scipy.stats.binom.cdf(np.arange(N), N, p)
+    thr = _raw_threshold(cdf)
+    if p >= 1.0:
+        thr = np.zeros(N, dtype=np.uint64)  # every sensor arrives: ℓ = N for every draw
+    shift = np.uint64(64 - _CELL_BITS)
+    cells = np.arange(1 << _CELL_BITS, dtype=np.uint64)
+    lo = np.searchsorted(thr, cells << shift, side="right")
+    hi = np.searchsorted(thr, (cells << shift) | ((np.uint64(1) << shift) - np.uint64(1)), side="right")
+    cell = np.where(lo == hi, lo, 255).astype(np.uint8)
+    return thr, cell
+
+
+def sample_counts(rng: np.random.Generator, runs: int, horizon: int, N: int, loss: float) -> np.ndarray:
+    """ℓ_t = Σ_i γ_t^i for N independent links of one loss: (horizon, runs) uint8 (int16 for N ≥ 255),
+    ℓ ~ Binomial(N, 1 − loss) by inversion of ONE raw 64-bit draw per run-step (run axis innermost,
+    time blocks of :data:`RAW_BLOCK` draws). Monotone in the loss (common random numbers over a grid)."""
+    thr, cell = count_tables(int(N), float(1.0 - loss))
+    dt = np.uint8 if N < 255 else np.int16
+    out = np.empty((horizon, runs), dtype=dt)
+    if loss >= 1.0:
+        out[:] = 0
+        return out
+    shift = np.uint64(64 - _CELL_BITS)
+    block = max(1, min(horizon, RAW_BLOCK // max(runs, 1)))
+    for t0 in range(0, horizon, block):
+        t1 = min(horizon, t0 + block)
+        raw = rng.bit_generator.random_raw((t1 - t0) * runs)
+        if N >= 255:  # counts do not fit the uint8 table: exact search for every draw
+            out[t0:t1] = np.searchsorted(thr, raw, side="right").reshape(t1 - t0, runs)
+            continue
+        c = cell[raw >> shift]
+        amb = np.flatnonzero(c == 255)
+        if amb.size:
+            c[amb] = np.searchsorted(thr, raw[amb], side="right")
+        out[t0:t1] = c.reshape(t1 - t0, runs)
+    return out
+
+
+def arrivals_given_counts(rng: np.random.Generator, counts: np.ndarray, N: int) -> np.ndarray:
+    """Per-sensor arrivals (N, horizon, runs) bool with ``counts`` (horizon, runs) arrived: a uniformly
+    random subset of that size (selection sampling: sensor i arrives with probability r/(N − i), r the
+    arrivals still to place; one raw draw per sensor, step and run, exact on the 2⁵³ grid).
+    Given ℓ ~ Binomial(N, p), this IS the law of N independent Bernoulli(p) links."""
+    T, runs = counts.shape
+    out = np.empty((N, T, runs), dtype=bool)
+    block = max(1, min(T, RAW_BLOCK // max(runs, 1)))
+    one53 = np.uint64(1) << np.uint64(53)
+    for t0 in range(0, T, block):
+        t1 = min(T, t0 + block)
+        r = counts[t0:t1].astype(np.uint64) * one53  # arrivals still to place, scaled by 2⁵³
+        for i in range(N):
+            u = rng.bit_generator.random_raw((t1 - t0) * runs).reshape(t1 - t0, runs) >> np.uint64(11)
+            hit = out[i, t0:t1]
+            np.less(u * np.uint64(N - i), r, out=hit)
+            r -= hit.astype(np.uint64) * one53
+    return out
+
+
+class CountTrace(Trace):
+    """A multi-channel trace sampled as counts (``sampling: counts``): ``counts`` (horizon, runs) is
+    ℓ_t = Σ_i γ_t^i; ``arrival`` (N, horizon, runs) is drawn on first read, given the counts
+    (:func:`arrivals_given_counts`, from a stream seeded at sampling time), so an estimator that needs
+    only ℓ (MF with identical sensors) never pays for N draws per run-step, and any estimator that
+    reads the per-sensor pattern sees one consistent with ℓ (the same trace for every estimator)."""
+
+    def __init__(self, runs: int, horizon: int, counts: np.ndarray, sensors: int, seed: np.ndarray,
+                 meta: dict | None = None):
+        self._arrival = None
+        self.counts, self._N, self._seed = counts, int(sensors), seed
+        super().__init__(runs=runs, horizon=horizon, meta=dict(meta or {}))
+
+    def __post_init__(self) -> None:
+        if self.counts.shape != (self.horizon, self.runs):
+            raise ValueError(f"counts must be ({self.horizon}, {self.runs}), got {self.counts.shape}")
+
+    @property
+    def arrival(self) -> np.ndarray:  # type: ignore[override]
+        if self._arrival is None:
+            rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(x) for x in self._seed])))
+            self._arrival = arrivals_given_counts(rng, self.counts, self._N)
+        return self._arrival
+
+    @arrival.setter
+    def arrival(self, value) -> None:
+        if value is not None:
+            self._arrival = value
+
+    @property
+    def materialized(self) -> bool:
+        """Whether the per-sensor pattern has been drawn (an estimator read ``arrival``)."""
+        return self._arrival is not None
+
+    @property
+    def kinds(self) -> frozenset[str]:
+        return frozenset({"arrival"})
+
+    @property
+    def sensors(self) -> int:
+        return self._N
+
+
 def times_since_arrival_tr(arrival: np.ndarray) -> np.ndarray:
     """τ_t^i in the trace layout: ``arrival`` (N, T, runs) bool → τ (T, runs, N) int32.
 
@@ -131,6 +248,11 @@ class MultiChannel(ChannelModel):
     loss: Probability | list[Probability] = Field(
         description="packet LOSS probability (the paper's λ): one value for all sensors or a list of N"
     )
+    sampling: Literal["per_sensor", "counts"] = Field(
+        "per_sensor", description="per_sensor: one raw draw per sensor, step and run (the reference stream) | counts: "
+                                  "the number of sensors that arrived, ℓ ~ Binomial(N, 1 − loss), from one draw per "
+                                  "run-step, the per-sensor pattern drawn given ℓ only if an estimator reads it (the "
+                                  "same law, another stream; MF with identical sensors needs only ℓ); one common loss only")
 
     @field_validator("loss")
     @classmethod
@@ -138,6 +260,15 @@ class MultiChannel(ChannelModel):
         n = info.data.get("sensors")
         if isinstance(v, list) and n is not None and len(v) != n:
             raise ValueError(f"a list must have one entry per sensor ({n}), got {len(v)}")
+        return v
+
+    @field_validator("sampling")
+    @classmethod
+    def _check_sampling(cls, v, info: ValidationInfo):
+        loss = info.data.get("loss")
+        if v == "counts" and isinstance(loss, list) and len(set(loss)) > 1:
+            raise ValueError("sampling: counts needs one loss for every sensor (the count of arrivals is Binomial "
+                             "only for identical links); use sampling: per_sensor")
         return v
 
     @property
@@ -161,10 +292,17 @@ class MultiChannel(ChannelModel):
         return sample_multi_arrivals(rng, runs, horizon, self.loss_array)
 
     def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
-        """``Trace.arrival`` (N, horizon, runs): γ_t^i ~ Bernoulli(1 − loss_i), independent (eq. (2))."""
+        """``Trace.arrival`` (N, horizon, runs): γ_t^i ~ Bernoulli(1 − loss_i), independent (eq. (2)).
+
+        ``sampling: counts``: a :class:`CountTrace` — ``counts`` ℓ_t (horizon, runs) from one raw draw per
+        run-step (then two raw draws seed the per-sensor pattern, drawn given ℓ only when read)."""
+        meta = {"channel": "multi", "sensors": self.sensors, "loss": self.loss_array.tolist(), "sampling": self.sampling}
+        if self.sampling == "counts":
+            counts = sample_counts(rng, runs, horizon, self.sensors, float(self.loss_array[0]))
+            seed = rng.bit_generator.random_raw(2)
+            return CountTrace(runs, horizon, counts, self.sensors, seed, meta)
         arr = sample_multi_trace_arrivals(rng, runs, horizon, self.loss_array)
-        return Trace(runs=runs, horizon=horizon, arrival=arr,
-                     meta={"channel": "multi", "sensors": self.sensors, "loss": self.loss_array.tolist()})
+        return Trace(runs=runs, horizon=horizon, arrival=arr, meta=meta)
 
     def loss_rate(self) -> float:
         """Stationary probability that one sensor's packet is lost (the paper's λ; the mean over

@@ -38,6 +38,7 @@ from pydantic import Field
 
 from netkf_cli import batched as bt
 from netkf_cli import kalman
+from netkf_cli import kalman_codegen as kc
 from netkf_cli.analysis.fusion_bounds import _as2d, p_m
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators.kf import channel_streams
@@ -102,6 +103,25 @@ class Sensors:
         with np.errstate(over="ignore", invalid="ignore"):
             return self.correct(kalman.predict(P, self.filt.A, self.filt.Q), arrived)
 
+    def correct_counts(self, Pm: np.ndarray, counts: np.ndarray) -> np.ndarray:
+        """P_{k|k} from P_{k|k−1} with ``counts`` (runs,) of the N identical sensors arrived (eq. (14)), without
+        the per-sensor pattern: the Filter's Rescue on the flagged runs in information form, whose
+        information c·C1ᵀR1⁻¹C1 depends on the count only (equal to ``correct`` to rounding)."""
+        flagged = self.filt.rescue.flag(Pm)
+        P = kalman.update_counts(Pm, self.C1, self.R1, counts)
+        idx = np.flatnonzero(flagged)
+        if idx.size:
+            P = P.copy()
+            c = np.asarray(counts, dtype=float)[idx]
+            prior = Pm[:, :, idx]
+            fixed = prior.copy()  # no sensor arrived: P = P⁻ exactly
+            some = c > 0
+            if some.any():
+                info1 = self.C1.T @ np.linalg.solve(self.R1, self.C1)
+                fixed[:, :, some] = kalman.information_update(prior[:, :, some], info1[:, :, None] * c[some])
+            P[:, :, idx] = kalman.clean_nonfinite(fixed)
+        return P
+
 
 class FusionEstimator(EstimatorModel):
     """``kind: fusion`` — fusion-centre strategies of Chiuso & Schenato (MF, IBF, OLPEF).
@@ -119,6 +139,10 @@ class FusionEstimator(EstimatorModel):
                                        description="strategies to simulate: mf (measurement fusion, eqs 6–9), ibf "
                                                    "(infinite bandwidth), olpef (open-loop partial estimates, eqs 10–11); "
                                                    "the first one is what covariances() reports")
+    backend: Literal["auto", "numpy", "numba"] = Field(
+        "auto", description="MF with N > 1 identical sensors: numpy (the core's count update, reference) | numba (a "
+                            "kernel generated for the system, kalman_codegen.source_counts, equal to rounding) | auto = "
+                            "numba for chunks of ≥ 2e6 run-steps when numba is importable; IBF and OLPEF run on numpy")
 
     def check(self, system, channel) -> None:
         """The channel's streams must be the system's sensors; OLPEF needs identical sensors and a stable A."""
@@ -138,21 +162,33 @@ class FusionEstimator(EstimatorModel):
     def conventions(self, system, channel) -> dict[str, str]:
         return {"fusion": self.strategies[0], "streams": "stream i = sensor i of system.sensors"}
 
+    def backend_used(self, system, channel, runs: int, horizon: int) -> str:
+        """The backend a chunk of ``runs`` × ``horizon`` runs on (recorded in the manifest)."""
+        S = channel_streams(channel)
+        sens = Sensors.of(system, S, "estimator.kind") if S is not None else None
+        if self.strategies[0] != "mf" or sens is None:
+            return "numpy"
+        if sens.N == 1 or not sens.identical:
+            return kalman.choose_backend(self.backend, sens.filt, runs * horizon)
+        return _mf_backend(self.backend, sens, runs * horizon)
+
     def covariances(self, system, trace, steps, quantities=("filtered",)):
         """Yield ``(k, {quantity: P})`` of ``strategies[0]``, P shaped (n, n, runs), for k in ``steps``."""
         qs = kalman.check_quantities(quantities, self.quantities, "fusion")
-        if trace.arrival is None:
+        if "arrival" not in trace.kinds:
             raise ConfigError.at("channel.kind", "fusion needs an arrival trace (channel kind multi)")
-        sens = Sensors.of(system, trace.arrival.shape[0], "estimator.kind")
+        sens = Sensors.of(system, trace.sensors, "estimator.kind")
         P0 = initial_covariance(system)
         strat = self.strategies[0]
         want = sorted(set(int(k) for k in steps))
         A, Q = sens.filt.A, sens.filt.Q
         if strat == "mf":
             if sens.N == 1 or not sens.identical:
-                yield from sens.filt.run(P0, trace.arrival, want, qs)  # exactly kf
+                backend = kalman.choose_backend(self.backend, sens.filt, trace.runs * trace.horizon)
+                yield from sens.filt.run(P0, trace.arrival, want, qs, backend=backend)  # exactly kf
                 return
-            yield from _mf_run(sens, P0, trace.arrival, want, qs)
+            backend = _mf_backend(self.backend, sens, trace.runs * trace.horizon)
+            yield from _mf_run(sens, P0, trace, want, qs, backend)
             return
         if strat == "olpef":
             if not sens.identical:
@@ -170,19 +206,85 @@ class FusionEstimator(EstimatorModel):
             yield k, kalman.report(P, qs, A, Q)
 
 
-def _mf_run(sens: Sensors, P0: np.ndarray, arrival: np.ndarray, want, qs):
-    """MF with N identical sensors: the count update, step k from trace step k − 1."""
-    runs = arrival.shape[-1]
-    P = np.repeat(np.asarray(P0, dtype=float)[:, :, None], runs, axis=2)
-    counts = arrival.sum(axis=0, dtype=np.float64)  # ℓ_k per step and run, (T, runs): one pass over the trace
+def _mf_backend(backend: str, sens: Sensors, run_steps: int) -> str:
+    """kalman.choose_backend for the count update; numba only where a kernel can be generated."""
+    b = kalman.choose_backend(backend, sens.filt, run_steps)
+    if b == "numba" and not kc.supported(sens.filt.A.shape[0], [tuple(range(sens.C1.shape[0]))]):
+        if backend == "numba":
+            raise ConfigError.at("estimator.backend", f"no compiled MF kernel for n = {sens.filt.A.shape[0]} states, "
+                                                      f"{sens.C1.shape[0]} rows per sensor (n ≤ {kc.MAX_N}, rows ≤ "
+                                                      f"{kc.MAX_GROUP}); use backend: numpy or auto")
+        return "numpy"
+    return b
+
+
+def trace_counts(trace, N: int) -> np.ndarray:
+    """ℓ_k = Σ_i γ_k^i, (horizon, runs) integers: the channel's own counts (``sampling: counts``, no
+    per-sensor pattern drawn) or the sum of the per-sensor trace (one pass)."""
+    c = getattr(trace, "counts", None)
+    if c is not None:
+        return c
+    return trace.arrival.sum(axis=0, dtype=np.uint8 if N < 256 else np.int32)
+
+
+def _mf_run(sens: Sensors, P0: np.ndarray, trace, want, qs, backend: str = "numpy"):
+    """MF with N identical sensors: the count update (eq. (14)), step k from trace step k − 1.
+
+    The count ℓ is all MF reads (:func:`trace_counts`; a :class:`~netkf_cli.channels.multi.CountTrace`
+    never draws its per-sensor pattern here), and the Rescue is the count form
+    (:meth:`Sensors.correct_counts`). ``backend`` numba: the generated kernel
+    (:func:`netkf_cli.kalman_codegen.kernel_counts`) advances the upper triangle of P between reported
+    steps; flagged runs are redone on the numpy count update from P0, as :meth:`kalman.Filter.run` does."""
+    runs = trace.runs
+    counts = trace_counts(trace, sens.N)
     A, Q = sens.filt.A, sens.filt.Q
+    P = np.repeat(np.asarray(P0, dtype=float)[:, :, None], runs, axis=2)
+    if backend == "numba":
+        yield from _mf_compiled(sens, P, counts, want, qs)
+        return
     t = 0
     for k in want:
         while t < k:
             with np.errstate(over="ignore", invalid="ignore"):
-                P = sens.correct(kalman.predict(P, A, Q), arrival[:, t], counts[t])
+                P = sens.correct_counts(kalman.predict(P, A, Q), counts[t])
             t += 1
-        yield k, kalman.report(P, qs, sens.filt.A, sens.filt.Q)
+        yield k, kalman.report(P, qs, A, Q)
+
+
+def _mf_compiled(sens: Sensors, P: np.ndarray, counts: np.ndarray, want, qs):
+    A, Q = sens.filt.A, sens.filt.Q
+    n = A.shape[0]
+    adv = kc.kernel_counts(A, sens.C1, Q, sens.R1, sens.filt.rescue.limit)
+    P_init = P.copy()
+    T = kc.pack(P)
+    cnt = np.ascontiguousarray(counts)
+    flag = np.zeros(P.shape[-1], dtype=np.bool_)
+    idx = np.zeros(0, dtype=np.int64)  # runs on the numpy core
+    Pn = P[:, :, :0]
+
+    def step(Pk, c):
+        with np.errstate(over="ignore", invalid="ignore"):
+            return sens.correct_counts(kalman.predict(Pk, A, Q), c)
+
+    t = 0
+    for k in want:
+        adv(T, cnt, t, k, flag)
+        out = kc.unpack(T, n)
+        new = np.setdiff1d(np.flatnonzero(flag), idx)
+        if idx.size:
+            for tt in range(t, k):
+                Pn = step(Pn, cnt[tt, idx])
+        if new.size:
+            Pnew = P_init[:, :, new]
+            for tt in range(k):
+                Pnew = step(Pnew, cnt[tt, new])
+            idx, Pn = np.concatenate([idx, new]), np.concatenate([Pn, Pnew], axis=2)
+            order = np.argsort(idx)
+            idx, Pn = idx[order], Pn[:, :, order]
+        t = k
+        if idx.size:
+            out[:, :, idx] = Pn
+        yield k, kalman.report(out, qs, A, Q)
 
 
 def _taus(arrival: np.ndarray, want):
