@@ -1,0 +1,127 @@
+"""NEES / empirical-covariance consistency (issue 21): the empirical error covariance of the simulated
+estimates equals the reported P within Monte Carlo error, for every estimator with ``estimates``.
+
+Tolerance (per step and series): 5 standard errors of the Monte Carlo mean. With a Gaussian error and P its
+covariance, NEES ~ χ²(rank P) (variance 2·rank), so the s.e. of the mean NEES over R runs is ≈ √(2 rank / R);
+‖e‖² − tr P is paired per run. A two-sided 5σ event has p ≈ 6e-7, so the ~200 comparisons below fail by chance
+with probability ≈ 1e-4.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from netkf_cli import state
+from netkf_cli.channels.markov_modes import MarkovModesChannel
+from netkf_cli.estimators.kf import KalmanFilterEstimator
+from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator
+from netkf_cli.stats import mean_se
+from netkf_cli.system import LinearSystem
+from netkf_cli.trace import Trace
+
+Z = 5.0
+RUNS, HORIZON = 6000, 12
+STEPS = [1, 2, 3, 5, 8, 12]
+
+
+class TwoLinks:
+    """Two independent Bernoulli links (one stream per sensor), for the multi-sensor Kalman filter."""
+
+    kind = "two_links"
+    trace_kinds = frozenset({"arrival"})
+
+    def __init__(self, p=(0.7, 0.4)):
+        self.p = np.asarray(p)
+
+    def sample_trace(self, rng, runs, horizon):
+        return Trace(runs=runs, horizon=horizon, arrival=rng.random((2, horizon, runs)) < self.p[:, None, None])
+
+
+class OneLink(TwoLinks):
+    def __init__(self, p=0.6):
+        self.p = np.asarray([p])
+
+    def sample_trace(self, rng, runs, horizon):
+        return Trace(runs=runs, horizon=horizon, arrival=rng.random((1, horizon, runs)) < self.p[0])
+
+
+SYS2 = LinearSystem(A=np.array([[1.1, 0.2], [0.0, 0.9]]), C=np.eye(2), Q=0.3 * np.eye(2), R=np.diag([0.5, 0.8]))
+SYS2_CORR = LinearSystem(A=SYS2.A, C=SYS2.C, Q=SYS2.Q, R=np.array([[0.5, 0.3], [0.3, 0.8]]))  # joint update of rows
+MARKOV_SYS = LinearSystem(A=np.array([[0.8, 0.0], [0.9, 0.2]]), C=np.array([[1.0, 1.0]]),
+                          Q=np.array([[0.36, 0.30], [0.30, 0.25]]), R=np.array([[0.25]]), P0=np.zeros((2, 2)))
+MARKOV_CH = MarkovModesChannel(kind="markov_modes", transition=[[0.7, 0, 0.1, 0.2], [0.7, 0.15, 0.05, 0.1],
+                                                                [0.7, 0.15, 0.05, 0.1], [0.7, 0.15, 0.05, 0.1]],
+                               initial="stationary")
+
+CASES = {
+    "kf one packet": (SYS2, OneLink(), KalmanFilterEstimator(kind="kf")),
+    "kf two sensors (sequential)": (LinearSystem(A=SYS2.A, C=SYS2.C, Q=SYS2.Q, R=SYS2.R), TwoLinks(),
+                                    KalmanFilterEstimator(kind="kf")),
+    "kf two correlated sensors (joint)": (SYS2_CORR, TwoLinks(), KalmanFilterEstimator(kind="kf")),
+    "markov mode-aware KF": (MARKOV_SYS, MARKOV_CH, MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware")),
+    "markov naive KF": (MARKOV_SYS, MARKOV_CH, MarkovLMIEstimator(kind="markov_lmi", filter="naive")),
+    "markov LMI filter": (MARKOV_SYS, MARKOV_CH, MarkovLMIEstimator(kind="markov_lmi", filter="lmi")),
+}
+
+
+def _consistency(st, j, n):
+    out = {}
+    bad = st[f"nonfinite_{j}"]
+    assert not bad.any()
+    out["nees"] = mean_se(st[f"sum_nees_{j}"], st[f"sumsq_nees_{j}"], n)
+    out["rank"] = st[f"sum_rank_{j}"] / n
+    out["d"] = mean_se(st[f"sum_d_{j}"], st[f"sumsq_d_{j}"], n)
+    return out
+
+
+@pytest.mark.parametrize("quantity", ["filtered", "predicted"])
+@pytest.mark.parametrize("case", list(CASES))
+def test_empirical_error_covariance_equals_reported_P(case, quantity):
+    system, channel, est = CASES[case]
+    st = state.simulate_errors(system, channel, [est], steps=STEPS, runs=RUNS, horizon=HORIZON, seed=21,
+                               chunk=RUNS // 2, quantity=quantity)
+    c = _consistency(st, 0, RUNS)
+    (ne, ne_se), rank, (d, d_se) = c["nees"], c["rank"], c["d"]
+    assert np.all(np.abs(ne - rank) <= Z * ne_se), (case, quantity, ne, rank, ne_se)
+    assert np.all(np.abs(d) <= Z * d_se), (case, quantity, d, d_se)
+    # the test has power: an estimator reporting 0.7 P would be caught (NEES 1/0.7 = 1.43× its expectation)
+    assert np.all(0.43 * rank > 2 * Z * ne_se)
+
+
+def test_nees_detects_a_wrong_covariance():
+    """An estimator whose reported P is not its error covariance fails the check: a Kalman filter told R/4
+    (its P is the optimistic Riccati P of the wrong model, its estimate over-trusts the data)."""
+    wrong = LinearSystem(A=SYS2.A, C=SYS2.C, Q=SYS2.Q, R=SYS2.R / 4)
+
+    class Overconfident(KalmanFilterEstimator):
+        def estimates(self, system, trace, y, steps, quantities=("filtered",)):
+            return super().estimates(wrong, trace, y, steps, quantities)
+
+    st = state.simulate_errors(SYS2, OneLink(), [Overconfident(kind="kf")], steps=STEPS, runs=RUNS, horizon=HORIZON,
+                               seed=22, chunk=RUNS)
+    (ne, ne_se), rank = mean_se(st["sum_nees_0"], st["sumsq_nees_0"], RUNS), st["sum_rank_0"] / RUNS
+    assert np.all(ne - rank > Z * ne_se)
+
+
+def test_states_do_not_depend_on_chunking_or_executor_layout():
+    """The same chunk plan gives the same bits; the state draws come after the trace from each chunk's rng."""
+    system, channel, est = CASES["kf one packet"]
+    a = state.simulate_errors(system, channel, [est], steps=STEPS, runs=400, horizon=HORIZON, seed=5, chunk=200)
+    b = state.simulate_errors(system, channel, [est], steps=STEPS, runs=400, horizon=HORIZON, seed=5, chunk=200)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_received_signal_follows_the_markov_packet_model():
+    rng = np.random.default_rng(3)
+    tr = MARKOV_CH.sample_trace(rng, 500, 20)
+    st = state.simulate(MARKOV_SYS, tr, rng)
+    z, y, v = st.z, st.y, st.v
+    np.testing.assert_array_equal(z[:, 0], v[:, 0])
+    for k in range(1, 21):
+        q = tr.mode[k - 1]
+        np.testing.assert_array_equal(z[:, k, q == 0], y[:, k, q == 0])
+        np.testing.assert_array_equal(z[:, k, q == 1], y[:, k - 1, q == 1])
+        np.testing.assert_array_equal(z[:, k, q == 2], v[:, k, q == 2])
+        np.testing.assert_array_equal(z[:, k, q == 3], z[:, k - 1, q == 3])
