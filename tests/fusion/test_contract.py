@@ -289,3 +289,175 @@ def test_estimator_declares_what_it_reports():
         list(FusionEstimator(kind="fusion").covariances(SYS2, Trace(runs=2, horizon=3, mode=np.zeros((3, 2), np.int8)), [1]))
     with pytest.raises(ConfigError, match="smoothed"):
         list(FusionEstimator(kind="fusion").covariances(SYS2, _trace(1, 0.1, 2, 3), [1], ("smoothed",)))
+
+
+# ---------------------------------------------------------------------------------------- speed paths (issue 20)
+
+import scipy.stats  # noqa: E402
+
+from netkf_cli.channels.multi import CountTrace, arrivals_given_counts, count_tables, sample_counts  # noqa: E402
+
+
+def _z(x, mean, var, n):
+    return abs(x - mean) / np.sqrt(var / n)
+
+
+@pytest.mark.parametrize("N, loss", [(25, 0.5), (25, 0.3), (7, 0.9), (300, 0.4)])
+def test_count_sampler_is_the_exact_inverse_cdf_and_binomial(N, loss):
+    """The table lookup gives the exact inverse-CDF count (= searchsorted on the thresholds) for every
+    draw, including draws next to every threshold; the counts' pmf is Binomial(N, 1 − loss) within
+    5 s.e. per value."""
+    thr, cell = count_tables(N, 1.0 - loss)
+    raw = np.random.default_rng(5).bit_generator.random_raw(200_000)
+    edges = np.concatenate([thr, thr - np.uint64(1), thr + np.uint64(1)])
+    rng = np.random.default_rng(0)
+    R, T = 4000, 50
+    c = sample_counts(rng, R, T, N, loss)
+    assert c.shape == (T, R)
+    # the same bits through the exact search
+    ref_raw = np.random.default_rng(0).bit_generator.random_raw(R * T)
+    np.testing.assert_array_equal(c.ravel(), np.searchsorted(thr, ref_raw, side="right"))
+    if N < 255:
+        for r in (raw, edges):
+            got = cell[r >> np.uint64(48)].astype(np.int64)
+            exact = np.searchsorted(thr, r, side="right")
+            amb = got == 255
+            np.testing.assert_array_equal(got[~amb], exact[~amb])
+    p = 1.0 - loss
+    pmf = scipy.stats.binom.pmf(np.arange(N + 1), N, p)
+    f = np.bincount(c.ravel(), minlength=N + 1) / c.size
+    ok = pmf * c.size > 20
+    assert np.all(np.abs(f - pmf)[ok] <= 5 * np.sqrt(pmf * (1 - pmf) / c.size)[ok])
+    assert _z(c.mean(), N * p, N * p * (1 - p), c.size) < 5
+
+
+def test_count_sampler_extremes_and_common_random_numbers():
+    for loss, want in ((0.0, 6), (1.0, 0)):
+        tr = MultiChannel(kind="multi", sensors=6, loss=loss, sampling="counts").sample_trace(np.random.default_rng(1), 50, 9)
+        assert (tr.counts == want).all() and (tr.arrival.sum(axis=0) == want).all()
+    lo = sample_counts(np.random.default_rng(3), 1000, 20, 25, 0.6)
+    hi = sample_counts(np.random.default_rng(3), 1000, 20, 25, 0.4)
+    assert (hi >= lo).all()  # monotone in the loss on one stream
+    with pytest.raises(ValueError, match="one loss for every sensor"):
+        MultiChannel(kind="multi", sensors=2, loss=[0.1, 0.2], sampling="counts")
+
+
+def test_pattern_given_counts_is_independent_bernoulli():
+    """Given ℓ ~ Binomial(N, p), the uniform subset is N independent Bernoulli(p): each sensor's rate
+    p, each pair's correlation 0 and the sensors' lag-0 joint rate p², within 5 s.e."""
+    N, loss, R, T = 12, 0.35, 5000, 20
+    tr = MultiChannel(kind="multi", sensors=N, loss=loss, sampling="counts").sample_trace(np.random.default_rng(2), R, T)
+    assert isinstance(tr, CountTrace) and not tr.materialized and tr.kinds == {"arrival"} and tr.sensors == N
+    a = tr.arrival
+    assert tr.materialized and a.shape == (N, T, R) and a is tr.arrival
+    np.testing.assert_array_equal(a.sum(axis=0), tr.counts)
+    p, n = 1 - loss, R * T
+    assert np.all(_z(a.mean(axis=(1, 2)), p, p * (1 - p), n) < 5)
+    for i, j in ((0, 1), (0, N - 1), (5, 6)):
+        both = (a[i] & a[j]).mean()
+        assert _z(both, p * p, p * p * (1 - p * p), n) < 5
+    # the pattern is drawn from the seed, so it is reproducible
+    tr2 = MultiChannel(kind="multi", sensors=N, loss=loss, sampling="counts").sample_trace(np.random.default_rng(2), R, T)
+    np.testing.assert_array_equal(tr2.arrival, a)
+    g = arrivals_given_counts(np.random.default_rng(0), np.full((3, 4), N, dtype=np.uint8), N)
+    assert g.all()
+
+
+def test_mf_reads_only_the_counts_and_equals_the_per_sensor_path():
+    """MF on a CountTrace never draws the pattern; on the same pattern given explicitly it gives the same P
+    (the count update either way; the per-sensor path sums the pattern)."""
+    N = 9
+    system = identical_sensors(A2, C2, Q2, R2, N)
+    ch = MultiChannel(kind="multi", sensors=N, loss=0.45, sampling="counts")
+    tr = ch.sample_trace(np.random.default_rng(4), 700, 30)
+    est = FusionEstimator(kind="fusion", strategies=["mf"], backend="numpy")
+    got = _all(est, system, tr, range(1, 31))
+    assert not tr.materialized
+    ref = _all(est, system, Trace(runs=700, horizon=30, arrival=tr.arrival), range(1, 31))
+    for k in got:
+        for q in BOTH:
+            np.testing.assert_array_equal(got[k][q], ref[k][q])
+
+
+def test_count_rescue_equals_the_per_sensor_rescue():
+    """A = 10⁶: every prior is flagged; the count-form Rescue (information c·C1ᵀR1⁻¹C1) equals the
+    Filter's Rescue on the arrived rows to rounding."""
+    N = 4
+    system = identical_sensors([[1e6, 0], [0, 0.5]], [[1.0, 1.0]], np.eye(2), [[1.0]], N)
+    sens = Sensors.of(system, N)
+    tr = _trace(N, 0.5, 400, 6, seed=7)
+    P = np.repeat(np.eye(2)[:, :, None], 400, axis=2)
+    for t in range(6):
+        Pm = kalman.predict(P, sens.filt.A, sens.filt.Q)
+        a = sens.correct(Pm, tr.arrival[:, t])
+        b = sens.correct_counts(Pm, tr.arrival[:, t].sum(axis=0))
+        fin = np.isfinite(a)
+        np.testing.assert_array_equal(fin, np.isfinite(b))
+        np.testing.assert_allclose(b[fin], a[fin], rtol=1e-9, atol=1e-12)
+        P = a
+
+
+def _time_avg(system, ch, strategy, runs, T, burn, seed, backend="numpy"):
+    est = FusionEstimator(kind="fusion", strategies=[strategy], backend=backend)
+    tr = ch.sample_trace(np.random.default_rng(seed), runs, T)
+    acc = np.zeros(runs)
+    for _, P in est.covariances(system, tr, range(burn + 1, T + 1), ("filtered",)):
+        acc += np.trace(P["filtered"])
+    return acc / (T - burn)
+
+
+@pytest.mark.parametrize("strategy", ["mf", "ibf", "olpef"])
+def test_count_sampler_agrees_with_the_per_sensor_sampler(strategy):
+    """The changed sampler (another stream, the same law): time-averaged tr P within 5 combined s.e."""
+    N, runs, T, burn = 10, 3000, 40, 20
+    system = identical_sensors(A2, C2, Q2, R2, N)
+    x = _time_avg(system, MultiChannel(kind="multi", sensors=N, loss=0.6), strategy, runs, T, burn, 11)
+    y = _time_avg(system, MultiChannel(kind="multi", sensors=N, loss=0.6, sampling="counts"), strategy, runs, T, burn, 12)
+    se = np.sqrt(x.var(ddof=1) / runs + y.var(ddof=1) / runs)
+    assert abs(x.mean() - y.mean()) < 5 * se, (x.mean(), y.mean(), se)
+
+
+needs_numba = pytest.mark.skipif(not kalman.numba_available(), reason="numba not installed")
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["scalar", "2-state", "vehicle", "3-rows", "huge-A"])
+def test_compiled_mf_equals_numpy_on_the_same_counts(name):
+    """The generated count-update kernel (kalman_codegen.source_counts) gives numpy's P to rounding on the
+    same trace, every reported step and quantity; flagged runs (A = 10⁶) go through the numpy Rescue."""
+    Av = [[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1.0]]
+    cases = {
+        "scalar": (0.9, 1.0, 1e-3, 10.0),
+        "2-state": (A2, C2, Q2, R2),
+        "vehicle": (Av, np.hstack([np.eye(2), np.zeros((2, 2))]), 0.01 * np.eye(4), 0.001 * np.eye(2)),
+        "3-rows": ([[0.9, 0.2, 0], [0, 0.7, 0.1], [0, 0, 0.5]], np.eye(3), 0.1 * np.eye(3),
+                   [[1.0, 0.2, 0], [0.2, 1.0, 0.1], [0, 0.1, 1.0]]),
+        "huge-A": ([[1e6, 0], [0, 0.5]], [[1.0, 1.0]], np.eye(2), [[1.0]]),
+    }
+    A, C, Q, R = cases[name]
+    N = 6
+    system = identical_sensors(A, C, Q, R, N)
+    tr = MultiChannel(kind="multi", sensors=N, loss=0.5, sampling="counts").sample_trace(np.random.default_rng(8), 900, 25)
+    steps = [1, 2, 7, 8, 20, 25]
+    a = _all(FusionEstimator(kind="fusion", strategies=["mf"], backend="numpy"), system, tr, steps)
+    b = _all(FusionEstimator(kind="fusion", strategies=["mf"], backend="numba"), system, tr, steps)
+    for k in steps:
+        for q in BOTH:
+            fin = np.isfinite(a[k][q])
+            np.testing.assert_array_equal(fin, np.isfinite(b[k][q]))
+            np.testing.assert_allclose(b[k][q][fin], a[k][q][fin], rtol=1e-9, atol=1e-12 * np.abs(a[k][q][fin]).max())
+
+
+@needs_numba
+def test_auto_picks_the_compiled_mf_when_numba_is_present_and_numpy_when_hidden(monkeypatch):
+    N = 25
+    system = identical_sensors(0.9, 1.0, 1e-3, 10.0, N)
+    ch = MultiChannel(kind="multi", sensors=N, loss=0.5, sampling="counts")
+    est = FusionEstimator(kind="fusion", strategies=["mf"])
+    assert est.backend_used(system, ch, 20_000, 200) == "numba"
+    assert est.backend_used(system, ch, 100, 10) == "numpy"  # small chunks: not worth a compile
+    assert FusionEstimator(kind="fusion", strategies=["ibf"]).backend_used(system, ch, 20_000, 200) == "numpy"
+    monkeypatch.setattr(kalman, "numba_available", lambda: False)
+    assert est.backend_used(system, ch, 20_000, 200) == "numpy"
+    with pytest.raises(ConfigError, match="numba"):
+        FusionEstimator(kind="fusion", strategies=["mf"], backend="numba").backend_used(system, ch, 20_000, 200)
