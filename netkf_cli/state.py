@@ -129,16 +129,17 @@ def _check_estimates(estimator, system, channel) -> None:
 
 class StateErrorKernel:
     """Sample a trace, the states behind it (:func:`simulate`), run every estimator's ``estimates`` on the
-    same runs; reduce per estimator j and step: Σ‖e‖², Σ‖e‖⁴, Σ e eᵀ, Σ tr P, Σ (tr P)², Σ NEES, Σ NEES²,
-    Σ rank P, Σ and Σ² of ‖e‖² − tr P (paired), non-finite count; per run the average over ``window`` of
-    ‖e‖², tr P, NEES and rank P (one sample per
-    run: exact standard errors) and the paired difference of the windowed ‖e‖² against estimator 0.
-    ``keep`` > 0: the chunk instead returns its first ``keep`` runs' true states and estimates (trajectories)."""
+    same runs; reduce per column c = (estimator j, quantity q) (``columns``) and step: Σ‖e‖², Σ‖e‖⁴, Σ e eᵀ,
+    Σ tr P, Σ (tr P)², Σ NEES, Σ NEES², Σ rank P, Σ and Σ² of ‖e‖² − tr P (paired), non-finite count; per run
+    the average over ``window`` of ‖e‖², tr P, NEES and rank P (one sample per run: exact standard errors)
+    and the paired difference of the windowed ‖e‖² against the first column of the same quantity. A mode
+    trace adds per run the fraction of steps in each mode (``mode_frac``). ``keep`` > 0: the chunk instead
+    returns its first ``keep`` runs' true states and estimates (trajectories)."""
 
-    def __init__(self, system, channel, estimators, horizon: int, steps, quantity: str = "filtered",
-                 window=(), S=None, keep: int = 0):
+    def __init__(self, system, channel, estimators, horizon: int, steps, columns, window=(), S=None, keep: int = 0):
         self.system, self.channel, self.estimators = system, channel, list(estimators)
-        self.horizon, self.steps, self.quantity = int(horizon), sorted(int(k) for k in steps), quantity
+        self.horizon, self.steps = int(horizon), sorted(int(k) for k in steps)
+        self.columns = [(int(j), str(q)) for j, q in columns]
         self.window = sorted(int(k) for k in window)
         self.S, self.keep = S, int(keep)
 
@@ -155,77 +156,103 @@ class StateErrorKernel:
                 out["traj_mode"] = trace.mode.astype(float)
             elif trace.arrival is not None:
                 out["traj_arrival"] = trace.arrival.astype(float)
+        elif trace.mode is not None:
+            frac = np.stack([(trace.mode == q).mean(axis=0) for q in range(int(trace.mode.max(initial=0)) + 1)])
+            nm = len(trace.meta.get("rho", [])) or frac.shape[0]
+            f = np.zeros((nm, runs))
+            f[: frac.shape[0]] = frac
+            out["mode_frac"], out["mode_fracsq"] = f.sum(axis=1), (f * f).sum(axis=1)
+        refs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         for j, est in enumerate(self.estimators):
-            lag = int(getattr(est, "lag", 0) or 0)
-            wa = np.zeros((4, runs))  # window averages of ‖e‖², tr P, NEES, rank P per run
-            z = {f"{key}_{j}": np.zeros(shape) for key, shape in (
-                ("sum_e2", K), ("sum_e4", K), ("sum_eeT", (K, n, n)), ("sum_trP", K), ("sumsq_trP", K),
-                ("sum_nees", K), ("sumsq_nees", K), ("sum_rank", K), ("sum_d", K), ("sumsq_d", K), ("nonfinite", K))}
-            traj = np.full((n, len(want), runs), np.nan) if self.keep else None
-            bad_run = np.zeros(runs, bool)
-            for k, res in est.estimates(self.system, trace, st.z, want, (self.quantity,)):
-                xh, P = res[self.quantity]
-                e = st.x[:, truth_index(k, self.quantity, lag)] - xh
-                if traj is not None:
-                    traj[:, want.index(k)] = xh
-                    continue
-                ok = np.isfinite(e).all(axis=0) & np.isfinite(P).all(axis=(0, 1))
-                e = np.where(ok, e, 0.0)
-                Pf = np.where(ok, P, 0.0)
-                e2, trP = (e * e).sum(axis=0), np.trace(Pf)
-                q, rank = nees(e, Pf + (~ok) * np.eye(n)[:, :, None])
-                q = np.where(ok, q, 0.0)
-                rank = np.where(ok, rank, 0.0)
-                if k in win:
-                    wa += np.stack([e2, trP, q, rank]) / len(self.window)
-                    bad_run |= ~ok
-                if k in self.steps:
-                    i = self.steps.index(k)
-                    z[f"sum_e2_{j}"][i] = e2.sum()
-                    z[f"sum_e4_{j}"][i] = (e2 * e2).sum()
-                    z[f"sum_eeT_{j}"][i] = np.einsum("ir,jr->ij", e, e)
-                    z[f"sum_trP_{j}"][i] = trP.sum()
-                    z[f"sumsq_trP_{j}"][i] = (trP * trP).sum()
-                    z[f"sum_nees_{j}"][i] = q.sum()
-                    z[f"sumsq_nees_{j}"][i] = (q * q).sum()
-                    z[f"sum_rank_{j}"][i] = rank.sum()
-                    z[f"sum_d_{j}"][i] = (e2 - trP).sum()
-                    z[f"sumsq_d_{j}"][i] = ((e2 - trP) ** 2).sum()
-                    z[f"nonfinite_{j}"][i] = (~ok).sum()
-            if traj is not None:
-                out[f"traj_{j}"] = traj
+            cols = [(c, q) for c, (jj, q) in enumerate(self.columns) if jj == j]
+            if not cols:
                 continue
-            out.update(z)
-            if self.window:
-                wa[:, bad_run] = 0.0
-                out[f"win_sum_{j}"] = wa.sum(axis=1)
-                out[f"win_sumsq_{j}"] = (wa * wa).sum(axis=1)
-                out[f"win_nonfinite_{j}"] = np.asarray(float(bad_run.sum()))
-                if j == 0:
-                    ref, ref_bad = wa[0].copy(), bad_run.copy()
-                both = ~(bad_run | ref_bad)
-                d = np.where(both, wa[0] - ref, 0.0)
-                out[f"diff_sum_{j}"] = np.asarray(d.sum())
-                out[f"diff_sumsq_{j}"] = np.asarray((d * d).sum())
-                out[f"diff_n_{j}"] = np.asarray(float(both.sum()))
+            lag = int(getattr(est, "lag", 0) or 0)
+            acc = {}
+            for c, q in cols:
+                acc[c] = {"wa": np.zeros((4, runs)), "bad": np.zeros(runs, bool),
+                          "traj": np.full((n, len(want), runs), np.nan) if self.keep else None}
+                if not self.keep:
+                    acc[c].update({key: np.zeros(shape) for key, shape in (
+                        ("sum_e2", K), ("sum_e4", K), ("sum_eeT", (K, n, n)), ("sum_trP", K), ("sumsq_trP", K),
+                        ("sum_nees", K), ("sumsq_nees", K), ("sum_rank", K), ("sum_d", K), ("sumsq_d", K),
+                        ("nonfinite", K))})
+            for k, res in est.estimates(self.system, trace, st.z, want, tuple(q for _, q in cols)):
+                for c, q in cols:
+                    a = acc[c]
+                    xh, P = res[q]
+                    if a["traj"] is not None:
+                        a["traj"][:, want.index(k)] = xh
+                        continue
+                    e = st.x[:, truth_index(k, q, lag)] - xh
+                    ok = np.isfinite(e).all(axis=0) & np.isfinite(P).all(axis=(0, 1))
+                    e = np.where(ok, e, 0.0)
+                    Pf = np.where(ok, P, 0.0)
+                    e2, trP = (e * e).sum(axis=0), np.trace(Pf)
+                    qq, rank = nees(e, Pf + (~ok) * np.eye(n)[:, :, None])
+                    qq, rank = np.where(ok, qq, 0.0), np.where(ok, rank, 0.0)
+                    if k in win:
+                        a["wa"] += np.stack([e2, trP, qq, rank]) / len(self.window)
+                        a["bad"] |= ~ok
+                    if k in self.steps:
+                        i = self.steps.index(k)
+                        a["sum_e2"][i] = e2.sum()
+                        a["sum_e4"][i] = (e2 * e2).sum()
+                        a["sum_eeT"][i] = np.einsum("ir,jr->ij", e, e)
+                        a["sum_trP"][i] = trP.sum()
+                        a["sumsq_trP"][i] = (trP * trP).sum()
+                        a["sum_nees"][i] = qq.sum()
+                        a["sumsq_nees"][i] = (qq * qq).sum()
+                        a["sum_rank"][i] = rank.sum()
+                        a["sum_d"][i] = (e2 - trP).sum()
+                        a["sumsq_d"][i] = ((e2 - trP) ** 2).sum()
+                        a["nonfinite"][i] = (~ok).sum()
+            for c, q in cols:
+                a = acc[c]
+                if a["traj"] is not None:
+                    out[f"traj_{c}"] = a["traj"]
+                    continue
+                out.update({f"{key}_{c}": v for key, v in a.items() if key not in ("wa", "bad", "traj")})
+                if self.window:
+                    wa, bad = a["wa"], a["bad"]
+                    wa[:, bad] = 0.0
+                    out[f"win_sum_{c}"] = wa.sum(axis=1)
+                    out[f"win_sumsq_{c}"] = (wa * wa).sum(axis=1)
+                    out[f"win_nonfinite_{c}"] = np.asarray(float(bad.sum()))
+                    if q not in refs:
+                        refs[q] = (wa[0].copy(), bad.copy())
+                    ref, ref_bad = refs[q]
+                    both = ~(bad | ref_bad)
+                    d = np.where(both, wa[0] - ref, 0.0)
+                    out[f"diff_sum_{c}"] = np.asarray(d.sum())
+                    out[f"diff_sumsq_{c}"] = np.asarray((d * d).sum())
+                    out[f"diff_n_{c}"] = np.asarray(float(both.sum()))
         if self.keep:
             out = {k: (v[..., : self.keep] if k.startswith("traj") else v) for k, v in out.items()}
         return out
 
 
+def columns_of(estimators, quantities) -> list[tuple[int, str]]:
+    """(estimator j, quantity q) for every listed quantity each estimator offers, estimator-major."""
+    return [(j, q) for j, e in enumerate(estimators) for q in quantities if q in getattr(e, "quantities", ("filtered",))]
+
+
 def simulate_errors(system, channel, estimators, *, steps, runs: int, horizon: int, seed: int, chunk: int,
-                    stream: int = 0, quantity: str = "filtered", window=(), S=None, progress=None,
+                    stream: int = 0, quantity="filtered", window=(), S=None, progress=None,
                     label: str = "state_error") -> dict:
-    """Summed :class:`StateErrorKernel` statistics over all chunks of ``stream`` (any executor, same bits)."""
+    """Summed :class:`StateErrorKernel` statistics over all chunks of ``stream`` (any executor, same bits);
+    ``quantity`` one name or several (columns: :func:`columns_of`)."""
     for es in estimators:
         _check_estimates(es, system, channel)
-    kernel = StateErrorKernel(system, channel, estimators, horizon, steps, quantity, window, S)
+    qs = (quantity,) if isinstance(quantity, str) else tuple(quantity)
+    kernel = StateErrorKernel(system, channel, estimators, horizon, steps, columns_of(estimators, qs), window, S)
     return run_chunked(kernel, runs, chunk, seed, stream=stream, progress=progress, label=label)
 
 
 def trajectories(system, channel, estimators, *, runs: int, steps, horizon: int, seed: int, stream: int,
                  quantity: str = "filtered", S=None) -> dict:
     """The first ``runs`` runs of stream ``stream`` (one chunk): ``traj_x`` (n, horizon+1, runs), per estimator
-    ``traj_j`` (n, len(steps), runs) and the channel's mode or arrival path."""
-    kernel = StateErrorKernel(system, channel, estimators, horizon, steps, quantity, (), S, keep=runs)
+    column ``traj_c`` (n, len(steps), runs) (:func:`columns_of`) and the channel's mode or arrival path."""
+    qs = (quantity,) if isinstance(quantity, str) else tuple(quantity)
+    kernel = StateErrorKernel(system, channel, estimators, horizon, steps, columns_of(estimators, qs), (), S, keep=runs)
     return run_chunked(kernel, runs, runs, seed, stream=stream, label="trajectories")

@@ -34,7 +34,7 @@ from pydantic import Field
 from netkf_cli import state
 from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.errors import ConfigError
-from netkf_cli.metrics.common import (LABEL_COLUMNS, GenericMetric, PaperRef, conventions_note, describe, labels,
+from netkf_cli.metrics.common import (LABEL_COLUMNS, GenericMetric, PaperRef, Quantity, conventions_note, describe, labels,
                                       math_text, needs, quantity_text)
 from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.spec import Matrix, NonNegInt, PositiveInt
@@ -51,6 +51,8 @@ class StateError(GenericMetric):
     """``kind: state_error`` — empirical error covariance vs reported P, NEES, and trajectories of any estimator."""
 
     kind: Literal["state_error"]
+    quantities: list[Quantity] | None = Field(None, description="several quantities in one pass (default: `quantity`); "
+                                                                "each estimator reports those it offers")
     every: PositiveInt | None = Field(None, description="report every this many steps (default: at most 200 points)")
     window_from: NonNegInt | None = Field(None, description="the summary averages over k in (window_from, horizon] "
                                                            "(default: montecarlo.burn_in)")
@@ -92,8 +94,9 @@ class StateError(GenericMetric):
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")
         mc = scenario.montecarlo
-        H, q = mc.horizon, self.quantity
-        first = max(e.first_step(q) for e in ests)
+        H, qs = mc.horizon, self.quantity_list()
+        cols = state.columns_of(ests, qs)
+        first = max(ests[j].first_step(q) for j, q in cols)
         ks = self.steps(H, first)
         w0 = max(self._window_from(scenario), first - 1)
         window = list(range(w0 + 1, H + 1))
@@ -102,47 +105,61 @@ class StateError(GenericMetric):
         stream = int(getattr(ctx, "stream", 0) or 0)
         S = None if self.S is None else np.asarray(self.S, float)
         st = state.simulate_errors(s, ch, ests, steps=ks, runs=runs, horizon=H, seed=mc.seed, chunk=mc.chunk,
-                                   stream=stream, quantity=q, window=window, S=S, progress=ctx.progress,
+                                   stream=stream, quantity=qs, window=window, S=S, progress=ctx.progress,
                                    label=self.kind)
         labs = labels(ests)
-        lab_cols = describe(scenario, s, ests, q)
+        lab_q = {q: describe(scenario, s, ests, q) for q in qs}
         n = int(st["n"])
         rows, summary = [], []
         wtext = f"k={window[0]}..{window[-1]}"
-        for j, lab in enumerate(labs):
-            bad = st[f"nonfinite_{j}"]
+        first_of = {}
+        for c, (j, q) in enumerate(cols):
+            lab, lab_cols = labs[j], lab_q[q][j]
+            first_of.setdefault(q, lab)
+            bad = st[f"nonfinite_{c}"]
             m_ok = np.maximum(n - bad, 1)
-            emp, emp_se = mean_se(st[f"sum_e2_{j}"], st[f"sum_e4_{j}"], m_ok)
-            rep, rep_se = mean_se(st[f"sum_trP_{j}"], st[f"sumsq_trP_{j}"], m_ok)
-            ne, ne_se = mean_se(st[f"sum_nees_{j}"], st[f"sumsq_nees_{j}"], m_ok)
-            dd, dd_se = mean_se(st[f"sum_d_{j}"], st[f"sumsq_d_{j}"], m_ok)
-            rank = st[f"sum_rank_{j}"] / m_ok
+            emp, emp_se = mean_se(st[f"sum_e2_{c}"], st[f"sum_e4_{c}"], m_ok)
+            rep, rep_se = mean_se(st[f"sum_trP_{c}"], st[f"sumsq_trP_{c}"], m_ok)
+            ne, ne_se = mean_se(st[f"sum_nees_{c}"], st[f"sumsq_nees_{c}"], m_ok)
+            dd, dd_se = mean_se(st[f"sum_d_{c}"], st[f"sumsq_d_{c}"], m_ok)
+            rank = st[f"sum_rank_{c}"] / m_ok
             for i, k in enumerate(ks):
-                common = dict(k=k, estimator=lab, n=n, nonfinite=int(bad[i]), **lab_cols[j])
+                common = dict(k=k, estimator=lab, n=n, nonfinite=int(bad[i]), **lab_cols)
                 rows.append(dict(series="empirical", value=emp[i], stderr=emp_se[i], expected=rep[i], **common))
                 rows.append(dict(series="reported", value=rep[i], stderr=rep_se[i], expected=np.nan, **common))
                 rows.append(dict(series="nees", value=ne[i], stderr=ne_se[i], expected=rank[i], **common))
             nees_ok = np.abs(ne - rank) <= Z * ne_se + 1e-12 * np.maximum(rank, 1)
             emp_ok = np.abs(dd) <= Z * dd_se + 1e-12 * np.maximum(rep, 1)
-            wbad = float(st[f"win_nonfinite_{j}"])
+            wbad = float(st[f"win_nonfinite_{c}"])
             wn = max(n - wbad, 1)
-            wm, ws = mean_se(st[f"win_sum_{j}"], st[f"win_sumsq_{j}"], wn)
-            base = dict(estimator=lab, n=n, window=wtext, **lab_cols[j])
+            wm, ws = mean_se(st[f"win_sum_{c}"], st[f"win_sumsq_{c}"], wn)
+            base = dict(estimator=lab, n=n, window=wtext, **lab_cols)
             summary += [dict(series="empirical", value=wm[0], stderr=ws[0], expected=wm[1], **base),
                         dict(series="reported", value=wm[1], stderr=ws[1], expected=np.nan, **base),
                         dict(series="nees", value=wm[2], stderr=ws[2], expected=wm[3], **base)]
-            if j > 0:
-                dm, ds = mean_se(st[f"diff_sum_{j}"], st[f"diff_sumsq_{j}"], st[f"diff_n_{j}"])
-                summary.append(dict(series=f"empirical minus {labs[0]}", value=float(dm), stderr=float(ds),
+            if first_of[q] != lab:
+                dm, ds = mean_se(st[f"diff_sum_{c}"], st[f"diff_sumsq_{c}"], st[f"diff_n_{c}"])
+                summary.append(dict(series=f"empirical minus {first_of[q]}", value=float(dm), stderr=float(ds),
                                     expected=np.nan, **base))
             summary += [dict(series="nees_consistent_fraction", value=float(nees_ok.mean()), stderr=np.nan,
                              expected=np.nan, **base),
                         dict(series="empirical_equals_reported_fraction", value=float(emp_ok.mean()), stderr=np.nan,
                              expected=np.nan, **base)]
+        if "mode_frac" in st:  # the channel's modes: empirical frequency per run (± s.e.) beside the stationary ρ_q
+            fm, fs = mean_se(st["mode_frac"], st["mode_fracsq"], n)
+            rho = np.asarray(getattr(ch, "rho", np.full(len(fm), np.nan)), float)
+            base = dict(estimator="", n=n, window=f"k=1..{H}", quantity="", P0="", conventions=f"{ch.kind} channel")
+            summary += [dict(series=f"mode {i + 1} frequency", value=float(fm[i]), stderr=float(fs[i]),
+                             expected=float(rho[i]), **base) for i in range(len(fm))]
+            dev = np.abs(fm - rho) / np.maximum(fs, 1e-300)
+            summary.append(dict(series="mode frequency max deviation (s.e.)", value=float(dev.max()), stderr=np.nan,
+                                expected=np.nan, **base))
         table = pd.DataFrame(rows, columns=COLUMNS)
         extra = {"summary": pd.DataFrame(summary, columns=SUMMARY_COLUMNS)}
-        meta = {"runs": n, "estimators": labs, "quantity": q, "steps": f"{ks[0]}…{ks[-1]}", "window": wtext,
-                "labels": dict(zip(labs, lab_cols)), "truth": {"filtered": "x̂_{k|k} against x_k", "predicted": "x̂_{k+1|k} against x_{k+1}"}.get(q, q),
+        truth = {"filtered": "x̂_{k|k} against x_k", "predicted": "x̂_{k+1|k} against x_{k+1}"}
+        meta = {"runs": n, "estimators": labs, "quantities": qs, "steps": f"{ks[0]}…{ks[-1]}", "window": wtext,
+                "labels": {lab: lab_q[qs[0]][j] for j, lab in enumerate(labs)},
+                "truth": {q: truth.get(q, q) for q in qs},
                 "simulation": "x_0 ~ N(0, P_{0|0}), x_{k+1} = A x_k + w_k, y_k = C x_k + v_k, [w; v] ~ N(0, [[Q, S], [Sᵀ, R]]), "
                               f"S = {'0' if S is None else S.tolist()}; stream {stream}: the trace, then the states, "
                               "from each chunk's generator",
@@ -152,22 +169,25 @@ class StateError(GenericMetric):
             tstream = stream + TRAJECTORY_STREAM_OFFSET
             allk = list(range(first, H + 1))
             tr = state.trajectories(s, ch, ests, runs=self.trajectories, steps=allk, horizon=H, seed=mc.seed,
-                                    stream=tstream, quantity=q, S=S)
-            extra["trajectories"] = _trajectory_table(tr, labs, allk, q)
+                                    stream=tstream, quantity=qs, S=S)
+            extra["trajectories"] = _trajectory_table(tr, labs, cols, allk)
             meta["trajectories"] = f"the first {self.trajectories} run(s) of stream {tstream} (SeedSequence(seed, "\
                                    f"spawn_key=({tstream}, 0)))"
         return Artefact(table, meta=meta, extra_tables=extra)
 
     # ------------------------------------------------------------------------------------ plot
     def plot(self, tables, scenario):
+        q = self.quantity_list()[0]  # the figure draws the first quantity (the CSVs hold all)
         t = tables["main"]
+        t = t[t["quantity"] == q] if "quantity" in t else t
         traj = tables.get("trajectories")
+        if traj is not None and "quantity" in traj:
+            traj = traj[traj["quantity"].isna() | (traj["quantity"].astype(str).isin(["", "nan", q]))]
         comps = sorted(int(c) for c in traj["component"].unique() if c > 0) if traj is not None and len(traj) else []
         nrow = len(comps) + 2
         fig, axes = new_figure(nrows=nrow, width=9.0, height=2.8)
         axes = list(np.atleast_1d(axes))
         labs = list(dict.fromkeys(t.estimator))
-        q = t["quantity"].iloc[0] if len(t) else self.quantity
         hat = r"\hat{x}_{k|k}" if q == "filtered" else r"\hat{x}_{k|k-1}"
         for ax, c in zip(axes, comps):
             d = traj[(traj.component == c) & (traj.run == 0)]
@@ -224,28 +244,29 @@ class StateError(GenericMetric):
         return fig
 
 
-def _trajectory_table(tr: dict, labs: list[str], steps: list[int], quantity: str) -> pd.DataFrame:
-    """Tidy rows (run, k, component, series, value): true x_k, each estimate at the time it aims at, the channel."""
+def _trajectory_table(tr: dict, labs: list[str], cols, steps: list[int]) -> pd.DataFrame:
+    """Tidy rows (run, k, component, series, quantity, value): true x_k, each estimate at the time it aims at
+    (x̂_{k|k} at k, x̂_{k+1|k} at k + 1), the channel's mode (1-based) or arrival at k (component 0)."""
     x = tr["traj_x"]
     n, T1, R = x.shape
-    shift = state.truth_index(0, quantity)
     rows = []
     for r in range(R):
         for k in range(T1):
             for c in range(n):
-                rows.append((r, k, c + 1, "true", float(x[c, k, r])))
-        for j, lab in enumerate(labs):
-            xh = tr[f"traj_{j}"]
+                rows.append((r, k, c + 1, "true", "", float(x[c, k, r])))
+        for ci, (j, q) in enumerate(cols):
+            xh = tr[f"traj_{ci}"]
+            shift = state.truth_index(0, q)
             for i, k in enumerate(steps):
                 if k + shift < T1:
                     for c in range(n):
-                        rows.append((r, k + shift, c + 1, lab, float(xh[c, i, r])))
+                        rows.append((r, k + shift, c + 1, labs[j], q, float(xh[c, i, r])))
         for key, name in (("traj_mode", "mode"), ("traj_arrival", "arrival")):
             if key in tr:
                 a = tr[key]
                 a = a[0] if a.ndim == 3 else a  # arrival (S, T, R): stream 0
-                rows += [(r, t + 1, 0, name, float(a[t, r] + (1 if name == "mode" else 0))) for t in range(a.shape[0])]
-    return pd.DataFrame(rows, columns=["run", "k", "component", "series", "value"])
+                rows += [(r, t + 1, 0, name, "", float(a[t, r] + (1 if name == "mode" else 0))) for t in range(a.shape[0])]
+    return pd.DataFrame(rows, columns=["run", "k", "component", "series", "quantity", "value"])
 
 
 def _mark_channel(ax, traj: pd.DataFrame) -> None:
