@@ -22,6 +22,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from netkf_cli.analysis import references
 from netkf_cli._version import __version__
 from netkf_cli.errors import ConfigError, NetkfError, Problem
 
@@ -432,13 +433,17 @@ def list_kinds(
     from netkf_cli.kinds import describe
 
     info = describe(compatibility())
-    if kind is not None:
+    if kind == "references":
+        info = {}
+    elif kind is not None:
         found = {fam: entries[kind] for fam, entries in info.items() if kind in entries}
         if not found:
             known = sorted(k for entries in info.values() for k in entries)
             raise NetkfError(f"unknown kind {kind!r}; known kinds: {', '.join(known)}")
         info = {fam: {kind: e} for fam, e in found.items()}
     if as_json:
+        if kind is None or kind == "references":
+            info = {**info, "references": references.describe()}
         sys.stdout.write(json.dumps(info, indent=2, ensure_ascii=False) + "\n")
         return
     for fam, entries in info.items():
@@ -464,6 +469,11 @@ def list_kinds(
                 for f in e["fields"]:
                     out.print(f"      {f['name']:<14} {f['type']:<28} default {f['default']:<14} {f['description']}",
                               highlight=False, markup=False)
+    if kind is None or kind == "references":
+        out.print("[bold]closed-form references[/] " + escape("(a generic metric's `references: [name, …]`: rows "
+                                                              "with source = closed_form beside the Monte Carlo)"))
+        for name, doc in references.describe().items():
+            out.print(f"  {name:<22} {doc}", highlight=False, markup=False)
     if kind is None:
         out.print("* combines on some systems only; `netkf list KIND` shows a kind's fields and those conditions. "
                   "(Computed by running the checks `netkf validate` makes on representative systems.)", highlight=False)
@@ -518,7 +528,7 @@ def critical(
 
     Without --config: Example 3.10 of Shi, Xie & Murray 2009 (A = 1.4, C = 1, Q = 0.2, R = 0.5), as `netkf mind`.
     """
-    from netkf_cli.recipes.critical import critical_answer
+    from netkf_cli.metrics.critical import critical_answer
 
     scenario = where = None
     if config is not None:

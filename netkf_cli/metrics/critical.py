@@ -34,7 +34,7 @@ from netkf_cli.analysis import critical as cr
 from netkf_cli.errors import ConfigError
 from netkf_cli.metrics.tail import kf_for, time_average_mean
 from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
-from netkf_cli.recipes.base import Artefact, RunContext
+from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt, Probability, StrictModel
 from netkf_cli.system import LinearSystem
 
