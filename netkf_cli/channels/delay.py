@@ -252,8 +252,8 @@ def delay_trace(channel, rng: np.random.Generator, runs: int, horizon: int) -> T
 
 # ---------------------------------------------------------------------------------------------
 # What the delay-buffer estimators (buffered, smart_sensor) and the Shi 2009 recipes read from a
-# channel or a trace: the single link's delays, the keep rule of the buffer, the delay-law label,
-# and the channel statistic "MKF runs per step" (Prop. 3.1) — all channel-level, no filtering.
+# channel or a trace: the single link's delays, the keep rule of the buffer and the delay-law label
+# (the MKF runs per step are the buffered estimator's updates() hook) — no filtering.
 # ---------------------------------------------------------------------------------------------
 
 
@@ -301,27 +301,3 @@ def delay_label(channel, math: bool = False) -> str:
     if math:
         return rf"pmf (loss ${dist.loss:.3g}$)"
     return f"pmf {list(dist.probs)} (loss {dist.loss:.3g})"
-
-
-class UpdatesKernel:
-    """Picklable kernel: R_k = 1 + I_k MKF runs at time k, I_k = max{i ≤ D_max : d_{k−i} = i} ∪ {0}.
-
-    The events {d_{k−i} = i} are independent with probabilities f(i), so Pr[I_k < j] =
-    ∏_{i=j}^{D_max} (1 − f(i)) =: S_j (non-decreasing in j). Inverse transform with one uniform per
-    run: I_k = #{j ∈ 1..D_max : u < 1 − S_j} — exact, O(D_max + runs·log D_max) per chunk.
-    Statistics: ``sum``, ``sumsq`` of R_k and ``n``. (A statistic of the delay law alone: no filter.)
-    """
-
-    def __init__(self, channel):
-        Dmax = max_kept_delay(channel.D, channel.convention)
-        F = np.asarray(channel.cdf(np.arange(Dmax + 1)), dtype=float).reshape(Dmax + 1)
-        f = np.diff(np.concatenate([[0.0], F]))
-        S = np.cumprod((1.0 - f[1:])[::-1])[::-1]  # S[j − 1] = S_j, j = 1..Dmax
-        self.ge = 1.0 - S  # Pr[I_k ≥ j], non-increasing in j
-
-    def __call__(self, rng, runs):
-        u = rng.random(runs)
-        asc = self.ge[::-1]
-        oldest = (len(asc) - np.searchsorted(asc, u, side="right")).astype(float)  # #{j : u < Pr[I ≥ j]}
-        R = 1.0 + oldest
-        return {"sum": float(R.sum()), "sumsq": float((R**2).sum()), "n": np.int64(runs)}

@@ -98,6 +98,32 @@ class BufferedEstimator(EstimatorModel):
         yield from buffered_covariances(system, trace, steps, packet_span(system, self.packet), qs,
                                         backend=self.backend)
 
+    def updates(self, system: LinearSystem, trace, steps):
+        """Yield (k, R_k (runs,)): the filter recursions (MKF runs, Prop. 3.1) run at time k — 1 + the age
+        of the oldest packet that arrives at k and is kept, 1 when none arrives (measurement packets).
+
+        The hook of the ``updates`` metric (:mod:`netkf_cli.metrics.updates`): an estimator that reports
+        how many filter recursions it runs per step defines ``updates(system, trace, steps)``."""
+        if packet_span(system, self.packet) != 1:
+            raise ConfigError.at("estimator.packet", "update counts are defined for measurement packets (span 1) only")
+        yield from mkf_runs(trace, steps)
+
+
+def mkf_runs(trace, steps):
+    """(k, R_k) for k in ``steps``: R_k = 1 + max{d_s : s + d_s = k, d_s ≤ D_max} (1 when no kept packet
+    arrives at k), from the trace's delays (packet s = 1 … horizon at row s − 1) and its buffer."""
+    d = trace_delays(trace).astype(np.int64)
+    T, runs = d.shape
+    Dmax = trace_max_kept_delay(trace)
+    arrive = np.arange(1, T + 1)[:, None] + d
+    t_idx, r_idx = np.nonzero((d <= Dmax) & (arrive <= T))
+    oldest = np.zeros((T + 1, runs), dtype=np.int64)  # row k: the largest kept delay arriving at time k
+    np.maximum.at(oldest, (arrive[t_idx, r_idx], r_idx), d[t_idx, r_idx])
+    for k in steps:
+        if not 1 <= k <= T:
+            raise ValueError(f"steps must lie in 1..{T}, got {k}")
+        yield int(k), 1.0 + oldest[int(k)]
+
 
 def _c_invertible(s: LinearSystem) -> bool:
     return s.m == s.n and np.linalg.matrix_rank(s.C) == s.n
