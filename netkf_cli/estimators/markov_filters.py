@@ -340,6 +340,7 @@ def lmmse_filter(model: AugmentedModel, T: np.ndarray, pi0: np.ndarray, x0: np.n
     As = np.empty((horizon, r, r)); Gs = np.empty((horizon, r, m))
     Ef = np.empty((horizon, n, r)); Lf = np.empty((horizon, n, m))
     tp, tf = np.empty(horizon), np.empty(horizon)
+    cp, cf = np.empty((horizon, n, n)), np.empty((horizon, n, n))  # the x-error covariances themselves
     for k in range(horizon):
         pi, Qi = pis[k], Qs[k]
         FQF = F @ Qi @ np.swapaxes(F, 1, 2)
@@ -362,8 +363,8 @@ def lmmse_filter(model: AugmentedModel, T: np.ndarray, pi0: np.ndarray, x0: np.n
         Fb = FF - D @ HH
         Snu_t = Snu - D @ Snueta.T
         K = Fb @ Kf + D
-        tp[k] = np.trace(Ep @ P @ Ep.T)
-        tf[k] = np.trace(Ep @ Pf @ Ep.T)
+        cp[k], cf[k] = Ep @ P @ Ep.T, Ep @ Pf @ Ep.T
+        tp[k], tf[k] = np.trace(cp[k]), np.trace(cf[k])
         As[k], Gs[k] = FF - K @ HH, K
         Ef[k], Lf[k] = Ep @ (np.eye(r) - Kf @ HH), Ep @ Kf
         P = kalman.one(kalman.predict, Pf, Fb, 0.5 * (Snu_t + Snu_t.T))
@@ -371,7 +372,7 @@ def lmmse_filter(model: AugmentedModel, T: np.ndarray, pi0: np.ndarray, x0: np.n
     lift = np.zeros((d, n)); lift[:n] = np.eye(n); lift[n:2 * n] = np.eye(n)
     s0_map = np.concatenate([pi0[i] * lift for i in range(N)], axis=0)
     return LinearFilter("lmmse", As, Gs, Ep, Ef, Lf, s0_map @ np.asarray(x0, float), s0_map,
-                        {"pred": tp, "filt": tf})
+                        {"pred": tp, "filt": tf, "pred_cov": cp, "filt_cov": cf})
 
 
 def exact_mse(model: AugmentedModel, filt: LinearFilter, T: np.ndarray, pi0: np.ndarray,

@@ -65,13 +65,14 @@ from netkf_cli.estimators.markov_filters import (
     ModeAwareCompiled,
     ModeAwareKFTr,
     linear_filter_covariances,
+    lmmse_filter,
     naive_filter,
     pinv_psd,
     psd_sqrt,
     resolve_backend,
 )
 from netkf_cli.riccati import initial_covariance
-from netkf_cli.spec import EstimatorModel, NonNegFloat, NonNegInt, PositiveFloat
+from netkf_cli.spec import EstimatorModel, Matrix, NonNegFloat, NonNegInt, PositiveFloat
 
 
 def design_weights(rho: np.ndarray, precedence: bool = True) -> np.ndarray:
@@ -408,6 +409,8 @@ class MarkovLMIEstimator(EstimatorModel):
     backend: Literal["auto", "numpy", "numba"] = Field(
         "auto", description="mode-aware KF: auto = numba when importable (compiled run by run on kalman_numba's "
                             "primitives, measured faster), else numpy (the reference; equal to rounding)")
+    S: Matrix | None = Field(None, description="cross-covariance E[w_k v_kᵀ] (n×m) of process and measurement noise the "
+                                               "filters are built for (default 0; Moayedi's Example 1 has v = 0.2 w)")
     filter: Literal["lmi", "mode_aware", "naive", "lmmse"] = Field(
         "lmi", description="filter whose per-run error covariances the generic metrics see (the markov_filters "
                            "analysis always compares all four)")
@@ -417,8 +420,19 @@ class MarkovLMIEstimator(EstimatorModel):
         if self.filter == "lmmse":
             raise ConfigError.at("estimator.filter", "the exact LMMSE's error covariance is an expectation over all mode "
                                  "paths (Costa's construction), not a per-run quantity, so per-run metrics cannot use it; "
-                                 "use analysis kind markov_filters (exact MSE and Monte Carlo) or filter: lmi | naive | "
-                                 "mode_aware")
+                                 "use analysis kind state_error (its estimates beside that expected covariance) or "
+                                 "filter: lmi | naive | mode_aware")
+        self.check_estimates(system, channel)
+
+    def per_run_covariance(self) -> bool:
+        """The LMMSE reports E[e eᵀ] over all mode paths (the same P for every run), not each run's covariance."""
+        return self.filter != "lmmse"
+
+    def check_estimates(self, system, channel) -> None:
+        """What ``estimates`` needs (every filter, the LMMSE included: its P is the unconditional error covariance)."""
+        if self.S is not None and np.asarray(self.S, float).shape != (system.n, system.m):
+            raise ConfigError.at("estimator.S", f"must be {system.n}×{system.m} (rows = states, columns = outputs), "
+                                                f"got {np.asarray(self.S, float).shape}")
         if self.rho != "stationary":
             if len(self.rho) != N_MODES:
                 raise ConfigError.at("estimator.rho", f"needs 4 marginals ρ_1..ρ_4, got {len(self.rho)}")
@@ -442,7 +456,8 @@ class MarkovLMIEstimator(EstimatorModel):
 
     def _model(self, system):
         n = np.atleast_2d(np.asarray(system.A, float)).shape[0]
-        return AugmentedModel.build(system.A, system.C, system.Q, system.R), np.zeros(n), initial_covariance(system)
+        S = None if self.S is None else np.asarray(self.S, float)
+        return AugmentedModel.build(system.A, system.C, system.Q, system.R, S), np.zeros(n), initial_covariance(system)
 
     def covariances(self, system, trace, steps, quantities=("filtered",)):
         """Yield ``(k, {quantity: P_k})`` (n, n, runs) given the mode path of the trace (netkf's time base)."""
@@ -466,7 +481,7 @@ class MarkovLMIEstimator(EstimatorModel):
         error covariance given the mode path (the naive KF's own Riccati P, which assumes mode 1, is not
         reported), so a NEES check passes for every ``filter``."""
         qs = kalman.check_quantities(quantities, self.quantities, "markov_lmi")
-        self.check(system, None)
+        self.check_estimates(system, None)
         modes = _modes_of(trace)
         model, x0, P0 = self._model(system)
         want = sorted({int(k) for k in steps})
@@ -478,14 +493,22 @@ class MarkovLMIEstimator(EstimatorModel):
             wset = set(want)
             for t in range(want[-1]):
                 xf, _, Pfx = kf.step(y[:, t + 1], modes[t], want_cov=(t + 1) in wset)
-                if t + 1 in wset:
-                    Ps = kalman.report(Pfx, qs, model.A, model.Q)
-                    yield t + 1, {q: (xf if q == "filtered" else kf.xi[:n].copy(), P) for q, P in Ps.items()}
+                if t + 1 in wset:  # predicted: the x block of P(k+1|k) (= A P_{k|k} Aᵀ + Q when S = 0)
+                    yield t + 1, {q: (xf, Pfx) if q == "filtered" else (kf.xi[:n].copy(), kf.P[:n, :n].copy())
+                                  for q in qs}
             return
-        filt = self._fixed_gain(model, x0, P0, trace, want[-1])
+        if self.filter == "lmmse":  # Costa's exact LMMSE: the chain from the trace, P = E[e eᵀ] (the same for every run)
+            T, pi0 = (np.asarray(trace.meta.get(key), float) for key in ("transition", "initial"))
+            filt = lmmse_filter(model, T, pi0, x0, P0, want[-1] + 1, base="contract")
+            cov = {"filtered": filt.predicted["filt_cov"], "predicted": filt.predicted["pred_cov"][1:]}
+            runs = modes.shape[1]
+            covs = ((k, {q: np.repeat(cov[q][k - 1][:, :, None], runs, axis=2) for q in qs}) for k in want)
+        else:
+            filt = self._fixed_gain(model, x0, P0, trace, want[-1])
+            covs = linear_filter_covariances(model, filt, modes, x0, P0, want, qs, base="contract")
         s = np.repeat(filt.s0[:, None], modes.shape[1], axis=1)
         t = 0
-        for k, Ps in linear_filter_covariances(model, filt, modes, x0, P0, want, qs, base="contract"):
+        for k, Ps in covs:
             while t < k:  # trace step t carries z_{t+1}: x̂(t+1|t+1) = E_f s + L_f z, s ← A_s s + G_s z
                 z = y[:, t + 1]
                 xf = filt.Ef[t] @ s + filt.Lf[t] @ z
@@ -514,6 +537,14 @@ class MarkovLMIEstimator(EstimatorModel):
     def _mode_aware(self, model, x0, P0, modes, steps, qs):
         runs = modes.shape[1]
         A, Q = np.asarray(model.A, float), np.asarray(model.Q, float)
+        if np.any(model.S):  # correlated noise: P(k+1|k) is the decorrelated time update's x block, numpy path
+            kf = ModeAwareKFTr(model, runs, x0, P0, states=False, base="contract")
+            want = set(steps)
+            for t in range(steps[-1]):
+                _, _, Pfx = kf.step(None, modes[t], want_cov=(t + 1) in want)
+                if t + 1 in want:
+                    yield t + 1, {q: Pfx if q == "filtered" else kf.P[:model.n, :model.n].copy() for q in qs}
+            return
         if resolve_backend(self.backend, model.m) == "numba":
             kf = ModeAwareCompiled(model, runs, x0, P0, states=False, base="contract")
             t = 0

@@ -62,7 +62,20 @@ CASES = {
     "markov mode-aware KF": (MARKOV_SYS, MARKOV_CH, MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware")),
     "markov naive KF": (MARKOV_SYS, MARKOV_CH, MarkovLMIEstimator(kind="markov_lmi", filter="naive")),
     "markov LMI filter": (MARKOV_SYS, MARKOV_CH, MarkovLMIEstimator(kind="markov_lmi", filter="lmi")),
+    # the exact LMMSE reports E[e eᵀ] over all mode paths (the same P in every run): NEES and ‖e‖² − tr P
+    # still have mean rank P and 0 when that P is the error covariance
+    "markov exact LMMSE": (MARKOV_SYS, MARKOV_CH, MarkovLMIEstimator(kind="markov_lmi", filter="lmmse")),
 }
+# Moayedi's Example 1: the measurement noise is the process noise (v = 0.2 w): singular Σ, cross-covariance S
+EX1_SYS = LinearSystem(A=np.array([[1.7240, -0.7788], [1.0, 0.0]]), C=np.array([[0.0286, 0.0264]]),
+                       Q=np.array([[1.0, 0.0], [0.0, 0.0]]), R=np.array([[0.04]]), P0=np.zeros((2, 2)))
+EX1_S = [[0.2], [0.0]]
+EX1_CH = MarkovModesChannel(kind="markov_modes", transition=[[0.8, 0, 0.1, 0.1], [0.8, 0.1, 0.05, 0.05],
+                                                             [0.8, 0.1, 0.05, 0.05], [0.8, 0.1, 0.05, 0.05]],
+                            initial="stationary")
+for f in ("mode_aware", "naive", "lmi", "lmmse"):
+    CASES[f"markov {f}, correlated noise (Example 1)"] = (EX1_SYS, EX1_CH,
+                                                          MarkovLMIEstimator(kind="markov_lmi", filter=f, S=EX1_S))
 
 
 def _consistency(st, j, n):
@@ -79,8 +92,9 @@ def _consistency(st, j, n):
 @pytest.mark.parametrize("case", list(CASES))
 def test_empirical_error_covariance_equals_reported_P(case, quantity):
     system, channel, est = CASES[case]
+    S = np.asarray(est.S, float) if getattr(est, "S", None) is not None else None
     st = state.simulate_errors(system, channel, [est], steps=STEPS, runs=RUNS, horizon=HORIZON, seed=21,
-                               chunk=RUNS // 2, quantity=quantity)
+                               chunk=RUNS // 2, quantity=quantity, S=S)
     c = _consistency(st, 0, RUNS)
     (ne, ne_se), rank, (d, d_se) = c["nees"], c["rank"], c["d"]
     assert np.all(np.abs(ne - rank) <= Z * ne_se), (case, quantity, ne, rank, ne_se)
