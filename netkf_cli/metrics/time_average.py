@@ -23,6 +23,7 @@ from pydantic import Field, model_validator
 from netkf_cli import engine, kalman
 from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.errors import ConfigError
+from netkf_cli.metrics import derived
 from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, labels,
                                       math_text, PaperRef, Quantity)
 from netkf_cli.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
@@ -112,6 +113,12 @@ class TimeAverage(GenericMetric):
                                      "references": list(self.references),
                                      "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE} "
                                                         f"or any non-finite run"})
+
+    def finish_over(self, scenario, art: Artefact) -> Artefact:
+        """The over grid's derived tables (``pairs``: MC vs MC / closed form at each point; ``trend``: along each
+        path) beside the main table, for claims (:mod:`netkf_cli.metrics.derived`)."""
+        return Artefact(art.table, meta=art.meta,
+                        extra_tables={**art.extra_tables, **derived.tables(art.table, list(self.over or {}))})
 
     # --- the figure -------------------------------------------------------------------------------------
     def plot(self, tables, scenario):
