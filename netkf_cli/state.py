@@ -124,7 +124,7 @@ def _check_estimates(estimator, system, channel) -> None:
     if not callable(getattr(estimator, "estimates", None)):
         raise ConfigError.at("estimator.kind", f"estimator {estimator.kind!r} has no state-level estimates() "
                                                f"(`netkf list` shows which do)")
-    getattr(estimator, "check_estimates", estimator.check)(system, channel)
+    estimator.check(system, channel)
 
 
 class StateErrorKernel:

@@ -53,11 +53,13 @@ import time
 from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
+import cvxpy as cp
 import numpy as np
 from pydantic import Field
 
 from netkf_cli import kalman
 from netkf_cli.errors import ConfigError
+from netkf_cli.estimators.kf import channel_streams
 from netkf_cli.estimators.markov_filters import (
     N_MODES,
     AugmentedModel,
@@ -184,8 +186,6 @@ class _SDP:
     """The prediction and update SDPs of one design, built once with cvxpy Parameters (DPP)."""
 
     def __init__(self, blocks: _Blocks, rho, eps: float, solver: str, tol: float):
-        import cvxpy as cp
-
         self.cp = cp
         md = blocks.model
         n, m, d, p, D = blocks.n, blocks.m, blocks.d, blocks.p, blocks.D
@@ -412,24 +412,17 @@ class MarkovLMIEstimator(EstimatorModel):
     S: Matrix | None = Field(None, description="cross-covariance E[w_k v_kᵀ] (n×m) of process and measurement noise the "
                                                "filters are built for (default 0; Moayedi's Example 1 has v = 0.2 w)")
     filter: Literal["lmi", "mode_aware", "naive", "lmmse"] = Field(
-        "lmi", description="filter whose per-run error covariances the generic metrics see (the markov_filters "
-                           "analysis always compares all four)")
-
-    def check(self, system, channel) -> None:
-        """Refuse what has no per-run covariance or no model: the LMMSE's P is an expectation."""
-        if self.filter == "lmmse":
-            raise ConfigError.at("estimator.filter", "the exact LMMSE's error covariance is an expectation over all mode "
-                                 "paths (Costa's construction), not a per-run quantity, so per-run metrics cannot use it; "
-                                 "use analysis kind state_error (its estimates beside that expected covariance) or "
-                                 "filter: lmi | naive | mode_aware")
-        self.check_estimates(system, channel)
+        "lmi", description="filter whose error covariances the generic metrics see: per run given the mode path "
+                           "(lmi, naive, mode_aware), or E[e eᵀ] over all mode paths (lmmse: metrics of means only)")
 
     def per_run_covariance(self) -> bool:
-        """The LMMSE reports E[e eᵀ] over all mode paths (the same P for every run), not each run's covariance."""
+        """The exact LMMSE reports E[e eᵀ] over all mode paths (Costa's construction; the same P in every run),
+        not each run's covariance: metrics of means (mean_vs_time, time_average, state_error) may use it, per-run
+        ones (Pr[P_k ≤ M]) refuse it."""
         return self.filter != "lmmse"
 
-    def check_estimates(self, system, channel) -> None:
-        """What ``estimates`` needs (every filter, the LMMSE included: its P is the unconditional error covariance)."""
+    def check(self, system, channel) -> None:
+        """S of the right shape, 4 design marginals, one packet stream."""
         if self.S is not None and np.asarray(self.S, float).shape != (system.n, system.m):
             raise ConfigError.at("estimator.S", f"must be {system.n}×{system.m} (rows = states, columns = outputs), "
                                                 f"got {np.asarray(self.S, float).shape}")
@@ -439,8 +432,6 @@ class MarkovLMIEstimator(EstimatorModel):
             if abs(sum(self.rho) - 1) > 1e-9:
                 raise ConfigError.at("estimator.rho", f"must sum to 1, got {sum(self.rho):.12g}")
         if channel is not None:
-            from netkf_cli.estimators.kf import channel_streams
-
             S = channel_streams(channel)
             if S is not None and S != 1:
                 raise ConfigError.at("estimator.kind", f"markov_lmi models one packet per step carrying all of y_k "
@@ -471,8 +462,20 @@ class MarkovLMIEstimator(EstimatorModel):
         if self.filter == "mode_aware":
             yield from self._mode_aware(model, x0, P0, modes, steps, qs)
             return
+        if self.filter == "lmmse":
+            for k, Ps in self._lmmse(model, x0, P0, trace, steps, qs)[1]:
+                yield k, Ps
+            return
         filt = self._fixed_gain(model, x0, P0, trace, steps[-1])
         yield from linear_filter_covariances(model, filt, modes, x0, P0, steps, qs, base="contract")
+
+    def _lmmse(self, model, x0, P0, trace, want, qs):
+        """Costa's exact LMMSE for the trace's chain and (k, {q: P}) with P = E[e eᵀ] (the same for every run)."""
+        T, pi0 = (np.asarray(trace.meta.get(key), float) for key in ("transition", "initial"))
+        filt = lmmse_filter(model, T, pi0, x0, P0, want[-1] + 1, base="contract")
+        cov = {"filtered": filt.predicted["filt_cov"], "predicted": filt.predicted["pred_cov"][1:]}
+        runs = trace.runs
+        return filt, ((k, {q: np.repeat(cov[q][k - 1][:, :, None], runs, axis=2) for q in qs}) for k in want)
 
     def estimates(self, system, trace, y, steps, quantities=("filtered",)):
         """Yield (k, {quantity: (x̂ (n, runs), P (n, n, runs))}): the estimate of ``filter`` beside the P of
@@ -481,7 +484,7 @@ class MarkovLMIEstimator(EstimatorModel):
         error covariance given the mode path (the naive KF's own Riccati P, which assumes mode 1, is not
         reported), so a NEES check passes for every ``filter``."""
         qs = kalman.check_quantities(quantities, self.quantities, "markov_lmi")
-        self.check_estimates(system, None)
+        self.check(system, None)
         modes = _modes_of(trace)
         model, x0, P0 = self._model(system)
         want = sorted({int(k) for k in steps})
@@ -498,11 +501,7 @@ class MarkovLMIEstimator(EstimatorModel):
                                   for q in qs}
             return
         if self.filter == "lmmse":  # Costa's exact LMMSE: the chain from the trace, P = E[e eᵀ] (the same for every run)
-            T, pi0 = (np.asarray(trace.meta.get(key), float) for key in ("transition", "initial"))
-            filt = lmmse_filter(model, T, pi0, x0, P0, want[-1] + 1, base="contract")
-            cov = {"filtered": filt.predicted["filt_cov"], "predicted": filt.predicted["pred_cov"][1:]}
-            runs = modes.shape[1]
-            covs = ((k, {q: np.repeat(cov[q][k - 1][:, :, None], runs, axis=2) for q in qs}) for k in want)
+            filt, covs = self._lmmse(model, x0, P0, trace, want, qs)
         else:
             filt = self._fixed_gain(model, x0, P0, trace, want[-1])
             covs = linear_filter_covariances(model, filt, modes, x0, P0, want, qs, base="contract")

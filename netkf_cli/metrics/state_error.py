@@ -43,7 +43,7 @@ from netkf_cli.stats import mean_se
 Z = 5.0  # consistency tolerance in standard errors (a two-sided 5σ event has p ≈ 6e-7 per step)
 TRAJECTORY_STREAM_OFFSET = 1  # trajectories: the stream after the Monte Carlo's
 COLUMNS = ["k", "estimator", "series", "value", "stderr", "expected", "n", "nonfinite"] + LABEL_COLUMNS
-SUMMARY_COLUMNS = ["estimator", "series", "value", "stderr", "expected", "n", "window"] + LABEL_COLUMNS
+SUMMARY_COLUMNS = ["estimator", "series", "value", "stderr", "z", "expected", "n", "window"] + LABEL_COLUMNS
 SERIES_TEXT = {"empirical": "empirical E‖x − x̂‖²", "reported": "reported E[tr P]", "nees": "mean NEES"}
 
 
@@ -140,7 +140,7 @@ class StateError(GenericMetric):
             if first_of[q] != lab:
                 dm, ds = mean_se(st[f"diff_sum_{c}"], st[f"diff_sumsq_{c}"], st[f"diff_n_{c}"])
                 summary.append(dict(series=f"empirical minus {first_of[q]}", value=float(dm), stderr=float(ds),
-                                    expected=np.nan, **base))
+                                    z=float(dm / ds) if ds > 0 else np.nan, expected=np.nan, **base))
             summary += [dict(series="nees_consistent_fraction", value=float(nees_ok.mean()), stderr=np.nan,
                              expected=np.nan, **base),
                         dict(series="empirical_equals_reported_fraction", value=float(emp_ok.mean()), stderr=np.nan,
@@ -225,8 +225,8 @@ class StateError(GenericMetric):
             e = t[(t.estimator == lab) & (t.series == "nees")]
             ax.plot(e.k, e.value, color=sty["color"], ls=sty["linestyle"], lw=1.3, label=f"{lab} (band ±{Z:g} s.e.)")
             ax.fill_between(e.k, e.value - Z * e.stderr, e.value + Z * e.stderr, color=sty["color"], alpha=0.15, lw=0)
-        ex = t[t.series == "nees"].groupby("k").expected.mean()
-        ax.plot(ex.index, ex.values, color="black", lw=0.9, ls="--", label=r"$\chi^2$ expectation E[rank P]")
+            ax.plot(e.k, e.expected, color=sty["color"], lw=0.8, ls=(0, (1, 1)),
+                    label=r"dotted: each one's $\chi^2$ expectation E[rank P]" if i == 0 else "_nolegend_")
         ax.set_xlabel(r"time step $k$")
         ax.set_ylabel(r"mean NEES $e^\top P^{+} e$")
         ax.set_title("consistency: mean NEES against its chi-square expectation")
