@@ -147,6 +147,76 @@ def source(A, C, Q, R, groups, limit: float) -> str:
     return "\n".join(L) + "\n"
 
 
+def _count_step(A, C1, Q, R1, ind: str, g: str) -> list[str]:
+    """Straight-line lines of one predicted count update, from the locals ``p{i}_{j}`` (upper triangle of
+    P_{k−1|k−1}) to ``q{i}_{j}`` (P_{k|k}), count ``g`` (a float expression); raises ``flag[r]`` when the
+    prior's trace exceeds ``limit`` or is non-finite, or the update gives a NaN."""
+    n, mg = A.shape[0], C1.shape[0]
+    tri = [(i, j) for i in range(n) for j in range(i, n)]
+
+    def p(name, i, j):
+        return f"{name}{min(i, j)}_{max(i, j)}"
+
+    L = []
+    for i in range(n):
+        for j in range(n):
+            L.append(f"x{i}_{j} = {_lin([(A[i, k], p('p', k, j)) for k in range(n)])}")
+    for i, j in tri:
+        L.append(f"{p('m', i, j)} = {_lin([(A[j, k], f'x{i}_{k}') for k in range(n)])} + {_num(Q[i, j])}")
+    L.append("tr = " + " + ".join(p("m", i, i) for i in range(n)))
+    L.append("flag[r] = flag[r] or not (tr <= limit)")
+    L.append(f"g = {g}")
+    for i in range(n):
+        for a in range(mg):
+            L.append(f"u{i}_{a} = {_lin([(C1[a, k], p('m', i, k)) for k in range(n)])}")
+    for a in range(mg):
+        for b in range(a, mg):
+            L.append(f"s{a}_{b} = g * ({_lin([(C1[a, k], f'u{k}_{b}') for k in range(n)])}) + {_num(R1[a, b])}")
+    if mg >= 3:
+        for j in range(mg):
+            acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
+            L.append(f"l{j}_{j} = np.sqrt({acc})")
+            for i in range(j + 1, mg):
+                acc = " - ".join([f"s{j}_{i}"] + [f"l{i}_{k} * l{j}_{k}" for k in range(j)])
+                L.append(f"l{i}_{j} = ({acc}) / l{j}_{j}")
+        for i in range(n):
+            for a in range(mg):
+                acc = " - ".join([f"u{i}_{a}"] + [f"w{i}_{b} * l{a}_{b}" for b in range(a)])
+                L.append(f"w{i}_{a} = ({acc}) / l{a}_{a}")
+        for i, j in tri:
+            corr = " + ".join(f"w{i}_{a} * w{j}_{a}" for a in range(mg))
+            L.append(f"{p('q', i, j)} = {p('m', i, j)} - g * ({corr})")
+    else:
+        if mg == 1:
+            L.append("i0_0 = g / s0_0")
+            inv = {(0, 0): "i0_0"}
+        else:
+            L.append("det = s0_0 * s1_1 - s0_1 * s0_1")
+            L.append("i0_0 = g * s1_1 / det")
+            L.append("i1_1 = g * s0_0 / det")
+            L.append("i0_1 = -g * s0_1 / det")
+            inv = {(0, 0): "i0_0", (1, 1): "i1_1", (0, 1): "i0_1", (1, 0): "i0_1"}
+        for i in range(n):
+            for a in range(mg):
+                L.append(f"k{i}_{a} = " + " + ".join(f"u{i}_{b} * {inv[(b, a)]}" for b in range(mg)))
+        for i, j in tri:
+            corr = " + ".join(f"k{i}_{a} * u{j}_{a}" for a in range(mg))
+            L.append(f"{p('q', i, j)} = {p('m', i, j)} - ({corr})")
+    L.append("tr = " + " + ".join(p("q", i, i) for i in range(n)))
+    L.append("flag[r] = flag[r] or not (tr == tr)")
+    return [ind + x for x in L]
+
+
+def _header(fn: str, args: str, limit: float) -> list[str]:
+    return ["import numpy as np", "import numba as nb", "",
+            "@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')",
+            f"def {fn}({args}):", f"    limit = {_num(limit)}"]
+
+
+def _as2(*xs):
+    return (np.atleast_2d(np.asarray(x, dtype=float)) for x in xs)
+
+
 def source_counts(A, C1, Q, R1, limit: float) -> str:
     """The source of ``advance_counts(P, cnt, t0, t1, flag)``: the count update of N identical sensors
     (:func:`netkf_cli.kalman.update_counts`, Chiuso & Schenato eq. (14)) after the prediction, per run
@@ -156,70 +226,102 @@ def source_counts(A, C1, Q, R1, limit: float) -> str:
     (c = 0 leaves M; S⁻¹ in closed form for one or two rows, the unrolled Cholesky factor for three or
     four), the upper triangle of P as in :func:`source`, the same rescue flag (prior trace above
     ``limit`` or non-finite, or a NaN after the update: the caller redoes the run on the numpy core)."""
-    A, C1, Q, R1 = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (A, C1, Q, R1))
-    n, mg = A.shape[0], C1.shape[0]
+    A, C1, Q, R1 = _as2(A, C1, Q, R1)
+    n = A.shape[0]
     tri = [(i, j) for i in range(n) for j in range(i, n)]
+    L = _header("advance_counts", "P, cnt, t0, t1, flag", limit)
+    L += ["    runs = P.shape[1]", "    for t in range(t0, t1):", "        for r in range(runs):"]
+    L += [f"            p{i}_{j} = P[{k}, r]" for k, (i, j) in enumerate(tri)]
+    L += _count_step(A, C1, Q, R1, " " * 12, "float(cnt[t, r])")
+    L += [f"            P[{k}, r] = q{i}_{j}" for k, (i, j) in enumerate(tri)]
+    return "\n".join(L) + "\n"
 
-    def p(name, i, j):
-        return f"{name}{min(i, j)}_{max(i, j)}"
 
+def source_ibf(A, C1, Q, R1, limit: float) -> str:
+    """The source of ``ibf_eval(arrival, last, t0, t1, full, out, flag, cum)``: ``last`` (N, runs) int32
+    (the last arrival, −1 = nothing yet) advanced over trace steps t0 … t1 − 1 of ``arrival`` (N, T, runs),
+    then the infinite-bandwidth centre with N identical sensors at trace step t = t1 − 1, per run
+    (:class:`netkf_cli.estimators.fusion.IBF`): τ_i = t − last_i, K = max τ (≤ t + 1); from the full-information
+    ``full[t + 1 − K]`` (packed upper triangle, (J, n(n+1)/2)), K count steps with ℓ_b = #{i : τ_i ≤ b},
+    b = K − 1 … 0 (the count form of the sensors {i : τ_i ≤ b}); ``out`` (n(n+1)/2, runs); ``cum``
+    int64 scratch of ≥ t + 2 zeros (left zero); ``flag`` as in :func:`source_counts`."""
+    A, C1, Q, R1 = _as2(A, C1, Q, R1)
+    n = A.shape[0]
+    tri = [(i, j) for i in range(n) for j in range(i, n)]
+    L = _header("ibf_eval", "arrival, last, t0, t1, full, out, flag, cum", limit)
+    L += _advance_last()
+    L += ["    t = t1 - 1",
+          "    for r in range(runs):",
+          "        K = 0",
+          "        for i in range(N):",
+          "            tau = t - last[i, r]",
+          "            cum[tau] += 1",
+          "            if tau > K:",
+          "                K = tau",
+          "        for b in range(1, K):",
+          "            cum[b] += cum[b - 1]",
+          "        j0 = t + 1 - K"]
+    L += [f"        p{i}_{j} = full[j0, {k}]" for k, (i, j) in enumerate(tri)]
+    L += ["        for b in range(K - 1, -1, -1):"]
+    L += _count_step(A, C1, Q, R1, " " * 12, "float(cum[b])")
+    L += [f"            p{i}_{j} = q{i}_{j}" for i, j in tri]
+    L += [f"        out[{k}, r] = p{i}_{j}" for k, (i, j) in enumerate(tri)]
+    L += ["        for b in range(K + 1):", "            cum[b] = 0"]
+    return "\n".join(L) + "\n"
+
+
+def _advance_last() -> list[str]:
+    """Lines updating ``last`` (N, runs) with the arrivals of trace steps t0 … t1 − 1 (run axis innermost)."""
+    return ["    N, runs = last.shape",
+            "    for s in range(t0, t1):",
+            "        for i in range(N):",
+            "            for r in range(runs):",
+            "                if arrival[i, s, r]:",
+            "                    last[i, r] = s"]
+
+
+def source_olpef(n: int) -> str:
+    """The source of ``olpef_eval(arrival, last, t0, t1, sxx, lin, diag, TM, out, vals, cnts)`` (``last``
+    advanced as in :func:`source_ibf`, then at t = t1 − 1): OLPEF's error
+    covariance (Chiuso & Schenato eqs (10)–(11); :meth:`netkf_cli.estimators.fusion.OLPEFTables.error_cov`)
+    per run from the histogram h of the received τ_i = t − last_i ≤ t (``cnts`` float scratch of ≥ L
+    zeros, left zero; ``vals`` int64 scratch of N entries: the distinct τ): Σ = sxx − Σ_a h_a (lin_a + lin_aᵀ) + Σ_a h_a diag_a + Σ_ab h_a h_b TM_ab, symmetrized,
+    every n × n table full (lin (L, n, n), diag (L, n, n), TM (L, L, n, n)); ``out`` (n(n+1)/2, runs).
+    Returns the largest received τ: if it is ≥ L the tables were too short (those runs are wrong) and
+    the caller extends them and calls again."""
+    tri = [(i, j) for i in range(n) for j in range(i, n)]
     L = ["import numpy as np", "import numba as nb", "",
          "@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')",
-         "def advance_counts(P, cnt, t0, t1, flag):",
-         "    runs = P.shape[1]",
-         f"    limit = {_num(limit)}",
-         "    for t in range(t0, t1):",
-         "        for r in range(runs):"]
-    for k, (i, j) in enumerate(tri):
-        L.append(f"            {p('p', i, j)} = P[{k}, r]")
-    for i in range(n):
-        for j in range(n):
-            L.append(f"            x{i}_{j} = {_lin([(A[i, k], p('p', k, j)) for k in range(n)])}")
+         "def olpef_eval(arrival, last, t0, t1, sxx, lin, diag, TM, out, vals, cnts):"]
+    L += _advance_last()
+    L += ["    t = t1 - 1",
+         "    Kmax = lin.shape[0] - 1",
+         "    worst = 0",
+         "    for r in range(runs):",
+         "        m = 0",
+         "        for i in range(N):",
+         "            tau = t - last[i, r]",
+         "            if tau > t:",
+         "                continue",
+         "            if tau > worst:",
+         "                worst = tau",
+         "            if tau > Kmax:",
+         "                continue",
+         "            if cnts[tau] == 0.0:",
+         "                vals[m] = tau",
+         "                m += 1",
+         "            cnts[tau] += 1.0"]
     for i, j in tri:
-        L.append(f"            {p('m', i, j)} = {_lin([(A[j, k], f'x{i}_{k}') for k in range(n)])} + {_num(Q[i, j])}")
-    L.append("            tr = " + " + ".join(p("m", i, i) for i in range(n)))
-    L.append("            flag[r] = flag[r] or not (tr <= limit)")
-    L.append("            g = float(cnt[t, r])")
-    for i in range(n):
-        for a in range(mg):
-            L.append(f"            u{i}_{a} = {_lin([(C1[a, k], p('m', i, k)) for k in range(n)])}")
-    for a in range(mg):
-        for b in range(a, mg):
-            L.append(f"            s{a}_{b} = g * ({_lin([(C1[a, k], f'u{k}_{b}') for k in range(n)])}) + {_num(R1[a, b])}")
-    if mg >= 3:
-        for j in range(mg):
-            acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
-            L.append(f"            l{j}_{j} = np.sqrt({acc})")
-            for i in range(j + 1, mg):
-                acc = " - ".join([f"s{j}_{i}"] + [f"l{i}_{k} * l{j}_{k}" for k in range(j)])
-                L.append(f"            l{i}_{j} = ({acc}) / l{j}_{j}")
-        for i in range(n):
-            for a in range(mg):
-                acc = " - ".join([f"u{i}_{a}"] + [f"w{i}_{b} * l{a}_{b}" for b in range(a)])
-                L.append(f"            w{i}_{a} = ({acc}) / l{a}_{a}")
-        for i, j in tri:
-            corr = " + ".join(f"w{i}_{a} * w{j}_{a}" for a in range(mg))
-            L.append(f"            {p('q', i, j)} = {p('m', i, j)} - g * ({corr})")
-    else:
-        if mg == 1:
-            L.append("            i0_0 = g / s0_0")
-            inv = {(0, 0): "i0_0"}
-        else:
-            L.append("            det = s0_0 * s1_1 - s0_1 * s0_1")
-            L.append("            i0_0 = g * s1_1 / det")
-            L.append("            i1_1 = g * s0_0 / det")
-            L.append("            i0_1 = -g * s0_1 / det")
-            inv = {(0, 0): "i0_0", (1, 1): "i1_1", (0, 1): "i0_1", (1, 0): "i0_1"}
-        for i in range(n):
-            for a in range(mg):
-                L.append(f"            k{i}_{a} = " + " + ".join(f"u{i}_{b} * {inv[(b, a)]}" for b in range(mg)))
-        for i, j in tri:
-            corr = " + ".join(f"k{i}_{a} * u{j}_{a}" for a in range(mg))
-            L.append(f"            {p('q', i, j)} = {p('m', i, j)} - ({corr})")
-    L.append("            tr = " + " + ".join(p("q", i, i) for i in range(n)))
-    L.append("            flag[r] = flag[r] or not (tr == tr)")
-    for k, (i, j) in enumerate(tri):
-        L.append(f"            P[{k}, r] = {p('q', i, j)}")
+        L.append(f"        e{i}_{j} = sxx[{i}, {j}]")
+    L += ["        for q in range(m):", "            a = vals[q]", "            h = cnts[a]"]
+    for i, j in tri:
+        L.append(f"            e{i}_{j} += h * (0.5 * (diag[a, {i}, {j}] + diag[a, {j}, {i}]) - lin[a, {i}, {j}] - lin[a, {j}, {i}])")
+    L += ["            for q2 in range(m):", "                b = vals[q2]", "                hb = h * cnts[b]"]
+    for i, j in tri:
+        L.append(f"                e{i}_{j} += hb * (0.5 * (TM[a, b, {i}, {j}] + TM[a, b, {j}, {i}]))")
+    L += [f"        out[{k}, r] = e{i}_{j}" for k, (i, j) in enumerate(tri)]
+    L += ["        for q in range(m):", "            cnts[vals[q]] = 0.0"]
+    L.append("    return worst")
     return "\n".join(L) + "\n"
 
 
@@ -240,6 +342,16 @@ def kernel(A, C, Q, R, groups, limit: float):
 def kernel_counts(A, C1, Q, R1, limit: float):
     """The compiled ``advance_counts`` (:func:`source_counts`) for N identical sensors (C1, R1)."""
     return _load(source_counts(A, C1, Q, R1, limit), "netkf_mf", "advance_counts")
+
+
+def kernel_ibf(A, C1, Q, R1, limit: float):
+    """The compiled ``ibf_eval`` (:func:`source_ibf`) for N identical sensors (C1, R1)."""
+    return _load(source_ibf(A, C1, Q, R1, limit), "netkf_ibf", "ibf_eval")
+
+
+def kernel_olpef(n: int):
+    """The compiled ``olpef_eval`` (:func:`source_olpef`) for n states."""
+    return _load(source_olpef(n), "netkf_olpef", "olpef_eval")
 
 
 def _load(src: str, prefix: str, fn: str):

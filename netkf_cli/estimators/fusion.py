@@ -45,6 +45,7 @@ from netkf_cli.estimators.kf import channel_streams
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
 from netkf_cli.system import LinearSystem
+from netkf_cli.trace import Trace
 
 Strategy = Literal["mf", "ibf", "olpef"]
 STRATEGIES: tuple[str, ...] = ("mf", "ibf", "olpef")
@@ -140,9 +141,10 @@ class FusionEstimator(EstimatorModel):
                                                    "(infinite bandwidth), olpef (open-loop partial estimates, eqs 10–11); "
                                                    "the first one is what covariances() reports")
     backend: Literal["auto", "numpy", "numba"] = Field(
-        "auto", description="MF with N > 1 identical sensors: numpy (the core's count update, reference) | numba (a "
-                            "kernel generated for the system, kalman_codegen.source_counts, equal to rounding) | auto = "
-                            "numba for chunks of ≥ 2e6 run-steps when numba is importable; IBF and OLPEF run on numpy")
+        "auto", description="numpy (the reference) | numba (kernels generated for the system by kalman_codegen: MF's "
+                            "count update, IBF's count steps from the full-information P, OLPEF's τ-histogram form, "
+                            "equal to rounding; identical sensors, or MF = kf's compiled filter) | auto = numba for "
+                            "chunks of ≥ 2e6 run-steps when numba is importable")
 
     def check(self, system, channel) -> None:
         """The channel's streams must be the system's sensors; OLPEF needs identical sensors and a stable A."""
@@ -166,11 +168,13 @@ class FusionEstimator(EstimatorModel):
         """The backend a chunk of ``runs`` × ``horizon`` runs on (recorded in the manifest)."""
         S = channel_streams(channel)
         sens = Sensors.of(system, S, "estimator.kind") if S is not None else None
-        if self.strategies[0] != "mf" or sens is None:
+        if sens is None:
             return "numpy"
-        if sens.N == 1 or not sens.identical:
+        if sens.identical and (sens.N > 1 or self.strategies[0] != "mf"):
+            return _mf_backend(self.backend, sens, runs * horizon)
+        if self.strategies[0] == "mf":
             return kalman.choose_backend(self.backend, sens.filt, runs * horizon)
-        return _mf_backend(self.backend, sens, runs * horizon)
+        return "numpy"
 
     def covariances(self, system, trace, steps, quantities=("filtered",)):
         """Yield ``(k, {quantity: P})`` of ``strategies[0]``, P shaped (n, n, runs), for k in ``steps``."""
@@ -196,6 +200,9 @@ class FusionEstimator(EstimatorModel):
             tables = OLPEFTables(A, sens.C1, Q, sens.R1, sens.N)
         else:
             ibf = IBF(sens, P0)
+        if sens.identical and _mf_backend(self.backend, sens, trace.runs * trace.horizon) == "numba":
+            yield from _history_compiled(strat, sens, ibf if strat == "ibf" else tables, trace, want, qs)
+            return
         for k, tau in _taus(trace.arrival, want):
             t = k - 1
             if strat == "ibf":
@@ -285,6 +292,51 @@ def _mf_compiled(sens: Sensors, P: np.ndarray, counts: np.ndarray, want, qs):
         if idx.size:
             out[:, :, idx] = Pn
         yield k, kalman.report(out, qs, A, Q)
+
+
+def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
+    """IBF / OLPEF with N identical sensors on the generated kernels (:func:`kalman_codegen.source_ibf`,
+    :func:`~netkf_cli.kalman_codegen.source_olpef`): per reported step, each run's τ from the last
+    arrivals (N, runs) and the evaluation in one compiled pass (IBF: K count steps from the
+    full-information P; OLPEF: the quadratic form in the τ histogram). IBF runs flagged by the Rescue
+    test are redone on the numpy :class:`IBF`."""
+    A, Q = sens.filt.A, sens.filt.Q
+    n, N, runs = A.shape[0], sens.N, trace.runs
+    last = np.full((N, runs), -1, dtype=np.int32)
+    out = np.empty((n * (n + 1) // 2, runs))
+    arrival = np.ascontiguousarray(trace.arrival)
+    if strat == "ibf":
+        kern = kc.kernel_ibf(A, sens.C1, Q, sens.R1, sens.filt.rescue.limit)
+        full = np.ascontiguousarray(np.stack([kc.pack(model._full(j))[:, 0] for j in range(trace.horizon + 1)]))
+        cum = np.zeros(trace.horizon + 2, dtype=np.int64)
+        flag = np.zeros(runs, dtype=np.bool_)
+    else:
+        kern = kc.kernel_olpef(n)
+        vals, cnts = np.zeros(N, dtype=np.int64), np.zeros(trace.horizon + 2)
+
+        def tabs():
+            return (np.ascontiguousarray(model.sxxM), np.ascontiguousarray(model.linM),
+                    np.ascontiguousarray(model.diagM), np.ascontiguousarray(model.TM))
+        tab = tabs()
+    t = 0
+    for k in want:
+        tt = k - 1
+        if strat == "ibf":
+            flag[:] = False
+            kern(arrival, last, t, k, full, out, flag, cum)
+            P = kc.unpack(out, n)
+            idx = np.flatnonzero(flag)
+            if idx.size:
+                P[:, :, idx] = model.at(tt - last[:, idx], tt)
+        else:
+            worst = kern(arrival, last, t, k, *tab, out, vals, cnts)
+            if worst > model._K:
+                model._extend(int(worst))
+                tab = tabs()
+                kern(arrival, last, k, k, *tab, out, vals, cnts)
+            P = kc.unpack(out, n)
+        t = k
+        yield k, kalman.report(P, qs, A, Q)
 
 
 def _taus(arrival: np.ndarray, want):
@@ -492,8 +544,6 @@ def time_averages(system, trace, burn_in: int, strategies=STRATEGIES) -> dict[st
 
 def fusion_averages_tr(arrival: np.ndarray, A, C, Q, R, P0, burn_in: int, strategies=STRATEGIES) -> dict[str, np.ndarray]:
     """:func:`time_averages` for N identical sensors (C, R) from an arrival array (N, T, runs); ``P0`` = P_{0|0}."""
-    from netkf_cli.trace import Trace
-
     N, T, runs = arrival.shape
     return time_averages(identical_sensors(A, C, Q, R, N, P0), Trace(runs=runs, horizon=T, arrival=arrival), burn_in,
                          strategies)

@@ -449,15 +449,41 @@ def test_compiled_mf_equals_numpy_on_the_same_counts(name):
 
 
 @needs_numba
-def test_auto_picks_the_compiled_mf_when_numba_is_present_and_numpy_when_hidden(monkeypatch):
+def test_auto_picks_the_compiled_kernels_when_numba_is_present_and_numpy_when_hidden(monkeypatch):
     N = 25
     system = identical_sensors(0.9, 1.0, 1e-3, 10.0, N)
     ch = MultiChannel(kind="multi", sensors=N, loss=0.5, sampling="counts")
     est = FusionEstimator(kind="fusion", strategies=["mf"])
     assert est.backend_used(system, ch, 20_000, 200) == "numba"
     assert est.backend_used(system, ch, 100, 10) == "numpy"  # small chunks: not worth a compile
-    assert FusionEstimator(kind="fusion", strategies=["ibf"]).backend_used(system, ch, 20_000, 200) == "numpy"
+    assert FusionEstimator(kind="fusion", strategies=["ibf"]).backend_used(system, ch, 20_000, 200) == "numba"
+    assert FusionEstimator(kind="fusion", strategies=["olpef"], backend="numpy").backend_used(system, ch, 20_000, 200) == "numpy"
     monkeypatch.setattr(kalman, "numba_available", lambda: False)
     assert est.backend_used(system, ch, 20_000, 200) == "numpy"
     with pytest.raises(ConfigError, match="numba"):
         FusionEstimator(kind="fusion", strategies=["mf"], backend="numba").backend_used(system, ch, 20_000, 200)
+
+
+@needs_numba
+@pytest.mark.parametrize("strategy, name", [("ibf", "scalar"), ("ibf", "2-state"), ("ibf", "vehicle"), ("ibf", "huge-A"),
+                                            ("olpef", "scalar"), ("olpef", "2-state"), ("olpef", "vehicle")])
+def test_compiled_ibf_and_olpef_equal_numpy_on_the_same_trace(strategy, name):
+    """kalman_codegen.source_ibf / source_olpef = the numpy IBF / OLPEFTables to rounding on one trace, at
+    every reported step (long gaps: loss 0.8 and a horizon past OLPEF's first 16 lags; A = 10⁶ flags
+    every IBF run, redone on the numpy IBF)."""
+    Av = 0.95 * np.array([[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    cases = {"scalar": (0.9, 1.0, 1e-3, 10.0), "2-state": (A2, C2, Q2, R2),
+             "vehicle": (Av, np.hstack([np.eye(2), np.zeros((2, 2))]), 0.01 * np.eye(4), 0.001 * np.eye(2)),
+             "huge-A": ([[1e6, 0], [0, 0.5]], [[1.0, 1.0]], np.eye(2), [[1.0]])}
+    A, C, Q, R = cases[name]
+    N, runs, T = 5, 600, 40
+    system = identical_sensors(A, C, Q, R, N)
+    tr = _trace(N, 0.8, runs, T, seed=9)
+    steps = [1, 2, 3, 10, 11, 25, 39, 40]
+    a = _all(FusionEstimator(kind="fusion", strategies=[strategy], backend="numpy"), system, tr, steps)
+    b = _all(FusionEstimator(kind="fusion", strategies=[strategy], backend="numba"), system, tr, steps)
+    for k in steps:
+        for q in BOTH:
+            fin = np.isfinite(a[k][q])
+            np.testing.assert_array_equal(fin, np.isfinite(b[k][q]))
+            np.testing.assert_allclose(b[k][q][fin], a[k][q][fin], rtol=1e-9, atol=1e-12 * np.abs(a[k][q][fin]).max())
