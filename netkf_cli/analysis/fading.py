@@ -389,3 +389,215 @@ def doppler_hz(speed_mps: float, carrier_hz: float) -> float:
 def jakes_autocorr(lags, doppler: float, dt: float):
     """E h[t] h*[t−k] / E|h|² = J₀(2π f_D k dt) (eq. 65)."""
     return special.j0(2 * np.pi * doppler * dt * np.asarray(lags, dtype=float))
+
+
+# --------------------------------------------------------------------------- references of the generic metrics
+#
+# Providers for ``analysis.references`` (netkf_cli/analysis/references.py): plain numbers in, rows out.
+# netkf's time base: the receiver starts from P_{0|0} = system.P0; ``predicted`` at step k is P_{k+1|k},
+# the paper's P[k] started from P[0] = P_{1|0} = A P0 Aᵀ + Q; ``filtered`` at k is P_{k|k}.
+
+
+def _snr_linear(snr: dict) -> float:
+    """An SNR dict {value, unit} (a channel's or an estimator's model_dump) → linear."""
+    v = float(snr["value"])
+    return float(db_to_linear(v)) if snr["unit"] == "dB" else v
+
+
+def _noise_ab(noise: dict) -> tuple[float, float] | None:
+    """(α, δ) of a ``ber`` noise dict, None for any other model."""
+    if noise.get("model") != "ber":
+        return None
+    if noise.get("alpha") is not None:
+        return float(noise["alpha"]), float(noise["delta"])
+    return noise_params_from_bits(int(noise["N_p"]), float(noise["Delta"]))
+
+
+def _mats(system):
+    return tuple(np.atleast_2d(np.asarray(getattr(system, x), dtype=float)) for x in ("A", "C", "Q", "R"))
+
+
+def _p00(system, A, Q):
+    """P_{0|0} (system.P0; None = P̄, the steady state: refused, the receivers' closed forms need a start)."""
+    if system.P0 is None:
+        return None
+    return np.atleast_2d(np.asarray(system.P0, dtype=float))
+
+
+def _steps(point) -> tuple[str, list[int]]:
+    """How the metric reads time: ('average', ks) for time_average over k in (burn_in, horizon], ('each', ks)
+    for mean_vs_time (one row per k), ('stationary', []) for a time_average whose horizon the point does not
+    carry (the k → ∞ limit then; exact only once the burn-in has forgotten P0)."""
+    m = point.metric
+    mc = getattr(point, "montecarlo", None) or {}
+    mc = mc if isinstance(mc, dict) else mc.model_dump()
+    H = mc.get("horizon", getattr(point, "horizon", None))
+    burn = mc.get("burn_in", getattr(point, "burn_in", 0)) or 0
+    if m.get("kind") == "time_average":
+        return ("average", list(range(int(burn) + 1, int(H) + 1))) if H else ("stationary", [])
+    if not H:
+        raise ValueError(f"{m.get('kind')}: the closed form needs the horizon (references.Point.montecarlo)")
+    return "each", list(range(1, int(H) + 1))
+
+
+def _paths(pred: np.ndarray, filt: np.ndarray, mode: str, ks: list[int], quantities) -> list[tuple[str, int | None, float]]:
+    """(quantity, k or None, tr) rows from per-step mean matrices pred[k] = E P_{k+1|k}, filt[k] = E P_{k|k}."""
+    out = []
+    with np.errstate(over="ignore", invalid="ignore"):
+        tr = {"predicted": np.trace(pred, axis1=1, axis2=2), "filtered": np.trace(filt, axis1=1, axis2=2)}
+    for q in quantities:
+        if q not in tr:
+            continue
+        if mode in ("average", "stationary"):  # stationary: the arrays hold the k → ∞ limit at index 0
+            out.append((q, None, float(np.mean(tr[q][ks or [0]]))))
+        else:
+            out.extend((q, k, float(tr[q][k])) for k in ks)
+    return out
+
+
+def _rows(series: str, label: str, items, extra=None) -> list[dict]:
+    rows = []
+    for q, k, v in items:
+        r = dict(series=series, value=v, estimator=label, quantity=q, **(extra or {}))
+        if k is not None:
+            r["k"] = k
+        rows.append(r)
+    return rows
+
+
+def _threshold(e: dict, channel: dict) -> float | None:
+    """A receiver's Υ_T (linear): its own ``threshold``, else the channel's; None for any other estimator."""
+    if e.get("kind") != "receiver":
+        return None
+    T = e.get("threshold") or channel.get("threshold")
+    return None if T is None else _snr_linear(T)
+
+
+def _iid_fading(point) -> bool:
+    ch = point.channel
+    return bool(ch) and "snr_avg" in ch and ch.get("correlation", {}).get("model", "iid") == "iid"
+
+
+def scenario2_exact(point) -> list[dict]:
+    """Mostofi & Murray 2009, eq. (14): exact E tr P of receiver scenario 2 (invertible C, ber noise, i.i.d. Υ).
+
+    E P_{k+1|k} = μ A E P_{k|k−1} Aᵀ + Θ, Θ = Q + A C⁻¹(σ²_n,ave I + (1 − μ) R) C⁻ᵀ Aᵀ (eqs 14, 38), from
+    P_{1|0} = A P0 Aᵀ + Q; E P_{k|k} = μ E P_{k|k−1} + C⁻¹(σ²_n,ave I + (1 − μ) R) C⁻ᵀ. μ = μ_ave(Υ_T)
+    (eq. 15), σ²_n,ave (eq. 16). Rows per scenario-2 receiver; none where the form does not apply."""
+    if not _iid_fading(point):
+        return []
+    ab = _noise_ab(point.channel.get("noise", {}))
+    A, C, Q, R = _mats(point.system)
+    P00 = _p00(point.system, A, Q)
+    if ab is None or P00 is None or C.shape[0] != C.shape[1] or abs(np.linalg.det(C)) < 1e-12:
+        return []
+    Ya = _snr_linear(point.channel["snr_avg"])
+    mode, ks = _steps(point)
+    K = max(ks, default=0)
+    Ci = np.linalg.inv(C)
+    rows = []
+    for e, lab in zip(point.estimators, point.labels):
+        T = _threshold(e, point.channel)
+        if T is None or e.get("scenario") != 2:
+            continue
+        mu, s2 = float(mu_ave(T, Ya)), float(sigma2_n_ave(T, Ya, *ab))
+        Z = Ci @ (s2 * np.eye(C.shape[0]) + (1 - mu) * R) @ Ci.T
+        if mode == "stationary":  # eq. (20); ∞ at or beyond the stability limit μ ρ_max² ≥ 1 (eq. 19)
+            stable = mu * rho_max(A) ** 2 < 1
+            pred = (ep_inf(A, C, Q, mu, s2, R) if stable else np.full(A.shape, np.inf))[None]
+            filt = mu * pred + Z
+            series = "scenario 2, exact E P[∞] (eq. 20)"
+        else:
+            pred = ep_recursion(A, C, Q, mu, s2, A @ P00 @ A.T + Q, K, R)          # pred[k] = E P_{k+1|k}
+            filt = np.concatenate([P00[None], mu * pred[:-1] + Z])                # filt[k] = E P_{k|k}
+            series = "scenario 2, exact mean (eq. 14)"
+        rows += _rows(series, lab, _paths(pred, filt, mode, ks, point.quantities))
+    return rows
+
+
+def lemma5_lower_bound(point) -> list[dict]:
+    """Mostofi & Murray 2009, Lemma 5 (eq. 32): E P₁ of scenario 1 with R = 0, a lower bound on every receiver.
+
+    X_{k+1} = μ A X_k Aᵀ + Q from X = P_{1|0} (predicted), μ X_{k−1} for P_{k|k} (a kept packet's
+    update is ⪰ 0 for any receiver, so E P_{k+1|k} ⪰ μ A E P_{k|k−1} Aᵀ + Q: the bound holds for any C
+    and receivers 1, 2 and 3). Rows per receiver of scenario 3 (the lemma's case)."""
+    if not _iid_fading(point):
+        return []
+    A, C, Q, R = _mats(point.system)
+    P00 = _p00(point.system, A, Q)
+    if P00 is None:
+        return []
+    Ya = _snr_linear(point.channel["snr_avg"])
+    mode, ks = _steps(point)
+    K = max(ks, default=0)
+    rows = []
+    for e, lab in zip(point.estimators, point.labels):
+        T = _threshold(e, point.channel)
+        if T is None or e.get("scenario") != 3:
+            continue
+        mu = float(mu_ave(T, Ya))
+        if mode == "stationary":
+            stable = mu * rho_max(A) ** 2 < 1
+            pred = (solve_discrete_lyapunov(math.sqrt(mu) * A, Q) if stable else np.full(A.shape, np.inf))[None]
+            filt = mu * pred
+        else:
+            pred = lower_bound_recursion(A, Q, mu, A @ P00 @ A.T + Q, K)
+            filt = np.concatenate([P00[None], mu * pred[:-1]])
+        rows += _rows("Lemma 5 lower bound (eq. 32)", lab, _paths(pred, filt, mode, ks, point.quantities))
+    return rows
+
+
+def _theorem4_case(point):
+    """(a, β, Υ_ave, P[0] = P_{1|0}) when the point is Theorem 4's case, else None."""
+    if not _iid_fading(point) or point.channel.get("noise", {}).get("model") != "inverse_snr":
+        return None
+    A, C, Q, R = _mats(point.system)
+    P00 = _p00(point.system, A, Q)
+    if A.shape != (1, 1) or P00 is None or abs(C[0, 0] - 1) > 0 or Q[0, 0] != 0 or not A[0, 0] > 1:
+        return None
+    a = float(A[0, 0])
+    return a, float(point.channel["noise"]["beta"]), _snr_linear(point.channel["snr_avg"]), a * a * float(P00[0, 0])
+
+
+def _theorem4_receivers(point):
+    for e, lab in zip(point.estimators, point.labels):
+        if e.get("scenario") == 3 and _threshold(e, point.channel) == 0:
+            yield lab
+
+
+def theorem4(point) -> list[dict]:
+    """Mostofi & Murray 2009, Theorem 4 (eqs 56–57): E P[k] of scenario 3, Υ_T = 0, σ_n² = β/Υ, A = a > 1, C = 1, Q = 0.
+
+    P[0] = P_{1|0} = a² P0; ``predicted`` at k is P[k] (eq. 56), ``filtered`` P_{k|k} = P[k]/a². R must be
+    negligible (eq. 51 has R = 0; the system needs R > 0)."""
+    case = _theorem4_case(point)
+    if case is None:
+        return []
+    a, beta, Ya, Pstart = case
+    mode, ks = _steps(point)
+    if mode == "stationary":  # E P[k] settles within a few steps (eq. 51 contracts); k = 400 is its limit
+        pred = theorem4_mean(a, beta, Ya, Pstart, 400)[-1:, None, None]
+    else:
+        pred = theorem4_mean(a, beta, Ya, Pstart, max(ks, default=0))[:, None, None]
+    filt = pred / (a * a)  # P_{k|k} = (P_{k+1|k} − Q)/a², Q = 0
+    rows = []
+    for lab in _theorem4_receivers(point):
+        rows += _rows("Theorem 4, eq. (56)", lab, _paths(pred, filt, mode, ks, point.quantities))
+    return rows
+
+
+def theorem4_quadrature_rows(point) -> list[dict]:
+    """Mostofi & Murray 2009, eq. (51) by nested quadrature for k = 1, 2 (an independent check of eq. 56)."""
+    case = _theorem4_case(point)
+    mode, ks = _steps(point)
+    if case is None or mode != "each":
+        return []
+    a, beta, Ya, Pstart = case
+    vals = {k: theorem4_quadrature(a, beta, Ya, Pstart, k) for k in (1, 2) if k in ks}
+    rows = []
+    for lab in _theorem4_receivers(point):
+        for q in point.quantities:
+            if q in ("predicted", "filtered"):
+                rows += [dict(series="nested quadrature of eq. (51)", value=v / (a * a if q == "filtered" else 1.0),
+                              estimator=lab, quantity=q, k=k) for k, v in vals.items()]
+    return rows

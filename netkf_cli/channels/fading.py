@@ -221,6 +221,8 @@ class FadingChannel(ChannelModel):
     correlation: IidCorrelation | JakesCorrelation = Field(IidCorrelation(model="iid"), discriminator="model",
                                                            description="time correlation of the gain h: iid or jakes (eq. 65)")
     noise: NoiseModel = Field(description="communication-noise variance σ_n²(Υ)")
+    threshold: Snr | None = Field(None, description="drop threshold Υ_T (eq. 5) of every receiver that gives none "
+                                                    "(one place to sweep it: analysis.over {channel.threshold.value: …})")
 
     @model_validator(mode="after")
     def _positive(self):
@@ -244,7 +246,8 @@ class FadingChannel(ChannelModel):
         """
         return Trace(runs=runs, horizon=horizon, snr=self.sample(rng, runs, horizon).snr,
                      meta={"noise": NoiseFn.of(self.noise), "snr_avg": self.mean_snr,
-                           "correlation": self.correlation.model})
+                           "correlation": self.correlation.model,
+                           "threshold": None if self.threshold is None else self.threshold.linear})
 
     def snr_law(self) -> dict:
         """What closed forms may use: Υ is exponential with mean Υ_ave (Rayleigh, eq. 3); i.i.d. or Jakes (eq. 65).

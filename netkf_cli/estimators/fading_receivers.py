@@ -49,6 +49,7 @@ from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
+from scipy import special
 
 from netkf_cli import kalman
 from netkf_cli.analysis import fading as fa
@@ -77,7 +78,7 @@ class ReceiverEstimator(EstimatorModel):
     kind: Literal["receiver"]
     scenario: Literal[1, 2, 3] = Field(description="1: drop erroneous packets (eqs 7–8); 2: no cross-layer path "
                                                    "(eqs 10–13); 3: cross-layer path (eqs 27–28)")
-    threshold: Snr | None = Field(None, description="drop threshold Υ_T with unit (analyses that sweep Υ_T ignore it)")
+    threshold: Snr | None = Field(None, description="drop threshold Υ_T with unit (default: the channel's `threshold`)")
     backend: BackendKind = Field("auto", description="numpy (reference) | numba (compiled, equal to rounding) | "
                                                      "auto = numba when importable")
     def for_means(self, channel) -> "ReceiverEstimator":
@@ -107,8 +108,9 @@ class ReceiverEstimator(EstimatorModel):
         if "snr" not in getattr(channel, "trace_kinds", frozenset()):
             raise ConfigError.at("estimator.kind", "the fading receivers need a channel with an SNR trace "
                                                    "(kind: fading); compatible trace kinds: snr")
-        if self.threshold is None:
-            raise ConfigError.at("estimator.threshold", "give the drop threshold Υ_T, e.g. {value: 14, unit: linear}")
+        if self.threshold is None and getattr(channel, "threshold", None) is None:
+            raise ConfigError.at("estimator.threshold", "give the drop threshold Υ_T, e.g. {value: 14, unit: linear} "
+                                                        "(here or as the channel's `threshold`)")
         if self.scenario == 2 and system.m > system.n:
             raise ConfigError.at("system.C", "scenario 2 needs at most as many outputs as states")
         kalman.stream_rows(system, 1, "estimator.kind")  # one packet per step carries all of y_k
@@ -142,7 +144,9 @@ class ReceiverEstimator(EstimatorModel):
         if noise is None or trace.snr is None:
             raise ConfigError.at("channel", "the receiver needs an SNR trace with its noise model (channel kind fading)")
         rm = self.model(system, noise)
-        T = self.threshold.linear
+        T = self.threshold.linear if self.threshold is not None else trace.meta.get("threshold")
+        if T is None:
+            raise ConfigError.at("estimator.threshold", "give the drop threshold Υ_T (here or as the channel's `threshold`)")
         cond = self.variance_reduction == "conditioned"
         B = trace.runs
         if cond:
@@ -273,7 +277,7 @@ def true_cov(state):
 def numba_available() -> bool:
     """True iff numba can be imported (``backend: auto`` then compiles)."""
     try:
-        import numba  # noqa: F401
+        import numba  # noqa: F401  (optional: probed only, never required)
     except ImportError:
         return False
     return True
@@ -313,7 +317,7 @@ class Stepper:
                 self.Uf = np.repeat(np.asarray(U0, dtype=float)[:, :, None], B, axis=2)
                 self.U = predict(rm, [self.Uf])[0]
         if self.backend == "numba":
-            from netkf_cli.estimators import _fading_numba as fnb
+            from netkf_cli.estimators import _fading_numba as fnb  # needs numba (optional): compiled recursion
 
             self._fnb = fnb
             self._mode = fnb.mode_of(rm)
@@ -788,8 +792,6 @@ class BurstSMCKernel:
         self.burst_lags = tuple(int(x) for x in burst_lags if x < horizon)
 
     def __call__(self, rng: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
-        from scipy import special
-
         T, H, Lf, K = self.thresholds, self.horizon, self.factor, self.K
         G = len(T)
         n = self.M1.shape[1]

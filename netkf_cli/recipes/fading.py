@@ -215,7 +215,9 @@ class FadingNoiseCurves(AnalysisModel):
 
 
 class FadingAverages(AnalysisModel):
-    """``kind: fading_averages`` — Fig. 4: μ_ave(Υ_T) and σ²_n,ave(Υ_T), eqs (15)–(16): closed form, quadrature, Monte Carlo."""
+    """``kind: fading_averages`` — Fig. 4: μ_ave(Υ_T) and σ²_n,ave(Υ_T), eqs (15)–(16): closed form and quadrature.
+
+    (The Monte Carlo check of both, from FadingChannel.sample_trace, is tests/fading/test_references.py.)"""
 
     kind: Literal["fading_averages"]
     thresholds: Grid = Field(description="the drop thresholds Υ_T (eq. 5) with their unit")
@@ -225,22 +227,14 @@ class FadingAverages(AnalysisModel):
         a, d = _ber_params(ch)
         Ya = ch.mean_snr
         T = self.thresholds.linear
-        N = ctx.mc_runs(scenario)
-
-        mc = run_chunked(fr.FadingAveragesKernel(ch, T), N, scenario.montecarlo.chunk, scenario.montecarlo.seed,
-                         stream=0, progress=ctx.progress, label="fading_averages")
         rows = []
-        mu_mc = mc["drop"] / N
-        s2_mc = mc["s2"] / N
-        s2_se = np.sqrt(np.maximum(mc["s2sq"] / N - s2_mc**2, 0) / (N - 1))
-        for quantity, closed, quad, m, se in (
-            ("mu_ave", fa.mu_ave(T, Ya), [fa.mu_ave_quad(t, Ya) for t in T], mu_mc, np.sqrt(mu_mc * (1 - mu_mc) / N)),
-            ("sigma2_n_ave", fa.sigma2_n_ave(T, Ya, a, d), [fa.sigma2_n_ave_quad(t, Ya, a, d) for t in T], s2_mc, s2_se),
+        for quantity, closed, quad in (
+            ("mu_ave", fa.mu_ave(T, Ya), [fa.mu_ave_quad(t, Ya) for t in T]),
+            ("sigma2_n_ave", fa.sigma2_n_ave(T, Ya, a, d), [fa.sigma2_n_ave_quad(t, Ya, a, d) for t in T]),
         ):
-            for method, v, e, n in (("closed_form", closed, np.nan, np.nan), ("quadrature", quad, np.nan, np.nan),
-                                    ("monte_carlo", m, se, N)):
+            for method, v in (("closed_form", closed), ("quadrature", quad)):
                 rows.append(pd.DataFrame({**_thr_cols(T), "quantity": quantity, "series": f"{quantity}_{method}",
-                                          "method": method, "value": v, "stderr": e, "n": n}))
+                                          "method": method, "value": v}))
         table = pd.concat(rows, ignore_index=True)
         return Artefact(table, meta={"snr_avg_linear": Ya, "alpha": a, "delta": d,
                                      "threshold_unit_in_table": "threshold linear, threshold_db in dB"})
@@ -257,9 +251,6 @@ class FadingAverages(AnalysisModel):
             ax.plot(cf.threshold, cf.value, ls="-", color=PALETTE[0], label=f"{lab}, closed form")
             qd = g[g.method == "quadrature"]
             ax.plot(qd.threshold, qd.value, "o", mfc="none", ms=8, color=PALETTE[1], ls="none", label=f"{lab}, quadrature")
-            mc = g[g.method == "monte_carlo"]
-            ax.errorbar(mc.threshold, mc.value, yerr=5 * mc.stderr, fmt="x", ms=5, color=PALETTE[2],
-                        label=rf"{lab}, Monte Carlo $\pm$5 s.e.")
             ax.set_xlabel(r"drop threshold $\Upsilon_T$ (linear power ratio)")
             ax.set_ylabel(ylab)
             if i == 1:
@@ -348,136 +339,6 @@ class FadingScenario2Steady(AnalysisModel):
         legend_outside(ax)
         footnote(fig, "eq. (20) by a discrete Lyapunov solve; the curves start at the smallest positive grid "
                       "threshold; Theorem 1 assumes a symmetric A (not the case here)")
-        return fig
-
-
-# --------------------------------------------------------------------------- Fig. 6 and Sec. 4.2
-
-
-class FadingReceivers(AnalysisModel):
-    """``kind: fading_receivers`` — ‖E P[k]‖ after ``horizon`` steps vs Υ_T for receiver scenarios (Fig. 6, Sec. 4.2).
-
-    i.i.d. channel. Series per scenario s: ``s{s}_exact`` where the mean has a closed form
-    (scenario 2 with an invertible C: eq. 14), else ``s{s}_conditioned`` — the burst-conditioned
-    Monte Carlo estimator (Rao–Blackwellized over σ_n² for scenario 2), unbiased with a small,
-    finite variance; ``s1_R0_exact`` is Lemma 5's lower bound for scenario 3 (eq. 32). The plain
-    sample mean of P[k] along the simulated paths is heavy-tailed (infinite variance once
-    μ ρ_max⁴ ≥ 1) and goes to the diagnostic table ``path_mean`` only (never plotted).
-    """
-
-    kind: Literal["fading_receivers"]
-    thresholds: Grid = Field(description="the drop thresholds Υ_T (eq. 5) with their unit")
-    scenarios: list[Literal[1, 2, 3]] = Field([2, 3], min_length=1, description="receiver scenarios to compare (1, 2, 3)")
-    backend: fr.BackendKind = Field("auto", description="Monte Carlo backend: numpy | numba | auto (numba if importable)")
-    paper_figure: str | None = Field(None, description="the paper's figure this reproduces (title), e.g. 'Fig. 6'")
-
-    def compute(self, scenario, ctx: RunContext) -> Artefact:
-        ch = _fading(scenario, iid_only=True)
-        s = scenario.linear_system()
-        P0 = _P0(s)
-        Ya = ch.mean_snr
-        T = self.thresholds.linear
-        G = len(T)
-        H = scenario.montecarlo.horizon
-        N = ctx.mc_runs(scenario)
-        mus = fa.mu_ave(T, Ya)
-        rho = fa.rho_max(s.A)
-        square = s.m == s.n and abs(np.linalg.det(s.C)) > 1e-12
-        has_exact2 = square and ch.noise.model == "ber"
-        models = {sc: _receiver_model(scenario, sc, s) for sc in self.scenarios if not (sc == 2 and has_exact2)}
-        backend = fr.resolve_backend(self.backend, s.n)
-        frames, paths = [], []
-        if models:
-            kern = fr.ReceiverMeanKernel(models, T, Ya, P0, H, backend=backend)
-            tot = run_chunked(kern, N, scenario.montecarlo.chunk, scenario.montecarlo.seed, stream=0,
-                              progress=ctx.progress, label="fading_receivers")
-            for sc in models:
-                for lab in ("conditioned", "path"):
-                    t = {k: tot[f"s{sc}_{lab}_{k}"] for k in fr.STAT_KEYS}
-                    fv = np.ones(G, bool) if lab == "conditioned" else mus * rho**4 < 1
-                    df = _summ(t, N, f"s{sc}_{lab}" if lab == "conditioned" else f"s{sc}_path_mean", fv)
-                    df.insert(0, "scenario", sc)
-                    df.insert(1, "method", "conditioned" if lab == "conditioned" else "path_mean")
-                    for k, v in _thr_cols(T).items():
-                        df.insert(2, k, v)
-                    (frames if lab == "conditioned" else paths).append(df)
-        exact = []
-        if has_exact2 and 2 in self.scenarios:
-            a, d = ch.noise.params
-            exact.append(("s2_exact", 2, [fa.spectral_norm(fa.ep_recursion(s.A, s.C, s.Q, m_, float(fa.sigma2_n_ave(t_, Ya, a, d)), P0, H, s.R)[-1]) for m_, t_ in zip(mus, T)]))
-        if 3 in self.scenarios:
-            exact.append(("s1_R0_exact", 1, [fa.spectral_norm(fa.lower_bound_recursion(s.A, s.Q, m_, P0, H)[-1]) for m_ in mus]))
-        for lab, sc, v in exact:
-            frames.append(pd.DataFrame({"scenario": sc, "method": "exact", **{k: v_ for k, v_ in _thr_cols(T).items()},
-                                        "series": lab, "value": v, "stderr": 0.0, "n": np.nan, "ess_frac": np.nan,
-                                        "finite_variance": 1, "reliable": 1, "overflowed": 0.0}))
-        table = pd.concat(frames, ignore_index=True)
-        # the best threshold per scenario (exact mean where it exists, else the conditioned estimator's
-        # reliable points), with the set of thresholds statistically indistinguishable from it
-        # (within 2 combined standard errors): an argmin of a flat objective is an interval
-        opt = []
-        for sc in self.scenarios:
-            g = table[table.series == f"s{sc}_exact"]
-            if not len(g):
-                g = table[(table.series == f"s{sc}_conditioned") & (table.reliable == 1)]
-            g = g.reset_index(drop=True)
-            if not len(g):
-                continue
-            i = int(np.nanargmin(g.value.to_numpy()))
-            near = g[(g.value - g.value[i]) <= 2 * np.hypot(g.stderr, g.stderr[i])]
-            opt.append({"scenario": sc, "quantity": "argmin_exact" if g.method[0] == "exact" else "argmin_conditioned",
-                        "threshold": g.threshold[i], "value": g.value[i], "stderr": g.stderr[i],
-                        "threshold_low": near.threshold.min(), "threshold_high": near.threshold.max()})
-        opt.append({"scenario": 0, "quantity": "stability_limit_eq19", "threshold": fa.max_stable_threshold(Ya, rho),
-                    "value": np.nan, "stderr": np.nan, "threshold_low": np.nan, "threshold_high": np.nan})
-        extra = {"optima": pd.DataFrame(opt)}
-        if paths:
-            extra["path_mean"] = pd.concat(paths, ignore_index=True)
-        return Artefact(table, extra_tables=extra,
-                        meta={"horizon": H, "runs": N, "snr_avg_linear": Ya, "rho_max": rho, "backend": backend,
-                              "quantity": PAPER_QUANTITY,
-                              "reliable_rule": f"stderr/value < {RELIABLE_REL_SE}, no overflow (conditioned estimator)",
-                              "path_mean": "plain sample mean of P[k] (diagnostic only, heavy-tailed: not plotted)",
-                              "scenario2": "exact eq. (14)" if has_exact2 else
-                              "Monte Carlo, burst-conditioned + Rao-Blackwellized over sigma_n^2 (general C: KF believing R_f = 0, Joseph form)",
-                              "scenario2_general_C": bool(not square)})
-
-    def plot(self, tables, scenario):
-        t, o = tables["main"], tables["optima"]
-        fig, ax = new_figure(width=7.6)
-        names = {"s2_exact": "scenario 2, exact mean (eq. 14)", "s1_R0_exact": "Lemma 5 lower bound for scenario 3 (eq. 32)",
-                 "s1_conditioned": "scenario 1, Monte Carlo ±2 s.e.", "s2_conditioned": "scenario 2, Monte Carlo ±2 s.e.",
-                 "s3_conditioned": "scenario 3, Monte Carlo ±2 s.e."}
-        omitted = 0
-        for i, (lab, g) in enumerate(t.groupby("series", sort=False)):
-            st = series_style(i)
-            name = names.get(lab, lab)
-            if g.method.iloc[0] == "exact":
-                ax.plot(g.threshold, g.value, color=st["color"], ls=st["linestyle"], marker=None, label=name)
-                continue
-            rel = g[g.reliable == 1]
-            omitted += int((g.reliable == 0).sum())
-            ax.errorbar(rel.threshold, rel.value, yerr=2 * rel.stderr, color=st["color"], ls=st["linestyle"],
-                        marker=st["marker"], ms=4, label=name)
-        lim = o[o.quantity == "stability_limit_eq19"].threshold.iloc[0]
-        if np.isfinite(lim):
-            ax.axvline(lim, color="k", ls=":", lw=0.9, label=r"stability limit $\mu_{ave}\rho_{max}^2 = 1$ (eq. 19)")
-        ax.set_yscale("log")
-        ax.set_xlabel(r"drop threshold $\Upsilon_T$ (linear power ratio)")
-        H = scenario.montecarlo.horizon
-        ax.set_ylabel(rf"$\|E\,P[{H}]\|_2$ (spectral norm)")
-        ch = scenario.channel
-        unit = "dB" if ch.snr_avg.unit == "dB" else ""
-        fig.suptitle(paper_title("fading", self.paper_figure,
-                                 rf"$\|E\,P[{H}]\|$ vs $\Upsilon_T$, $\Upsilon_{{ave}}$ = {ch.snr_avg.value:g} {unit}".strip()))
-        legend_outside(ax)
-        n = t.n.dropna()
-        note = (f"Monte Carlo: {int(n.iloc[0])} runs, burst-conditioned estimator (exact average over the final drop burst)"
-                if len(n) else "closed forms only")
-        note += f"; P[{H}] = predicted $P_{{k+1|k}}$ at k = {H}, from P[0] = P0 (paper's start)"
-        if omitted:
-            note += f"; {omitted} Monte Carlo point(s) with relative s.e. ≥ {RELIABLE_REL_SE:.0%} not drawn"
-        footnote(fig, note)
         return fig
 
 
@@ -672,69 +533,3 @@ class FadingCorrelation(AnalysisModel):
             note += f"; {omitted} SMC point(s) with relative s.e. ≥ {RELIABLE_REL_SE:.0%} not drawn"
         footnote(fig, note)
         return fig
-
-
-# --------------------------------------------------------------------------- Theorem 4
-
-
-class FadingTheorem4(AnalysisModel):
-    """``kind: fading_theorem4`` — E P[k] of eq. (51) (scenario 3, Υ_T = 0, σ_n² = β/Υ): eq. (56) vs Monte Carlo.
-
-    Monte Carlo: the naive mean of P[k] and the mean of a²ϖβ Π(ϖβ/P[k−1]) (Lemma 7 applied to the
-    last step, exact conditional expectation), both with standard errors; quadrature for k = 1, 2.
-    """
-
-    kind: Literal["fading_theorem4"]
-    a: PositiveFloat = Field(description="A = a > 1")
-    P0: PositiveFloat = Field(description="P[0]")
-    k_max: PositiveInt = Field(30, description="last time step k of E P[k]")
-
-    @model_validator(mode="after")
-    def _a(self):
-        if not self.a > 1:
-            raise ValueError(f"Theorem 4 needs a > 1, got a = {self.a}")
-        return self
-
-    def compute(self, scenario, ctx: RunContext) -> Artefact:
-        ch = _fading(scenario, iid_only=True)
-        if ch.noise.model != "inverse_snr":
-            raise ConfigError.at("channel.noise.model", "Theorem 4 needs model inverse_snr (σ_n² = β/Υ, eq. 50)")
-        a, beta, Ya, P0, K = self.a, float(ch.noise.beta), ch.mean_snr, self.P0, self.k_max
-        N = ctx.mc_runs(scenario)
-
-        tot = run_chunked(fr.Theorem4Kernel(a, beta, Ya, P0, K), N, scenario.montecarlo.chunk, scenario.montecarlo.seed,
-                          stream=0, progress=ctx.progress, label="fading_theorem4")
-        k = np.arange(K + 1)
-        rows = [pd.DataFrame({"k": k, "series": "eq56", "value": fa.theorem4_mean(a, beta, Ya, P0, K), "stderr": 0.0, "n": np.nan})]
-        for key, lab in (("s", "mc_naive"), ("r", "mc_conditioned")):
-            m = tot[key] / N
-            se = np.sqrt(np.maximum(tot[key + "2"] / N - m**2, 0) / (N - 1))
-            rows.append(pd.DataFrame({"k": k, "series": lab, "value": m, "stderr": se, "n": N}))
-        rows.append(pd.DataFrame({"k": [1, 2], "series": "quadrature",
-                                  "value": [fa.theorem4_quadrature(a, beta, Ya, P0, j) for j in (1, 2)], "stderr": 0.0, "n": np.nan}))
-        table = pd.concat(rows, ignore_index=True)
-        return Artefact(table, meta={"a": a, "beta": beta, "snr_avg_linear": Ya, "P0": P0, "quantity": PAPER_QUANTITY,
-                                     "scaled_exp1": "exp(x)*E1(x) for x < 600, asymptotic series beyond"})
-
-    def plot(self, tables, scenario):
-        t = tables["main"]
-        fig, ax = new_figure(width=7.2)
-        e = t[t.series == "eq56"]
-        ax.plot(e.k, e.value, "k-", label="Theorem 4, eq. (56)")
-        for i, (lab, name) in enumerate((("mc_naive", "plain mean"), ("mc_conditioned", "last step conditioned (Lemma 7)"))):
-            g = t[t.series == lab]
-            ax.errorbar(g.k + (0.15 if i else 0), g.value, yerr=5 * g.stderr, fmt=MARKERS_[i], ms=4, color=PALETTE[i],
-                        mfc="none", label=rf"Monte Carlo, {name}, $\pm$5 s.e.")
-        q = t[t.series == "quadrature"]
-        ax.plot(q.k, q.value, "x", color=PALETTE[2], ms=10, mew=1.5, ls="none", label="nested quadrature (k = 1, 2)")
-        ax.set_yscale("log")
-        ax.set_xlabel(r"time step $k$")
-        ax.set_ylabel(r"$E\,P[k]$")
-        ch = scenario.channel
-        fig.suptitle(paper_title("fading", "Theorem 4", rf"$E\,P[k]$, a = {self.a:g}, $\beta$ = {ch.noise.beta:g}, "
-                                                        rf"$\Upsilon_{{ave}}$ = {ch.snr_avg.value:g} {ch.snr_avg.unit}, $P[0]$ = {self.P0:g}"))
-        ax.legend(loc="upper right")  # the upper right is empty: E P[k] settles within a few steps
-        return fig
-
-
-MARKERS_ = ("o", "s")

@@ -133,7 +133,9 @@ def test_work_happens_in_worker_processes():
     assert tot["pid_is_parent"][0] == 0.0  # no chunk ran in the parent process
 
 
-@pytest.mark.parametrize("stem,extra", [("fig6", {}), ("fig7", {"analysis": {"smc_chunk": 2, "smc_runs": 4}})])
+@pytest.mark.parametrize("stem,extra", [("fig6", {"montecarlo": {"burn_in": 10},
+                                                 "analysis": {"over": {"channel.threshold.value": [0, 9, 16]}}}),
+                                        ("fig7", {"analysis": {"smc_chunk": 2, "smc_runs": 4}})])
 def test_jobs2_csv_equals_serial_byte_for_byte(tmp_path, stem, extra):
     """Worker processes give the same bytes as the parent (no BLAS product whose rounding depends on the
     thread count: the Jakes generator and the SMC's conditional means use einsum)."""
@@ -142,7 +144,7 @@ def test_jobs2_csv_equals_serial_byte_for_byte(tmp_path, stem, extra):
     from netkf_cli.runner import run_scenario_file
 
     cfg = Path(__file__).resolve().parents[2] / "configs" / "fading" / f"{stem}.yaml"
-    ov = {"montecarlo": {"horizon": 20, "chunk": 10}, **extra}
+    ov = {**extra, "montecarlo": {"horizon": 20, "chunk": 10, **extra.get("montecarlo", {})}}
     a = run_scenario_file(cfg, out_dir=tmp_path / "serial", runs=40, force=True, overrides=ov)
     with execution("process", jobs=2):
         b = run_scenario_file(cfg, out_dir=tmp_path / "jobs2", runs=40, force=True, overrides=ov)

@@ -10,10 +10,14 @@ from netkf_cli.runner import run_scenario_file
 
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN = Path(__file__).parent / "golden"
-RUNS = {"fig3": 10, "fig4": 2000, "fig5": 10, "fig6": 40, "sec42": 40, "fig7": 100, "thm4": 2000}
-# small horizons keep the suite fast; the override is part of what the golden files record
-OVERRIDES = {"fig6": {"montecarlo": {"horizon": 60}}, "sec42": {"montecarlo": {"horizon": 60}},
-             "fig7": {"montecarlo": {"horizon": 60}}, "thm4": {"analysis": {"k_max": 10}}}
+RUNS = {"fig3": 10, "fig4": 10, "fig5": 10, "fig6": 40, "sec42": 40, "fig7": 100, "thm4": 2000}
+# small horizons keep the suite fast; the override is part of what the golden files record. fig6, sec42 and
+# thm4 are generic metrics (time_average, mean_vs_time) on the numpy backend here: no compile time.
+_NUMPY_PAIR = [{"kind": "receiver", "scenario": s, "backend": "numpy"} for s in (2, 3)]
+OVERRIDES = {"fig6": {"montecarlo": {"horizon": 60, "burn_in": 30}, "estimators": _NUMPY_PAIR},
+             "sec42": {"montecarlo": {"horizon": 60, "burn_in": 30}, "estimators": _NUMPY_PAIR},
+             "fig7": {"montecarlo": {"horizon": 60}},
+             "thm4": {"montecarlo": {"horizon": 10}, "estimator": {"backend": "numpy"}}}
 
 
 def _run(stem, out):
@@ -40,7 +44,8 @@ MC_RTOL = 1e-2
 def test_config_matches_golden(stem, tmp_path):
     res = _run(stem, tmp_path / stem)
     assert (res / f"fading_{stem}.png").exists()
-    csvs = sorted(res.glob("*.csv"))
+    # the over grid's derived tables (pairs, trend) are metrics/derived.py's, tested there: not recorded here
+    csvs = sorted(c for c in res.glob("*.csv") if not c.stem.endswith(("_pairs", "_trend")))
     assert csvs
     for c in csvs:
         new, old = pd.read_csv(c), pd.read_csv(GOLDEN / c.name)
@@ -64,7 +69,8 @@ def test_config_matches_golden(stem, tmp_path):
                                            rtol=1e-6, atol=1e-300,
                                            equal_nan=True, err_msg=f"{c.name}:{col}")
             else:
-                assert (new[col].astype(str) == old[col].astype(str)).all(), f"{c.name}:{col}"
+                # an empty text cell reads back as missing (NaN ≠ NaN in pandas' str dtype): compare as ""
+                assert (new[col].fillna("").astype(str) == old[col].fillna("").astype(str)).all(), f"{c.name}:{col}"
 
 
 if __name__ == "__main__":
@@ -76,5 +82,6 @@ if __name__ == "__main__":
         for stem in sorted(RUNS):
             res = _run(stem, Path(tmp) / stem)
             for c in res.glob("*.csv"):
-                shutil.copy(c, GOLDEN / c.name)
+                if not c.stem.endswith(("_pairs", "_trend")):
+                    shutil.copy(c, GOLDEN / c.name)
             print("golden", stem)
