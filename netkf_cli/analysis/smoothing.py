@@ -36,6 +36,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 import scipy.linalg
@@ -586,38 +587,169 @@ def enumerate_retransmission_ways(n: int, N: int, p) -> list[tuple[str, object]]
     return ways
 
 
-def simulate_retransmission(rng: np.random.Generator, runs: int, horizon: int, lam: float, N: int, p: float = 1.0) -> np.ndarray:
-    """Effective arrival pattern γ̃ (``(runs, horizon)``, bool) of the retransmission schemes of Sec. V.
+# --------------------------------------------------------------------------------------------
+# Closed-form references for the generic metrics (``analysis.references``, see analysis/references.py)
+# --------------------------------------------------------------------------------------------
 
-    One packet per slot over an i.i.d. Bernoulli(λ) channel. Not retransmitting: slot t sends
-    y_t. After a failure (of y_t or of a retransmission), with probability p (p = 1: the
-    deterministic scheme of Sec. V-A) ask for a retransmission of the same measurement, at most N
-    times; while retransmitting, the new measurements are discarded (γ̃ = 0). A successful
-    retransmission of y_t sets γ̃_t = 1 (it reaches the filter late, by at most N steps).
-    Vectorized over runs, loop over slots.
-    """
-    if not 0 <= p <= 1:
-        raise ConfigError.at("analysis.p", f"must be in [0, 1], got {p}")
-    out = np.zeros((runs, horizon), dtype=bool)
-    count = np.zeros(runs, dtype=np.int64)  # retransmissions used so far (0 = sending fresh)
-    pending = np.zeros(runs, dtype=np.int64)  # index of the measurement being retransmitted
-    retrying = np.zeros(runs, dtype=bool)
-    ar = np.arange(runs)
-    for t in range(horizon):
-        succ = rng.random(runs) < lam
-        ask = rng.random(runs) < p
-        fresh = ~retrying
-        # fresh transmissions of y_t
-        out[fresh, t] = succ[fresh]
-        start = fresh & ~succ & ask & (N > 0)
-        # retransmissions of y_pending (y_t discarded: out stays 0)
-        rr = retrying
-        won = rr & succ
-        out[ar[won], pending[won]] = True
-        cont = rr & ~succ & ask & (count < N)
-        # update state
-        new_retrying = start | cont
-        count = np.where(start, 1, np.where(cont, count + 1, 0))
-        pending = np.where(start, t, pending)
-        retrying = new_retrying
+EXACT_TOL = 1e-13
+"""Per-node weight tolerance of the reference enumerations (the certified brackets are < 1e-11 wide)."""
+MEAN_TOL = 1e-10
+"""Per-node trace tolerance of the exact stationary means."""
+G_N_MAX = 30
+"""Largest n of the g(n) = 1 check (eqs 10–11) in floating point; exact rationals up to 12."""
+_CACHE: dict = {}
+
+
+def _memo(key, fn):
+    if key not in _CACHE:
+        _CACHE[key] = fn()
+    return _CACHE[key]
+
+
+def _skey(s: LinearSystem) -> tuple:
+    return tuple(np.asarray(x, dtype=float).tobytes() for x in (s.A, s.C, s.Q, s.R))
+
+
+def arrival_chain(ch: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """The 2-state Markov chain (T, π) of the arrival pattern of a channel given as its field dict:
+    ``bernoulli`` (and ``retransmission``, whose effective pattern has the law of i.i.d. loss at the
+    link's λ — the point of Sec. V), ``gilbert_elliott`` (p_gb, p_bg, or loss_rate + mean burst:
+    p_bg = 1/L_B, p_gb = π_B p_bg/(1 − π_B)); None for any other channel."""
+    kind = ch.get("kind")
+    if kind in ("bernoulli", "retransmission"):
+        lam = float(ch["arrival"])
+        return np.array([[1 - lam, lam], [1 - lam, lam]]), np.array([1 - lam, lam])
+    if kind == "gilbert_elliott":
+        if ch.get("p_gb") is not None:
+            p_gb, p_bg = float(ch["p_gb"]), float(ch["p_bg"])
+        else:
+            pi_b = float(ch.get("pi_loss", ch.get("loss_rate")))
+            p_bg = 1.0 / float(ch["mean_burst"])
+            p_gb = min(1.0, pi_b * p_bg / (1.0 - pi_b))
+        lam = p_bg / (p_gb + p_bg)
+        return np.array([[1 - p_bg, p_bg], [p_gb, 1 - p_gb]]), np.array([1 - lam, lam])
+    return None
+
+
+def _iid_rate(ch: dict) -> float | None:
+    return float(ch["arrival"]) if ch.get("kind") in ("bernoulli", "retransmission") else None
+
+
+def _m_values(metric: dict) -> list[float]:
+    """The M values of a metric's field dict: a scalar, a list, or a grid {start, stop, num, spacing}."""
+    M = metric.get("M")
+    if M is None:
+        return []
+    if isinstance(M, dict):
+        f = np.geomspace if M.get("spacing", "log") == "log" else np.linspace
+        return [float(v) for v in f(M["start"], M["stop"], int(M["num"]))]
+    return [float(v) for v in np.atleast_1d(np.asarray(M, dtype=float))]
+
+
+def _columns(point) -> list[tuple[str, str, int | None]]:
+    """(estimator label, quantity, lag) of every reported column the closed forms cover: kf and the
+    smoother; ``predicted`` P_{k+1|k} has the stationary law of P_{k|k−1} (lag None), ``filtered`` is
+    lag 0, ``smoothed`` the smoother's lag N."""
+    out = []
+    for e, lab in zip(point.estimators, point.labels):
+        if e.get("kind") not in ("kf", "smoother"):
+            continue
+        for q in point.quantities:
+            if q == "predicted":
+                out.append((lab, q, None))
+            elif q == "filtered":
+                out.append((lab, q, 0))
+            elif q == "smoothed" and e.get("kind") == "smoother":
+                out.append((lab, q, int(e.get("lag", 0))))
     return out
+
+
+def _scalar_system(point) -> LinearSystem:
+    """The point's system (its P0 plays no role in a stationary law)."""
+    return point.system
+
+
+def reference_exact(point) -> list[dict]:
+    """Leong 2008: exact stationary Pr[P ≤ M] (certified enumeration; i.i.d., retransmission or Gilbert–Elliott loss) and, in a time_average without M on i.i.d. loss, E[tr P] (∞ for λ ≤ λ_c)."""
+    s = _scalar_system(point)
+    chain = arrival_chain(point.channel)
+    if chain is None:
+        return []
+    T, pi = chain
+    rows = []
+    ck = (round(float(T[0, 1]), 15), round(float(T[1, 1]), 15))
+    for lab, q, lag in _columns(point):
+        for m in _m_values(point.metric):
+            ex = _memo(("p", _skey(s), ck, lag, m), lambda: exact_probability(s, m, lag, T, pi, tol=EXACT_TOL))
+            rows.append(dict(series=f"exact, {q}, M = {m:g}", value=ex.value, estimator=lab, quantity=q, M=m))
+        lam = _iid_rate(point.channel)
+        if point.metric.get("kind") == "time_average" and point.metric.get("M") is None and lam is not None and 0 < lam < 1:
+            rows.append(dict(series=f"exact, {q}", value=_exact_trace_mean(s, lam, lag), estimator=lab, quantity=q))
+    return rows
+
+
+def _exact_trace_mean(s: LinearSystem, lam: float, lag: int | None) -> float:
+    """tr of the stationary E[P] (midpoint of the certified bracket), ∞ for λ ≤ λ_c."""
+    if lam <= critical_rate(s):
+        return math.inf
+
+    def f():
+        e = exact_mean(s, lam, lag, tol=MEAN_TOL)
+        return 0.5 * (float(np.trace(e.lower)) + float(np.trace(e.upper)))
+
+    return _memo(("m", _skey(s), lam, lag), f)
+
+
+def reference_lemma1(point) -> list[dict]:
+    """Leong 2008, Lemma 1: E[tr P_{k|k+N}] ≥ (1−λ)^{N+1} E[tr P_{k|k−1}] under i.i.d. loss (so the smoother diverges with the filter at λ_c)."""
+    lam = _iid_rate(point.channel)
+    if lam is None or not 0 < lam < 1:
+        return []
+    s = _scalar_system(point)
+    rows = []
+    for lab, q, lag in _columns(point):
+        if q == "smoothed":
+            with np.errstate(over="ignore", invalid="ignore"):
+                v = (1 - lam) ** (lag + 1) * _exact_trace_mean(s, lam, None)
+            rows.append(dict(series="Lemma 1 lower bound (1-λ)^(N+1) E[tr P_k|k-1], smoothed", value=v, estimator=lab, quantity=q))
+    return rows
+
+
+def reference_eq8(point) -> list[dict]:
+    """Leong 2008, eqs (7)–(8): the guarantee Pr[P ≤ M] ≥ 1 − (1−λ)^{k₁+N+1} under i.i.d. loss (N = 0 filter, exponent k₁ for P_{k|k−1}; Gilbert–Elliott: at the stationary rate, marked i.i.d. only); needs C invertible and M ≥ M̄."""
+    chain = arrival_chain(point.channel)
+    if chain is None or point.channel.get("kind") == "retransmission":
+        return []
+    lam = float(chain[1][1])  # the stationary arrival rate
+    iid = "" if point.channel.get("kind") == "bernoulli" else " (i.i.d. loss only)"
+    s = _scalar_system(point)
+    try:
+        Mbar = leong_mbar(s)
+    except ConfigError:
+        return []
+    rows = []
+    for m in _m_values(point.metric):
+        try:
+            kk = k1(s, m, Mbar)
+        except (TheoremConditionError, ConfigError):
+            continue
+        for lab, q, lag in _columns(point):
+            e = kk if lag is None else kk + lag + 1
+            rule = "1-(1-λ)^k1 of eq. (7)" if lag is None else "1-(1-λ)^(k1+N+1) of eq. (8)"
+            rows.append(dict(series=f"guarantee {rule}{iid}, {q}, M = {m:g}", value=1.0 - (1.0 - lam) ** e,
+                             estimator=lab, quantity=q, M=m))
+    return rows
+
+
+def reference_retransmission_g(point) -> list[dict]:
+    """Leong 2008, Sec. V: max |g(n) − 1| over n ≤ 30 of eqs (10)–(11) for the channel's budget N and p (g(n) = 1: the scheme is distributed like plain filtering)."""
+    ch = point.channel
+    if ch.get("kind") != "retransmission" or int(ch["budget"]) == 0:
+        return []
+    g = retransmission_g(G_N_MAX, int(ch["budget"]), float(ch["p"]))
+    return [dict(series=f"max |g(n) - 1| over n <= {G_N_MAX}, eq. (11)", value=float(np.max(np.abs(np.asarray(g) - 1.0))))]
+
+
+def retransmission_g_is_one(n_max: int, N: int, p) -> bool:
+    """g(n) = 1 for every n ≤ n_max in exact rational arithmetic (p as a Fraction of denominator ≤ 1000)."""
+    return all(v == 1 for v in retransmission_g(n_max, N, Fraction(p).limit_denominator(1000)))

@@ -36,10 +36,9 @@ predicted / lag-0 smoothed are kf's numbers by construction; the per-run compile
 it is measured faster (lag ≥ 1, batches of at most :data:`AUTO_NUMBA_MAX_RUNS` runs: long runs of
 few columns, the paper's-way run of Table I).
 
-Monte Carlo kernels kept here (picklable, additive statistics): :class:`SmootherMCKernel` (used by
-``benchmarks/``) and :class:`RetransmissionKernel` (Sec. V: the effective arrival pattern of a
-retransmission scheme is not a channel). The artefacts' other Monte Carlo runs go through
-:func:`netkf_cli.engine.simulate`.
+Monte Carlo kernel kept here (picklable, additive statistics): :class:`SmootherMCKernel` (used by
+``benchmarks/``). The artefacts' Monte Carlo runs go through :func:`netkf_cli.engine.simulate` (the
+retransmission schemes of Sec. V are a channel, ``kind: retransmission``).
 """
 
 from __future__ import annotations
@@ -54,6 +53,7 @@ from pydantic import Field
 from netkf_cli import batched as bt
 from netkf_cli import kalman
 from netkf_cli.errors import ConfigError
+from netkf_cli.estimators.kf import channel_streams
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel, NonNegInt
 from netkf_cli.system import LinearSystem
@@ -107,8 +107,6 @@ class SmootherEstimator(EstimatorModel):
         return {"lag": f"N = {self.lag} (smoothed = P_{{k-{self.lag}|k}}; filtered, predicted = kf's)"}
 
     def check(self, system, channel) -> None:
-        from netkf_cli.estimators.kf import channel_streams
-
         kinds = getattr(channel, "trace_kinds", frozenset())
         if channel is not None and kinds and not (kinds & self.accepts):
             raise ConfigError.at("estimator.kind", f"the smoother needs a channel with arrival indicators "
@@ -135,7 +133,7 @@ class SmootherEstimator(EstimatorModel):
 
 def numba_available() -> bool:
     try:
-        import numba  # noqa: F401
+        import numba  # noqa: F401  (optional: probed only, never required)
     except ImportError:
         return False
     return True
@@ -410,9 +408,9 @@ def _kernel():
     kernel): each inlines its kalman_numba primitives once, which keeps the first compilation short."""
     f = _JIT.get("k")
     if f is None:
-        import numba as nb
+        import numba as nb  # optional (netkf[fast]): imported only when the compiled backend runs
 
-        from netkf_cli import kalman_numba
+        from netkf_cli import kalman_numba  # needs numba: the compiled primitives
 
         opts = dict(cache=True, nogil=True, error_model="numpy")
         g = globals()
@@ -624,84 +622,3 @@ class SmootherMCKernel:
         for lag, P in columns_at(self.system, gamma, self.k, self.lags, self.backend).items():
             stats.update(covariance_stats(P, self.M, lag_key(lag)))
         return stats
-
-
-@dataclass(frozen=True)
-class RetransmissionKernel:
-    """Sec. V of Leong 2008: P_{k|k} without retransmission, with each retransmission scheme (p), and
-    P_{k|k+N} of the lag-N smoother, one sample per run at time ``k`` (one time base) over an i.i.d.
-    Bernoulli(λ) channel. The filter and the smoother share one arrival trace; each retransmission
-    scheme draws its own (independent samples, as a two-sample test needs).
-
-    Statistics (additive): ``n``; per scheme key: ``cdf_<key>`` counts of x ≤ ``grid`` (x = P, or
-    tr P for n > 1), ``leq_<key>`` (P ≤ M), ``overflow_<key>``; per retransmission scheme also
-    ``ones_<key>``, ``pairs_<key>``, ``slots_<key>`` (γ̃ of y_11 … y_{k−1}) for its effective rate.
-    """
-
-    system: LinearSystem
-    lam: float
-    N: int
-    ps: tuple[float, ...]
-    k: int
-    M: float
-    grid: np.ndarray
-    backend: str = "auto"
-
-    def schemes(self) -> list[str]:
-        return ["filter"] + [f"retx_p{p:g}" for p in self.ps] + [f"smoother_lag{self.N}"]
-
-    def horizon(self) -> int:
-        return self.k + 2 * self.N + 1
-
-    def _x(self, P: np.ndarray) -> np.ndarray:
-        x = P[0, 0] if P.shape[0] == 1 else bt.trace(P)
-        return np.where(np.isfinite(x), x, np.inf)
-
-    def _add(self, stats: dict, key: str, P: np.ndarray) -> None:
-        x = self._x(P)
-        stats[f"cdf_{key}"] = (x[None, :] <= self.grid[:, None]).sum(axis=1).astype(np.int64)
-        stats[f"leq_{key}"] = int(bt.psd_leq(P, self.M).sum())
-        stats[f"overflow_{key}"] = int((~np.isfinite(x)).sum())
-
-    def __call__(self, rng: np.random.Generator, runs: int) -> dict:
-        from netkf_cli.analysis.smoothing import simulate_retransmission
-
-        H, k = self.horizon(), self.k
-        stats: dict = {"n": runs}
-        g = (rng.random((H, runs)) < self.lam)[None]
-        cols = columns_at(self.system, g, k, (0, self.N), self.backend)
-        self._add(stats, "filter", cols[0])
-        self._add(stats, f"smoother_lag{self.N}", cols[self.N])
-        for p in self.ps:
-            key = f"retx_p{p:g}"
-            gt = simulate_retransmission(rng, runs, H, self.lam, self.N, p)  # (runs, H)
-            self._add(stats, key, columns_at(self.system, np.ascontiguousarray(gt.T)[None], k, (0,), self.backend)[0])
-            win = gt[:, 10:k - 1]  # y_11 … y_{k−1} (trace steps 10 … k − 2)
-            stats[f"ones_{key}"] = int(win.sum())
-            stats[f"pairs_{key}"] = int((win[:, :-1] & win[:, 1:]).sum())
-            stats[f"slots_{key}"] = int(win.size)
-        return stats
-
-
-def paper_way_indicators(system: LinearSystem, gamma: np.ndarray, lags: Sequence[int], M: np.ndarray, burn: int,
-                         backend: str = "auto") -> np.ndarray:
-    """Table I "the paper's way": one long run per column (``gamma`` ``(steps, columns)``, column c at
-    its own rate), the indicator 1{P_{t|t+N_c} ≤ M} (N_c = ``lags[c]``, −1 = P_{t|t−1}) at every time
-    t = burn + 1 … steps − max lag (one time base). Returns ``(times, columns)`` bool.
-    """
-    steps, cols = gamma.shape
-    Lmax = max(max(lags), 0)
-    times = np.arange(burn + 1, steps - Lmax + 1)
-    if backend == "auto" and numba_available():
-        backend = "numba"  # one long run per column: the compiled kernel is 10–100× faster here (README "Speed")
-    g = np.ascontiguousarray(gamma)[None]
-    ind = np.empty((len(times), cols), dtype=bool)
-    for lag in sorted(set(int(l) for l in lags)):
-        q, _, N = column_request(lag, 0)
-        ks = [column_request(lag, int(t))[1] for t in times]
-        cs = [c for c, l in enumerate(lags) if int(l) == lag]  # only the columns of this lag
-        got = dict(run(system, np.ascontiguousarray(g[:, :, cs]), ks, (q,), N, backend=backend))
-        P = np.stack([got[k][q] for k in ks], axis=0)  # (J, n, n, len(cs))
-        for i, c in enumerate(cs):
-            ind[:, c] = bt.psd_leq(np.moveaxis(P[..., i], 0, -1), M)
-    return ind

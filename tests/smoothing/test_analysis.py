@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from netkf_cli import riccati
 from netkf_cli.analysis import smoothing as sm
+from netkf_cli.channels.retransmission import RetransmissionChannel
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators.smoother import fixed_lag_smoother
 from netkf_cli.system import LinearSystem
@@ -160,17 +162,30 @@ def test_the_papers_seven_ways_for_1000_with_N2():
 
 
 @pytest.mark.parametrize("p", [1.0, 0.5])
-def test_retransmission_pattern_has_rate_lambda(p):
+def test_retransmission_channel_pattern_has_rate_lambda(p):
+    """The effective pattern of the retransmission channel: Pr[γ̃_t = 1] = λ and Pr[γ̃_t = γ̃_{t+1} = 1] = λ²
+    (the law of i.i.d. loss, Sec. V), also at the last steps (every retransmission completed). 5 s.e."""
     lam, N, runs, H = 0.6, 2, 20_000, 80
-    g = sm.simulate_retransmission(np.random.default_rng(1), runs, H, lam, N, p)
-    x = g[:, 60]  # one column per run: independent samples; away from the start and from the end
+    ch = RetransmissionChannel(kind="retransmission", arrival=lam, budget=N, p=p)
+    g = ch.sample_trace(np.random.default_rng(1), runs, H).arrival[0]  # (H, runs)
     se = math.sqrt(lam * (1 - lam) / runs)
-    assert abs(x.mean() - lam) < 5 * se
-    y = g[:, 60] & g[:, 61]
     se2 = math.sqrt(lam**2 * (1 - lam**2) / runs)
-    assert abs(y.mean() - lam**2) < 5 * se2
-    with pytest.raises(ConfigError):
-        sm.simulate_retransmission(np.random.default_rng(1), 2, 3, lam, N, 1.5)
+    for t in (60, H - 2):  # one column per run: independent samples
+        assert abs(g[t].mean() - lam) < 5 * se
+        assert abs((g[t] & g[t + 1]).mean() - lam**2) < 5 * se2
+    with pytest.raises(ValidationError):
+        RetransmissionChannel(kind="retransmission", arrival=lam, budget=N, p=1.5)
+    # p = 0: no retransmission, the link's own pattern
+    g0 = RetransmissionChannel(kind="retransmission", arrival=lam, budget=N, p=0.0).sample_trace(
+        np.random.default_rng(2), 4, 50).arrival[0]
+    u = np.random.default_rng(2).random((52, 2, 4))[:50, 0]
+    assert np.array_equal(g0, u < lam)
+
+
+def test_g_identity_in_rationals():
+    for N in (1, 2, 3, 5):
+        for p in (0.0, 0.3, 0.5, 0.9, 1.0):
+            assert sm.retransmission_g_is_one(12, N, p)
 
 
 def test_future_information_matches_smoothed_from_prior():

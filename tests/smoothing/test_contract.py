@@ -23,7 +23,6 @@ from netkf_cli.estimators import smoother as sm_est
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.smoother import (
     PRED,
-    RetransmissionKernel,
     SmootherEstimator,
     SmootherMCKernel,
 )
@@ -380,9 +379,7 @@ def test_kernels_pickle_and_run_on_worker_processes_with_identical_sums():
     s = LinearSystem.create(1.3, 1, 0.5, 1, None)
     ker = SmootherMCKernel(system=s, channel=BernoulliChannel(kind="bernoulli", arrival=0.6), k=20, lags=(PRED, 0, 1),
                            M=np.array([[6.25]]))
-    rk = RetransmissionKernel(system=s, lam=0.6, N=2, ps=(1.0, 0.5), k=20, M=6.25, grid=np.geomspace(0.2, 50, 30))
-    for kern in (ker, rk):
-        pickle.loads(pickle.dumps(kern))
+    pickle.loads(pickle.dumps(ker))
     wrapped = _WhereKernel(ker, os.getpid())
     serial = mc.run_chunked(wrapped, 4000, 1000, 11, stream=3)
     with mc.execution("process", jobs=2):
