@@ -575,8 +575,8 @@ def theorem4(point) -> list[dict]:
         return []
     a, beta, Ya, Pstart = case
     mode, ks = _steps(point)
-    if mode == "stationary":  # E P[k] settles within a few steps (eq. 51 contracts); k = 400 is its limit
-        pred = theorem4_mean(a, beta, Ya, Pstart, 400)[-1:, None, None]
+    if mode == "stationary":  # E P[k] settles within a few steps (eq. 51 contracts): k = 100 is its limit
+        pred = theorem4_mean(a, beta, Ya, Pstart, 100)[-1:, None, None]
     else:
         pred = theorem4_mean(a, beta, Ya, Pstart, max(ks, default=0))[:, None, None]
     filt = pred / (a * a)  # P_{k|k} = (P_{k+1|k} − Q)/a², Q = 0

@@ -1,13 +1,13 @@
-"""Artefacts of Mostofi & Murray 2009 (fading channels): Figs 3–7, Sec. 4.2 and Theorem 4.
+"""Artefacts of Mostofi & Murray 2009 (fading channels) that are paper arithmetic: Figs 3, 4, 5 (closed forms),
+and Fig. 7 (correlated channel; its sequential Monte Carlo of the drop bursts has no generic metric yet).
+
+Fig. 6, Sec. 4.2 and Theorem 4 are configurations of the generic metrics (configs/fading/fig6.yaml, sec42.yaml:
+time_average over the threshold; thm4.yaml: mean_vs_time) with the closed forms as ``references`` providers in
+``analysis/fading.py``.
 
 Thresholds Υ_T and SNRs always carry an explicit unit in the YAML; tables hold both the linear
 value (``threshold``) and dB (``threshold_db``). The paper's Υ_T axis (optimum "14" at 20 dB)
 is LINEAR.
-
-Monte Carlo means of P near the stability limit are dominated by rare long drop bursts, so
-for the i.i.d. channel we report the burst-conditioned estimator (see
-``estimators/fading_receivers.py``), whose variance stays small, next to the naive sample mean,
-each with its standard error (delta method for the spectral norm) and a ``reliable`` flag.
 """
 
 from __future__ import annotations
@@ -20,13 +20,13 @@ import pandas as pd
 from pydantic import Field, model_validator
 
 from netkf_cli.analysis import fading as fa
-from netkf_cli.channels.fading import FadingChannel, Snr, jakes_factor
+from netkf_cli.channels.fading import Snr, jakes_factor
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators import fading_receivers as fr
 from netkf_cli.montecarlo import run_chunked
 from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
-from netkf_cli.spec import AnalysisModel, FiniteFloat, PositiveFloat, PositiveInt, StrictModel
+from netkf_cli.spec import AnalysisModel, FiniteFloat, PositiveInt, StrictModel
 
 RELIABLE_REL_SE = 0.05  # a Monte Carlo mean is flagged unreliable above 5 % relative standard error, …
 # … when the estimator has infinite variance (naive mean with drop-continuation probability
@@ -79,7 +79,7 @@ class Grid(StrictModel):
 # --------------------------------------------------------------------------- helpers
 
 
-def _fading(scenario, *, iid_only=False) -> FadingChannel:
+def _fading(scenario, *, iid_only=False):
     ch = scenario.require_channel("fading")
     if iid_only and ch.correlation.model != "iid":
         raise ConfigError.at("channel.correlation.model", "this analysis needs an i.i.d. channel (model: iid)")
@@ -127,17 +127,6 @@ def _norm_and_se(sumX, sumXX, N):
         val[g] = abs(w[j])
         se[g] = math.sqrt(max(float(grad @ cov @ grad), 0.0) / N)
     return val, se
-
-
-def _stats(X, G, N):
-    """Additive statistics of per-run matrices X (n, n, G*N) grouped by grid point."""
-    n = X.shape[0]
-    Xg = X.reshape(n, n, G, N)
-    V = Xg.reshape(n * n, G, N)
-    with np.errstate(over="ignore", invalid="ignore"):
-        tr = np.trace(Xg, axis1=0, axis2=1)  # (G, N)
-        return {"sum": Xg.sum(-1), "sumsq": np.einsum("agr,bgr->abg", V, V),
-                "tr": tr.sum(-1), "tr2": (tr**2).sum(-1), "inf": (~np.isfinite(tr)).sum(-1).astype(float)}
 
 
 def _summ(tot, N, label, finite_var):
@@ -217,7 +206,7 @@ class FadingNoiseCurves(AnalysisModel):
 class FadingAverages(AnalysisModel):
     """``kind: fading_averages`` — Fig. 4: μ_ave(Υ_T) and σ²_n,ave(Υ_T), eqs (15)–(16): closed form and quadrature.
 
-    (The Monte Carlo check of both, from FadingChannel.sample_trace, is tests/fading/test_references.py.)"""
+    (The Monte Carlo check of both, from the channel's sampled traces, is tests/fading/test_references.py.)"""
 
     kind: Literal["fading_averages"]
     thresholds: Grid = Field(description="the drop thresholds Υ_T (eq. 5) with their unit")
