@@ -401,6 +401,126 @@ def binom_mean(N: int, loss: float) -> float:
     return N * (1.0 - loss)
 
 
+# ----------------------------------------------------------------------------------------
+# References providers (netkf_cli/analysis/references.py REGISTRY): closed-form rows beside the
+# Monte Carlo of a generic metric, from a references.Point of plain values
+# ----------------------------------------------------------------------------------------
+
+MF_UB = "upper bound: Ψ fixed point (Sec. III-A)"
+MF_LB = "lower bound: Prop. 1"
+MF_R3 = "lower bound: max(Prop. 1, Prop. 2) (Remark 3)"
+PSI_AS_LOSS = "Ψ with λ read as the loss probability (as printed)"
+IBF_LB_K = "lower bound: Prop. 2, k = {k}"
+IBF_LB_BEST = "lower bound: Prop. 2, k until converged"
+IBF_TRUNC_K = "exact truncated P(k), k = {k}"
+CKF = "centralized KF without loss: tr Φ_f(P_m, N)"
+
+
+def point_sensors(point):
+    """(A, C1, Q, R1, N) of a point whose system has N identical sensors (``system.sensors: N``), or
+    None when the sensors differ (the bounds of Sec. III assume identical sensors)."""
+    s = point.system
+    C, R = _as2d(s.C), _as2d(s.R)
+    groups = s.sensor_rows
+    blocks = [(C[list(g)], R[np.ix_(g, g)]) for g in groups]
+    c0, r0 = blocks[0]
+    if not all(c.shape == c0.shape and np.array_equal(c, c0) and np.array_equal(r, r0) for c, r in blocks):
+        return None
+    cross = R.copy()
+    for g in groups:
+        cross[np.ix_(g, g)] = 0.0
+    if np.any(cross != 0.0):
+        return None
+    return _as2d(s.A), c0, _as2d(s.Q), r0, len(groups)
+
+
+def _strategy_labels(point, strategy: str) -> list[str]:
+    """Labels of the point's fusion estimators that report ``strategy`` (their first strategy)."""
+    return [lab for e, lab in zip(point.estimators, point.labels)
+            if e.get("kind") == "fusion" and (e.get("strategies") or ["mf"])[0] == strategy]
+
+
+def _loss(point) -> float:
+    loss = point.channel.get("loss")
+    if isinstance(loss, list):
+        if len(set(loss)) != 1:
+            raise ConfigError.at("channel.loss", "the bounds of Sec. III assume one loss probability for every sensor")
+        loss = loss[0]
+    if loss is None:
+        raise ConfigError.at("channel.loss", "the fusion bounds need a multi channel with a loss probability")
+    return float(loss)
+
+
+def _pair_rows(series: str, labels: list[str], pred: float, filt: float, quantities, both: bool = True) -> list[dict]:
+    """Rows of one bound for the point's quantities (``both=False``: the filtering form only)."""
+    out = []
+    for lab in labels or [""]:
+        for q, v in (("predicted", pred), ("filtered", filt)):
+            if q in quantities and (both or q == "filtered"):
+                out.append(dict(series=series, estimator=lab, quantity=q, value=float(v)))
+    return out
+
+
+def centralized_reference(point) -> list[dict]:
+    """Centralized Kalman filter with every packet (Chiuso–Schenato Sec. III): tr Φ_f(P_m, N) and tr P_m."""
+    sens = point_sensors(point)
+    if sens is None:
+        return []
+    A, C1, Q, R1, N = sens
+    pm = p_m(A, C1, Q, R1, N)
+    return _pair_rows(CKF, [""], float(np.trace(pm)), float(np.trace(phi_f(pm, np.float64(N), C1, R1))),
+                      point.quantities)
+
+
+def fusion_bounds_reference(point) -> list[dict]:
+    """Chiuso–Schenato bounds on E[P] of MF and IBF (Sec. III: Ψ upper bound, Props 1–2, Remark 3).
+
+    Filtered P_{k|k}: every bound; predicted P_{k+1|k}: the Ψ upper bound and Prop. 1 (the rest of the
+    prediction forms add lines to a figure, not checks)."""
+    sens = point_sensors(point)
+    if sens is None:
+        return []
+    A, C1, Q, R1, N = sens
+    lam = _loss(point)
+    if lam >= 1.0:
+        raise ConfigError.at("channel.loss", "must be < 1 (with every packet lost there is no steady state to bound)")
+    qs = point.quantities
+    mf, ibf = _strategy_labels(point, "mf"), _strategy_labels(point, "ibf")
+    k_show = [1, 2, 3]
+    rtol, k_max = 1e-3, 60
+    rows: list[dict] = []
+    if mf:
+        S, Sf = mf_upper_bound(1.0 - lam, A, C1, Q, R1, N)
+        rows += _pair_rows(MF_UB, mf, np.trace(S), np.trace(Sf), qs)
+    scalar = A.shape[0] == 1 and C1.shape[0] == 1
+    if not scalar:
+        # Prop. 2 with k = 1 only (no L_f^LB: valid for any n)
+        if ibf:
+            pm = p_m(A, C1, Q, R1, N)
+            Eell = np.float64(N * (1.0 - lam))
+            rows += _pair_rows(IBF_LB_K.format(k=1), ibf, np.trace(phi(pm, Eell, A, C1, Q, R1)),
+                               np.trace(phi_f(pm, Eell, C1, R1)), qs, both=False)
+        return rows
+    model = ScalarFusionModel.from_matrices(A, C1, Q, R1, N)
+    seq = ibf_lower_bounds(lam, model, rtol=rtol, k_max=k_max)
+    if mf:
+        lbp, lbf = mf_lower_bound(lam, model)
+        rows += _pair_rows(MF_LB, mf, lbp, lbf, qs)
+        rows += _pair_rows(MF_R3, mf, max(lbp, seq.best_pred), max(lbf, seq.best_filt), qs, both=False)
+        if lam > 0:
+            S2, Sf2 = mf_upper_bound(lam, A, C1, Q, R1, N)
+        else:
+            S2 = Sf2 = np.atleast_2d(p_M(A, Q))  # no arrivals: the open-loop variance
+        rows += _pair_rows(PSI_AS_LOSS, mf, S2[0, 0], Sf2[0, 0], qs, both=False)
+    if ibf:
+        for k in k_show:
+            rows += _pair_rows(IBF_LB_K.format(k=k), ibf, *ibf_lower_bound(k, lam, model), qs, both=False)
+        rows += _pair_rows(IBF_LB_BEST, ibf, seq.best_pred, seq.best_filt, qs, both=False)
+        for k in k_show:
+            rows += _pair_rows(IBF_TRUNC_K.format(k=k), ibf, *ibf_truncated_exact(k, lam, model), qs, both=False)
+    return rows
+
+
 __all__ = [
     "phi_f", "phi", "l_f", "kalman_gain", "p_m", "p_M", "ScalarFusionModel", "psi", "mf_upper_bound",
     "mf_lower_bound", "backward_transition", "ibf_lower_bound", "ibf_lower_bounds", "ibf_truncated_exact",

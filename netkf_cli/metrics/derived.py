@@ -8,7 +8,9 @@ point against another — read these derived tables, written beside the main tab
 * ``pairs`` — at each over point, for each (quantity, M), every ordered pair (a, b) of rows where a is
   a Monte Carlo row, or a and b belong to the same estimator: ``a``, ``b``, ``diff`` = a − b,
   ``ratio`` = a / b, ``stderr`` = √(se_a² + se_b²) (a closed form has none; for two Monte Carlo rows of
-  the same traces this is conservative: the paired error is smaller) and ``z`` = diff / stderr.
+  the same traces this is conservative: the paired error is smaller) and ``z`` = diff / max(stderr,
+  PSD_TOL · max(|a|, |b|)) (a deterministic Monte Carlo, e.g. on a loss-free channel, differs from its
+  closed form by round-off only: :data:`netkf_cli.tolerances.PSD_TOL` relative).
 * ``trend`` — along each over path p, for every two grid points that differ only in p (``from`` <
   ``to`` in grid order), every row present at both: ``diff`` = value(to) − value(from).
 
@@ -21,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+
+from netkf_cli.tolerances import PSD_TOL
 
 KEYS = ["estimator", "series", "source"]
 
@@ -53,11 +57,13 @@ def pairs(t: pd.DataFrame, over: list[str]) -> pd.DataFrame:
                 with np.errstate(divide="ignore", invalid="ignore"):
                     diff = val[i] - val[j]
                     s = float(np.hypot(se[i], se[j]))
+                    floor = PSD_TOL * max(abs(val[i]), abs(val[j])) if np.isfinite(diff) else 0.0
                     row = {c: g.at[i, c] for c in cols + grp}
                     row.update(a_estimator=est[i], a_series=g.at[i, "series"], a_source=g.at[i, "source"],
                                b_estimator=est[j], b_series=g.at[j, "series"], b_source=g.at[j, "source"],
                                a=val[i], b=val[j], diff=diff, ratio=val[i] / val[j] if val[j] != 0 else np.nan,
-                               stderr=s, z=diff / s if s > 0 else (0.0 if diff == 0 else np.sign(diff) * np.inf))
+                               stderr=s, z=diff / max(s, floor) if max(s, floor) > 0 else
+                               (0.0 if diff == 0 else np.sign(diff) * np.inf))
                 out.append(row)
     return pd.DataFrame(out, columns=cols + grp + ["a_estimator", "a_series", "a_source", "b_estimator", "b_series",
                                                    "b_source", "a", "b", "diff", "ratio", "stderr", "z"])

@@ -26,7 +26,7 @@ from netkf_cli.errors import ConfigError
 from netkf_cli.metrics import derived
 from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, labels,
                                       math_text, PaperRef, Quantity)
-from netkf_cli.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
+from netkf_cli.plotting import LINESTYLES, MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.stats import heavy_tail_flag, mean_se, rare_event_flag
 
 TRACE, PROB = "E[tr P]", "Pr[P<=M]"
@@ -167,6 +167,7 @@ class TimeAverage(GenericMetric):
             g = mc[(mc.estimator == lab) & (mc.quantity == q) & (mc.M.fillna(-1) == m)]
             colour = PALETTE[i % len(PALETTE)]
             colour_of.setdefault(lab, colour)
+            colour_of.setdefault((lab, q), colour)
             name = f"{lab} · {_sym(q)}" + ("" if m < 0 else f", M = {m:g}")
             bad = g.heavy_tail.astype(bool).to_numpy() | g.rare_event.astype(bool).to_numpy() | ~np.isfinite(g.value.to_numpy())
             flagged += int(bad.sum())
@@ -183,17 +184,22 @@ class TimeAverage(GenericMetric):
             if bad.any() and np.isfinite(g.value.to_numpy()[bad]).any():
                 ax.plot(xs[bad], g.value.to_numpy()[bad], ls="none", marker="o", ms=7, mfc="none", color=colour,
                         label=f"{name}: unreliable (flagged in the CSV)")
-        for i, ((lab, name), g) in enumerate(ref.groupby(["estimator", "series"], sort=False)):
-            colour = colour_of.get(lab, "black")
+        several_q = ref.quantity.nunique() > 1
+        drawn: dict = {}  # references drawn per (estimator, quantity): each its own dash pattern
+        for (lab, q, name), g in ref.groupby(["estimator", "quantity", "series"], sort=False):
+            colour = colour_of.get((lab, q), colour_of.get(lab, "black"))
+            j = drawn[(lab, q)] = drawn.get((lab, q), -1) + 1
+            dash = LINESTYLES[1:][j % (len(LINESTYLES) - 1)]
+            name = f"{name} · {_sym(q)}" if several_q else name
             vals = g.value.to_numpy(dtype=float)
             if not np.isfinite(vals).any():
                 continue
             if x is None:
-                ax.plot(np.arange(len(keys)), np.full(len(keys), vals[0]), ls="--", color=colour, lw=1.1,
+                ax.plot(np.arange(len(keys)), np.full(len(keys), vals[0]), ls=dash, color=colour, lw=1.1,
                         label=f"{(lab + ': ') if lab else ''}{name}")
             else:
                 g = g.sort_values(x)
-                ax.plot(g[x].astype(float), g.value.astype(float), ls="--", color=colour, lw=1.1,
+                ax.plot(g[x].astype(float), g.value.astype(float), ls=dash, color=colour, lw=1.1,
                         marker="x" if len(g) < 3 else None, label=f"{(lab + ': ') if lab else ''}{name}")
         if x is None and keys:
             ax.set_xticks(range(len(keys)))
