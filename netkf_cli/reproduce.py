@@ -42,7 +42,7 @@ import json
 import math
 import subprocess
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -421,22 +421,41 @@ def _run_one(args) -> tuple[str, str | None, float, str | None]:
         return Path(config).stem, None, time.perf_counter() - t0, str(exc)
 
 
-def run_all(arts: list[Artefact], out_root: Path, quick: bool, jobs: int, on_done=None) -> dict[str, tuple]:
-    tasks = [(str(a.config), str(out_root / a.name), quick) for a in arts]
+def _expected_wall(a: Artefact, out_root: Path, golden_root: Path | None) -> float:
+    """How long an artefact took last time: its manifest in ``out_root`` (the previous run of this
+    mode), else the committed full-size one; 0 when neither exists."""
+    for folder in (out_root / a.name, golden_root / a.name if golden_root else None):
+        if folder is None:
+            continue
+        try:
+            return float(json.loads((folder / "manifest.json").read_text(encoding="utf-8")).get("wall_time_s", 0.0))
+        except (OSError, ValueError, TypeError, AttributeError):
+            continue
+    return 0.0
+
+
+def run_all(arts: list[Artefact], out_root: Path, quick: bool, jobs: int, on_done=None,
+            golden_root: Path | None = None) -> dict[str, tuple]:
+    """Run every artefact; with ``jobs`` > 1 on a process pool, longest first (the previous wall
+    times: the makespan is then at most the longest artefact or 4/3 of the even share)."""
+    tasks = {a.name: (str(a.config), str(out_root / a.name), quick) for a in arts}
     results: dict[str, tuple] = {}
     if jobs <= 1:
-        for a, t in zip(arts, tasks):
-            results[a.name] = _run_one(t)
+        for a in arts:
+            results[a.name] = _run_one(tasks[a.name])
             if on_done:
                 on_done(a, results[a.name])
     else:
         from netkf_cli.workers import pool_kwargs  # workers ignore Ctrl-C and die with this process
 
-        with ProcessPoolExecutor(max_workers=jobs, **pool_kwargs()) as ex:
-            for a, r in zip(arts, ex.map(_run_one, tasks)):
-                results[a.name] = r
+        order = sorted(arts, key=lambda a: -_expected_wall(a, out_root, golden_root))  # stable among equals
+        with ProcessPoolExecutor(max_workers=min(jobs, len(arts)) or 1, **pool_kwargs()) as ex:
+            futures = {ex.submit(_run_one, tasks[a.name]): a for a in order}
+            for fut in as_completed(futures):
+                a = futures[fut]
+                results[a.name] = fut.result()
                 if on_done:
-                    on_done(a, r)
+                    on_done(a, results[a.name])
     return results
 
 
@@ -489,7 +508,7 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
         o.checks = [evaluate(c, folder, quick) for c in pub.printed if c.artefact == o.artefact.name]
         o.claims = [evaluate_claim(c, folder, quick) for c in pub.claims if c.artefact == o.artefact.name]
 
-    raw = run_all(arts, out_root, quick, jobs, done)
+    raw = run_all(arts, out_root, quick, jobs, done, golden_root)
     outcomes = []
     for a in arts:
         name, folder, wall, error = raw[a.name]
