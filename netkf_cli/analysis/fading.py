@@ -426,8 +426,8 @@ def _p00(system, A, Q):
 
 def _steps(point) -> tuple[str, list[int]]:
     """How the metric reads time: ('average', ks) for time_average over k in (burn_in, horizon], ('each', ks)
-    for mean_vs_time (one row per k), ('stationary', []) for a time_average whose horizon the point does not
-    carry (the k → ∞ limit then; exact only once the burn-in has forgotten P0)."""
+    for mean_vs_time (one row per k; no rows without the horizon), ('stationary', []) for a time_average whose
+    horizon the point does not carry (the k → ∞ limit then; exact only once the burn-in has forgotten P0)."""
     m = point.metric
     mc = getattr(point, "montecarlo", None) or {}
     mc = mc if isinstance(mc, dict) else mc.model_dump()
@@ -435,8 +435,8 @@ def _steps(point) -> tuple[str, list[int]]:
     burn = mc.get("burn_in", getattr(point, "burn_in", 0)) or 0
     if m.get("kind") == "time_average":
         return ("average", list(range(int(burn) + 1, int(H) + 1))) if H else ("stationary", [])
-    if not H:
-        raise ValueError(f"{m.get('kind')}: the closed form needs the horizon (references.Point.montecarlo)")
+    if not H:  # per-step rows need the steps: none until the point carries the horizon
+        return "each", []
     return "each", list(range(1, int(H) + 1))
 
 
@@ -479,8 +479,10 @@ def _iid_fading(point) -> bool:
 
 
 def scenario2_exact(point) -> list[dict]:
-    """Mostofi & Murray 2009, eq. (14): exact E tr P of receiver scenario 2 (invertible C, ber noise, i.i.d. Υ).
+    """Mostofi & Murray 2009, eqs (14)/(20): exact E tr P of receiver scenario 2 (invertible C, ber noise, i.i.d. Υ).
 
+    Stationary (a time_average whose point carries no horizon): E P[∞] of eq. (20), ∞ beyond the stability
+    limit μ ρ_max² ≥ 1 (eq. 19). With the horizon (and per k for mean_vs_time), eq. (14):
     E P_{k+1|k} = μ A E P_{k|k−1} Aᵀ + Θ, Θ = Q + A C⁻¹(σ²_n,ave I + (1 − μ) R) C⁻ᵀ Aᵀ (eqs 14, 38), from
     P_{1|0} = A P0 Aᵀ + Q; E P_{k|k} = μ E P_{k|k−1} + C⁻¹(σ²_n,ave I + (1 − μ) R) C⁻ᵀ. μ = μ_ave(Υ_T)
     (eq. 15), σ²_n,ave (eq. 16). Rows per scenario-2 receiver; none where the form does not apply."""
@@ -518,6 +520,7 @@ def scenario2_exact(point) -> list[dict]:
 def lemma5_lower_bound(point) -> list[dict]:
     """Mostofi & Murray 2009, Lemma 5 (eq. 32): E P₁ of scenario 1 with R = 0, a lower bound on every receiver.
 
+    Stationary without the horizon: the fixed point X = μ A X Aᵀ + Q (∞ once μ ρ_max² ≥ 1).
     X_{k+1} = μ A X_k Aᵀ + Q from X = P_{1|0} (predicted), μ X_{k−1} for P_{k|k} (a kept packet's
     update is ⪰ 0 for any receiver, so E P_{k+1|k} ⪰ μ A E P_{k|k−1} Aᵀ + Q: the bound holds for any C
     and receivers 1, 2 and 3). Rows per receiver of scenario 3 (the lemma's case)."""

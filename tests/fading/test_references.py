@@ -71,6 +71,9 @@ def test_theorem4_eq56_vs_generic_monte_carlo(tmp_path):
 
 
 def test_theorem4_needs_its_case():
+    # per-step rows need the steps: a point without the horizon gets none (not a wrong constant)
+    bare = SimpleNamespace(**{k: v for k, v in vars(_point(CFG / "thm4.yaml")).items() if k != "montecarlo"})
+    assert fa.theorem4(bare) == [] and fa.theorem4_quadrature_rows(bare) == []
     pt = _point(CFG / "thm4.yaml", {"system.Q": 0.1})
     assert fa.theorem4(pt) == [] and fa.theorem4_quadrature_rows(pt) == []
     pt = _point(CFG / "thm4.yaml", {"estimator.threshold": {"value": 1, "unit": "linear"}})
