@@ -19,16 +19,4 @@ _os.environ.setdefault("NUMBA_THREADING_LAYER", "forksafe")
 
 from netkf_cli._version import __version__  # noqa: E402,F401
 
-
-def load(source, overrides=None):
-    """Load and validate a scenario (YAML path, YAML text or dict): see :mod:`netkf_cli.api`."""
-    from netkf_cli.api import load as _load
-
-    return _load(source, overrides)
-
-
-def run(scenario, **kw):
-    """Run a scenario and return a :class:`netkf_cli.api.Result`: see :mod:`netkf_cli.api`."""
-    from netkf_cli.api import run as _run
-
-    return _run(scenario, **kw)
+from netkf_cli.api import load, run  # noqa: E402,F401  (the public API: netkf_cli.load / netkf_cli.run)

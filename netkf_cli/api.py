@@ -31,8 +31,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from netkf_cli import montecarlo
+from netkf_cli import montecarlo, runner, sweep
+from netkf_cli.channels.trace_file import TraceChannel
+from netkf_cli.compat import check_scenario
 from netkf_cli.errors import ConfigError, Problem
+from netkf_cli.loader import _plain, apply_overrides, load_scenario, load_scenario_text, parse_overrides, validate_data
+from netkf_cli.recipes.base import RunContext
+from netkf_cli.scenario import ScenarioBase
 
 
 @dataclass
@@ -56,21 +61,15 @@ def _got(x: Any) -> str:
 
 
 def _is_scenario(x: Any) -> bool:
-    from netkf_cli.scenario import ScenarioBase
-
     return isinstance(x, ScenarioBase)
 
 
 def load(source: str | Path | dict, overrides=None):
     """A validated Scenario from a YAML file path, YAML text (containing a newline) or a dict, after
     ``overrides``. The same checks as ``netkf validate``, with the same messages."""
-    from netkf_cli.loader import apply_overrides, load_scenario, load_scenario_text, parse_overrides, validate_data
-
     if _is_scenario(source):
         return with_overrides(source, overrides) if overrides else source
     if isinstance(source, dict):
-        from netkf_cli.loader import _plain
-
         ovs = parse_overrides(overrides)
         data = _plain(source)
         if ovs:
@@ -89,8 +88,6 @@ def load(source: str | Path | dict, overrides=None):
 
 def with_overrides(scenario, overrides):
     """The scenario with ``overrides`` applied and validated again (as ``netkf run FILE key=value``)."""
-    from netkf_cli.loader import apply_overrides, parse_overrides, validate_data
-
     ovs = parse_overrides(overrides)
     if not ovs:
         return scenario
@@ -112,8 +109,6 @@ def recorded_channel(data: Any, horizon: int, *, arg: str = "arrivals", values: 
     """A ``trace`` channel replaying ``data`` (shape ``(horizon,)`` or ``(horizon, streams)``), each
     value checked: 0/1 arrivals, or delays (integers ≥ 0; −1 = lost). The channel's ``file`` names
     the array's digest, so two different recordings are two different scenarios (hash, resume)."""
-    from netkf_cli.channels.trace_file import TraceChannel
-
     try:
         arr = np.asarray(data)
     except Exception as exc:  # noqa: BLE001 - whatever the object, one message naming the argument
@@ -155,8 +150,6 @@ def plan(scenario, *, runs: int | None = None, out: str | Path | None = None, jo
     """What :func:`run` would do, computed and written nothing (``netkf run --dry-run``): the folder,
     run count, sweep points, run-steps, chunks, executor, ETA and scenario hash, after the same
     checks a run makes first (the output folder, ``montecarlo.max_runs``)."""
-    from netkf_cli import runner
-
     if isinstance(scenario, (str, Path, dict)) and not isinstance(scenario, bool):
         scenario = load(scenario)
     elif not _is_scenario(scenario):
@@ -178,10 +171,6 @@ def run(scenario, *, runs: int | None = None, arrivals: np.ndarray | None = None
     ``arrivals`` / ``delays`` replay a recording instead of the scenario's channel (see the module
     docstring; ``buffer`` is the receive buffer for ``delays``); ``overrides`` change fields first.
     """
-    from netkf_cli import runner
-    from netkf_cli.compat import check_scenario
-    from netkf_cli.recipes.base import RunContext
-
     if isinstance(scenario, (str, Path, dict)) and not isinstance(scenario, bool):
         scenario = load(scenario)
     elif not _is_scenario(scenario):
@@ -233,7 +222,5 @@ def run(scenario, *, runs: int | None = None, arrivals: np.ndarray | None = None
     if scenario.sweep is None:
         fig = scenario.analysis.plot(tables, scenario)
     else:
-        from netkf_cli import sweep
-
         fig = sweep.plot(tables, scenario)
     return Result(art.table, tables, fig, art.meta)

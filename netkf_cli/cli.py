@@ -7,24 +7,40 @@ This is the only place where exceptions become messages and exit codes:
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import json
+import math
 import os
+import shlex
+import signal
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+import yaml
 from typer.core import TyperGroup
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from netkf_cli import loader, runner  # (called as loader.x / runner.x: the tests' seams)
 from netkf_cli.analysis import references
 from netkf_cli._version import __version__
 from netkf_cli.errors import ConfigError, NetkfError, Problem
+from netkf_cli.compat import compatibility
+from netkf_cli.kinds import describe
+from netkf_cli.loader import attribute, locate, parse_overrides
+from netkf_cli.metrics.critical import critical_answer
+from netkf_cli.mind import mind_report
+from netkf_cli.montecarlo import usable_cores
+from netkf_cli.reproduce import reproduce as do_reproduce
+from netkf_cli.runner import LARGE_RUN_S, ProgressTotals, duration, plan_run
+from netkf_cli.scenario import json_schema
 
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, the shell convention for a command stopped by Ctrl-C
 _STATE: dict = {"debug": False, "t0": None}
@@ -63,8 +79,6 @@ def _report_unexpected(exc: BaseException) -> int:
         err.print("[bold red]error:[/] out of memory; reduce montecarlo.chunk, the grid or --jobs", highlight=False)
         return 1
     if isinstance(exc, OSError):
-        import errno
-
         where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
         full = exc.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", -1))
         what = (f"{exc.strerror or exc}{' writing' + where if where else ''}; the run stopped and nothing of this "
@@ -79,8 +93,6 @@ def _report_unexpected(exc: BaseException) -> int:
 def _refuse_non_finite_options(args: list[str]) -> None:
     """``--d inf``, ``--tol nan``: one clear message (exit 1) for every option of every command,
     before click's range checks, which compare NaN falsely ("should be ≤ 0.1")."""
-    import math
-
     problems = []
     for i, tok in enumerate(args):
         if tok == "--":
@@ -248,10 +260,6 @@ def run(
     yes: Annotated[bool, typer.Option("--yes", "-y", help="Accept a run count above montecarlo.max_runs.")] = False,
 ):
     """Run a scenario: write <name>.csv, <name>.png and manifest.json into the result folder."""
-    from netkf_cli.loader import load_scenario
-    from netkf_cli.montecarlo import usable_cores
-    from netkf_cli.runner import LARGE_RUN_S, ProgressTotals, duration, plan_run, run_scenario
-
     if executor not in ("local", "dask"):
         raise typer.BadParameter("must be 'local' or 'dask'", param_hint="--executor")
     if scheduler is not None and executor != "dask":
@@ -268,11 +276,10 @@ def run(
                   f"would only add memory: each holds its own numpy, numba …)", highlight=False)
         n_jobs = cores
     mode = "dask" if executor == "dask" else ("process" if n_jobs > 1 else "serial")
-    scenario = load_scenario(config, overrides)
+    scenario = loader.load_scenario(config, overrides)
     try:
         plan = plan_run(scenario, out_dir=out_dir, runs=runs, force=force, executor=mode, jobs=n_jobs, yes=yes)
     except ConfigError as exc:  # a field's problem: its file and line (or the override that set it)
-        from netkf_cli.loader import attribute, locate, parse_overrides
 
         fields = ConfigError([p for p in exc.problems if not p.path.startswith("-")])
         options = [p for p in exc.problems if p.path.startswith("-")]
@@ -292,7 +299,7 @@ def run(
         task = prog.add_task(f"{scenario.name} (Monte Carlo runs)", total=None)
         totals = ProgressTotals(lambda t: prog.update(task, total=t))
         try:
-            folder = run_scenario(
+            folder = runner.run_scenario(
                 scenario, source=config, out_dir=out_dir, runs=runs, force=force,
                 progress=lambda n: prog.advance(task, n), set_total=totals.set_total, add_total=totals.add_total,
                 executor=mode, jobs=n_jobs, scheduler=scheduler or ("local" if executor == "dask" else None),
@@ -331,17 +338,11 @@ def run(
 
 
 def _quote(x) -> str:
-    import shlex
-
     return shlex.quote(str(x))
 
 
 def _print_plan(plan, config: Path, overrides: list[str], as_json: bool) -> None:
     """``--dry-run``: what the run would do, from the same checks the run makes first."""
-    import yaml
-
-    from netkf_cli.runner import duration
-
     sc = plan.scenario
     resolved = sc.model_dump(mode="json", by_alias=True, exclude_none=True)
     info = plan.as_json()
@@ -371,9 +372,6 @@ def _print_plan(plan, config: Path, overrides: list[str], as_json: bool) -> None
 def _terminate_as_interrupt():
     """Inside this block ``kill PID`` (SIGTERM) stops a run like Ctrl-C: locks released, finished
     chunks kept for --resume, one line. (Pool workers reset SIGTERM: netkf_cli.workers.)"""
-    import signal
-    import threading
-
     def handler(signum, frame):
         raise KeyboardInterrupt
 
@@ -398,15 +396,13 @@ def validate(
                                                       "applied to each (as `netkf run`).")],
 ):
     """Check scenarios without running them (every problem of every file is reported)."""
-    from netkf_cli.loader import load_scenario
-
     files, overrides = _split_overrides(configs)
     if not files:
         raise typer.BadParameter("give at least one scenario file", param_hint="CONFIGS")
     problems = []
     for c in files:
         try:
-            sc = load_scenario(c, overrides)  # (every sweep point is validated too, as `run` does first)
+            sc = loader.load_scenario(c, overrides)  # (every sweep point is validated too, as `run` does first)
             out.print(f"[green]✓[/] {c}: {sc.name} (analysis {sc.analysis.kind})", highlight=False)
         except ConfigError as exc:
             problems.extend(exc.problems)
@@ -417,8 +413,6 @@ def validate(
 @app.command()
 def schema():
     """Print the JSON Schema of a scenario file (for editor completion)."""
-    from netkf_cli.scenario import json_schema
-
     sys.stdout.write(json.dumps(json_schema(), indent=2, ensure_ascii=False) + "\n")
 
 
@@ -429,9 +423,6 @@ def list_kinds(
     as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
 ):
     """List the channel, estimator and analysis kinds, their fields and which combine."""
-    from netkf_cli.compat import compatibility
-    from netkf_cli.kinds import describe
-
     info = describe(compatibility())
     if kind == "references":
         info = {}
@@ -501,8 +492,6 @@ def mind(
     mean d = 5 — the mean for which the printed θ(7,6) = 0.0313, θ(8,7) = 0.0042,
     θ(9,8) = 0.0003 are reproduced (under the delay_le_D convention).
     """
-    from netkf_cli.mind import mind_report
-
     if sensor not in ("raw", "smart"):
         raise typer.BadParameter("must be 'raw' or 'smart'", param_hint="--sensor")
     if convention not in (None, "delay_le_D", "delay_lt_D"):
@@ -528,13 +517,9 @@ def critical(
 
     Without --config: Example 3.10 of Shi, Xie & Murray 2009 (A = 1.4, C = 1, Q = 0.2, R = 0.5), as `netkf mind`.
     """
-    from netkf_cli.metrics.critical import critical_answer
-
     scenario = where = None
     if config is not None:
-        from netkf_cli.loader import load_scenario, locate
-
-        scenario = load_scenario(config)
+        scenario = loader.load_scenario(config)
         where = functools.partial(locate, path=config)
     answer = critical_answer(config=config, scenario=scenario, locate=where, arrival=arrival, tol=tol)
     if as_json:
@@ -556,8 +541,6 @@ def reproduce(
     allow_dirty: Annotated[bool, typer.Option("--allow-dirty", help="Write into the repository's results/ even with uncommitted changes.")] = False,
 ):
     """Regenerate every paper artefact (configs/), compare with experiments/<topic>/published.yaml, write a report."""
-    from netkf_cli.reproduce import reproduce as do_reproduce
-
     ok = do_reproduce(topics or [], quick=quick, out_root=out_dir, check=check, jobs=jobs, write_report=report,
                       console=out, quiet=quiet, allow_dirty=allow_dirty)
     if check and not ok:

@@ -12,23 +12,24 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Annotated, Any, Literal, get_args, get_origin
 
+import numpy as np
+import yaml
+from pydantic import ValidationError
+
 from netkf_cli.errors import ConfigError, Problem
+from netkf_cli.kinds import GENERIC_METRICS
+from netkf_cli.scenario import SystemSpec, kinds
+from netkf_cli.spec import ChannelModel, EstimatorModel
 
 
 def compatible_channels(estimator_cls) -> list[str]:
     """Channel kinds whose traces this estimator class accepts."""
-    from netkf_cli.scenario import kinds
-    from netkf_cli.spec import ChannelModel
-
     acc = getattr(estimator_cls, "accepts", frozenset())
     return sorted(k for k, c in kinds(ChannelModel).items() if getattr(c, "trace_kinds", frozenset()) & acc)
 
 
 def compatible_estimators(channel_cls) -> list[str]:
     """Estimator kinds that accept this channel class's traces."""
-    from netkf_cli.scenario import kinds
-    from netkf_cli.spec import EstimatorModel
-
     tk = getattr(channel_cls, "trace_kinds", frozenset())
     return sorted(k for k, c in kinds(EstimatorModel).items() if getattr(c, "accepts", frozenset()) & tk)
 
@@ -99,8 +100,6 @@ def check_scenario(scenario) -> None:
 
 
 def _generic(analysis) -> bool:
-    from netkf_cli.kinds import GENERIC_METRICS
-
     return getattr(analysis, "kind", None) in GENERIC_METRICS
 
 
@@ -122,14 +121,6 @@ def _examples() -> tuple[dict, list]:
     """One validated instance per channel kind and estimator kind, from the example scenarios
     (configs/, experiments/), else from the defaults alone; and the systems to check them on,
     as ``(label, system block, LinearSystem)``: the representative ones, then the examples'."""
-    from pydantic import ValidationError
-
-    import yaml
-
-    from netkf_cli.errors import ConfigError
-    from netkf_cli.scenario import SystemSpec, kinds
-    from netkf_cli.spec import ChannelModel, EstimatorModel
-
     fam = {"channel": kinds(ChannelModel), "estimator": kinds(EstimatorModel)}
     found: dict[str, dict] = {"channel": {}, "estimator": {}}
     systems: list = []
@@ -202,8 +193,6 @@ def _minimal(cls, kind: str) -> dict:
 
 
 def _streams(channel) -> int | None:
-    import numpy as np
-
     try:
         tr = channel.sample_trace(np.random.default_rng(0), 1, 1)
         arr = getattr(tr, "arrival", None)
@@ -214,8 +203,6 @@ def _streams(channel) -> int | None:
 
 def _variants(channel, m: int) -> list:
     """The example channel, and the same channel with its stream count set to the system's outputs."""
-    from pydantic import ValidationError
-
     out = [channel]
     for f in _STREAM_FIELDS:
         if f in type(channel).model_fields and getattr(channel, f) != m:
@@ -257,10 +244,6 @@ def compatibility() -> dict[str, dict[str, dict]]:
 def _compat_cached(_cache: dict = {}) -> dict:  # noqa: B006 - a process-wide cache
     if "v" in _cache:
         return _cache["v"]
-    from netkf_cli.errors import ConfigError
-
-    from netkf_cli.scenario import kinds
-    from netkf_cli.spec import ChannelModel, EstimatorModel
 
     found, systems = _examples()
     table: dict[str, dict[str, dict]] = {}

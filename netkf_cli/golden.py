@@ -76,7 +76,9 @@ from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
+import yaml
 from pydantic import Field, model_validator
+from scipy import stats
 
 from netkf_cli.spec import StrictModel
 
@@ -159,8 +161,6 @@ def parse_rules(spec: Mapping[str, Any] | None) -> dict[str, list[GoldenRule]]:
 
 def rules_for_topic(root: Path, topic: str) -> dict[str, list[GoldenRule]]:
     """The ``golden:`` block of ``experiments/<topic>/published.yaml`` (empty if none)."""
-    import yaml
-
     f = Path(root) / "experiments" / topic / "published.yaml"
     if not f.exists():
         return {}
@@ -210,8 +210,6 @@ def _t_factor(sigmas: float, ng: np.ndarray, nf: np.ndarray) -> np.ndarray:
     """``sigmas`` normal standard errors as a Student-t quantile of the same tail probability
     when the standard errors come from few samples (ν = min(n) − 1; e.g. 12 replicate runs:
     5σ → 10.3; ≥ 1000 samples: 5.03). Unknown n: the normal value."""
-    from scipy import stats
-
     p_half = stats.norm.sf(sigmas)
     n = np.fmin(ng, nf)
     out = np.full(n.shape, float(sigmas))

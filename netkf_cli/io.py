@@ -26,6 +26,7 @@ import pandas as pd
 
 from netkf_cli._version import __version__
 from netkf_cli.errors import BusyError, NetkfError, OutputError, ResultExistsError
+from netkf_cli.workers import _alive as _workers_alive
 
 try:
     import fcntl
@@ -303,9 +304,7 @@ def check_target(final: Path, *, force: bool, scenario_hash: str | None = None,
 
 def _alive(pid: int) -> bool:
     """True if ``pid`` exists and is not a zombie (one definition: :func:`netkf_cli.workers._alive`)."""
-    from netkf_cli.workers import _alive as alive
-
-    return alive(pid)
+    return _workers_alive(pid)
 
 
 def _rmtree(path: Path) -> None:

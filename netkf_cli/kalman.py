@@ -31,6 +31,7 @@ import numpy as np
 import scipy.linalg
 
 from netkf_cli import batched
+from netkf_cli import kalman_codegen as kc
 from netkf_cli.errors import ConfigError
 from netkf_cli.tolerances import RESCUE_RATIO
 
@@ -363,8 +364,7 @@ class Filter:
         """The numba path of :meth:`run`: a kernel generated for this system where it can be
         (:mod:`netkf_cli.kalman_codegen`: n ≤ 6, sensor groups of ≤ 2 rows), the generic compiled
         step otherwise; runs flagged by the rescue test continue on the numpy core from their start."""
-        from netkf_cli import kalman_codegen as kc  # optional dependency (numba)
-        from netkf_cli import kalman_numba as kn
+        from netkf_cli import kalman_numba as kn  # optional dependency (numba): compiled primitives
 
         n = self.A.shape[0]
         P = np.array(P, dtype=float, order="C")
@@ -421,7 +421,7 @@ within the first few such chunks; small test-sized runs stay on numpy."""
 def numba_available() -> bool:
     """numba importable (an optional dependency: where it is missing, everything runs on numpy)."""
     try:
-        import numba  # noqa: F401
+        import numba  # noqa: F401  (optional: probed only, never required)
     except ImportError:
         return False
     return True

@@ -7,6 +7,10 @@ from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 from pydantic.fields import PydanticUndefined
 
+from netkf_cli.kalman import MEANING
+from netkf_cli.scenario import kinds
+from netkf_cli.spec import AnalysisModel, ChannelModel, EstimatorModel
+
 GENERIC_METRICS = ("distribution", "mean_vs_time", "compare", "tail", "time_average", "state_error", "updates")
 
 
@@ -44,9 +48,6 @@ def describe(compat: dict | None = None) -> dict[str, dict[str, dict]]:
 
     ``compat`` is :func:`netkf_cli.compat.compatibility` (what `netkf validate` accepts, computed;
     passed in because compat sits beside this module): without it no pair is listed."""
-    from netkf_cli.scenario import kinds
-    from netkf_cli.spec import AnalysisModel, ChannelModel, EstimatorModel
-
     compat = compat or {}
     out: dict[str, dict[str, dict]] = {}
     for family, base in (("channel", ChannelModel), ("estimator", EstimatorModel), ("analysis", AnalysisModel)):
@@ -64,7 +65,6 @@ def describe(compat: dict | None = None) -> dict[str, dict[str, dict]]:
                 col = {c: row[k] for c, row in compat.items() if k in row}
                 entry["channels"] = sorted(c for c, v in col.items() if v["status"] != "no")
                 entry["conditions"] = {c: v["condition"] for c, v in col.items() if v["status"] == "conditional"}
-                from netkf_cli.kalman import MEANING
 
                 entry["quantities"] = {q: MEANING[q] for q in getattr(cls, "quantities", ("filtered",))}
             else:

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import copy
 import math
 import re
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 from pydantic import ValidationError
 
+from netkf_cli import sweep
+from netkf_cli.compat import check_scenario  # cross-block checks: channel × estimator × analysis
 from netkf_cli.errors import ConfigError, Problem
 from netkf_cli.scenario import SystemSpec, scenario_model
 
@@ -385,7 +389,6 @@ def validate_data(data: Any, file: str | None = None, index: dict | None = None,
             problems.append(Problem(p.path, p.message, file, line_of(index, _keys(p.path))))
     if problems:
         raise ConfigError(attribute(problems, overrides))
-    from netkf_cli.compat import check_scenario  # cross-block checks: channel × estimator × analysis
 
     try:
         check_scenario(scenario)
@@ -393,9 +396,7 @@ def validate_data(data: Any, file: str | None = None, index: dict | None = None,
         raise ConfigError(attribute([p if p.file else Problem(p.path, p.message, file, line_of(index, _keys(p.path)))
                                      for p in exc.problems], overrides)) from None
     if scenario.sweep is not None or getattr(scenario.analysis, "over", None):  # every point gets these same
-        from netkf_cli import sweep  # checks, now (as `netkf validate` promises)
-
-        try:
+        try:  # checks, now (as `netkf validate` promises)
             if scenario.sweep is not None:
                 sweep.expand(scenario, file, validate_data)
             else:
@@ -520,10 +521,6 @@ def _short(v) -> str:
 
 def _plain(v):
     """numpy scalars and arrays as plain Python numbers and lists (what YAML would have given)."""
-    try:
-        import numpy as np
-    except ImportError:  # pragma: no cover
-        return v
     if isinstance(v, np.ndarray):
         return _plain(v.tolist())
     if isinstance(v, np.generic):
@@ -538,8 +535,6 @@ def _plain(v):
 def apply_overrides(data: dict, overrides: list[Override]) -> dict:
     """A copy of ``data`` with every override applied in order; impossible paths are one
     :class:`ConfigError` naming each override."""
-    import copy
-
     data = copy.deepcopy(data)
     problems = []
     for o in overrides:

@@ -15,8 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from netkf_cli.analysis import delay_bounds as db
-from netkf_cli.channels.delay import CONVENTION_HELP, DEFAULT_CONVENTION, PoissonDelay
+from netkf_cli.channels.delay import CONVENTION_HELP, DEFAULT_CONVENTION, PoissonDelay, delay_label
 from netkf_cli.errors import ConfigError
+from netkf_cli.loader import load_scenario, locate
 from netkf_cli.system import LinearSystem
 
 EXAMPLE_310 = dict(A=1.4, C=1.0, Q=0.2, R=0.5)
@@ -149,9 +150,6 @@ def mind_report(*, M: float, eps: float, config: Path | None, d: float | None, s
     """Size the buffer for the default Example 3.10 or a scenario's system and delay channel."""
     check_arguments(M=M, eps=eps, d=d)
     if config is not None:
-        from netkf_cli.loader import load_scenario, locate
-        from netkf_cli.channels.delay import delay_label
-
         sc = load_scenario(config)
         try:
             s = sc.linear_system()

@@ -34,6 +34,7 @@ import numpy as np
 
 from netkf_cli.stats import mean_se, proportion_stderr, wilson_interval  # noqa: F401 (re-exported: one statistics module)
 from netkf_cli.errors import NetkfError
+from netkf_cli.workers import pool_kwargs  # pool workers ignore Ctrl-C and die with this process
 
 Stats = Mapping[str, np.ndarray | float | int]
 Kernel = Callable[[np.random.Generator, int], Stats]
@@ -138,22 +139,20 @@ class Execution:
 
     def pool(self) -> Executor:
         if self._pool is None:
-            from netkf_cli.workers import pool_kwargs  # workers ignore Ctrl-C and die with this process
-
             self._pool = ProcessPoolExecutor(max_workers=self.jobs, **pool_kwargs())
         return self._pool
 
     def client(self):
         if self._client is None:
             try:
-                from dask.distributed import Client, LocalCluster
+                from dask.distributed import Client, LocalCluster  # optional (netkf[dask]): seconds to import
             except ImportError:
                 raise NetkfError("--executor dask needs dask.distributed: pip install 'netkf[dask]'") from None
             if self.scheduler in (None, "local"):
                 self._cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
                                              dashboard_address=None)
                 self._client = Client(self._cluster)
-                from netkf_cli.workers import DieWithParentPlugin
+                from netkf_cli.dask_plugin import DieWithParentPlugin  # optional: subclasses distributed's WorkerPlugin
 
                 register = getattr(self._client, "register_plugin", None) or self._client.register_worker_plugin
                 register(DieWithParentPlugin())  # local workers exit if this process is killed

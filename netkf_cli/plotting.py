@@ -26,15 +26,20 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import textwrap
+import warnings
 from collections.abc import Iterable
 from pathlib import Path
 
+import numpy as np
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib import cycler  # noqa: E402  (matplotlib re-exports its cycler dependency)
 from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.text import Text  # noqa: E402
 from matplotlib.transforms import offset_copy  # noqa: E402
 
 #: Okabe & Ito (2008) colour-blind-safe palette; yellow last (weak on white).
@@ -156,9 +161,6 @@ def footnote(fig: Figure, text: str) -> None:
 
 def _wrap(text: str, width: int) -> str:
     """textwrap that never breaks inside a $…$ mathtext span."""
-    import re
-    import textwrap
-
     protected = re.sub(r"\$[^$]*\$", lambda m: m.group(0).replace(" ", "\x00"), text)
     out = "\n".join(textwrap.fill(line, max(width, 10), break_long_words=False, break_on_hyphens=False)
                     for line in protected.split("\n"))
@@ -200,7 +202,6 @@ def _layout(fig: Figure) -> None:
             t.set_y(y / h)
             y += t.get_window_extent(r).height + 2
         bottom = min(0.4, (y + 4) / h)
-    import warnings
 
     try:
         with warnings.catch_warnings():  # a layout that cannot fit is reported by lint(), not as a warning
@@ -336,7 +337,6 @@ def lint(fig: Figure) -> list[str]:
         if lab not in all_series:
             problems.append(f"figure legend entry {lab!r} has no drawn series")
     W, H = fig.bbox.width, fig.bbox.height
-    from matplotlib.text import Text
 
     every_tick, drawn_tick = _tick_labels(fig)
     seen = set()
@@ -359,8 +359,6 @@ def lint(fig: Figure) -> list[str]:
 
 def _points_under_legend(ax, renderer) -> int:
     """How many drawn data vertices (lines, markers, scatter points) lie under the axes' legend."""
-    import numpy as np
-
     lg = ax.get_legend()
     if lg is None or not lg.get_visible():
         return 0

@@ -10,6 +10,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from netkf_cli import io
+from netkf_cli.plotting import PAPERS
 
 MAX_BYTES = 30_000
 _REASON_CHARS = 240
@@ -144,7 +145,6 @@ def _render(outcomes, published, path: Path, *, root: Path, quick: bool) -> str:
         "mark known disagreements, explained in the topic's notes (linked).",
         "",
     ]
-    from netkf_cli.plotting import PAPERS
 
     by_topic: dict[str, list] = {}
     for o in outcomes:

@@ -20,8 +20,8 @@ import numpy as np
 import pandas as pd
 
 from netkf_cli import io, montecarlo, sweep
-from netkf_cli.errors import ConfigError
-from netkf_cli.loader import load_scenario, locate, validate_data
+from netkf_cli.errors import ConfigError, Problem
+from netkf_cli.loader import load_scenario, locate, parse_overrides, validate_data
 from netkf_cli.plotting import save
 from netkf_cli.recipes.base import Artefact, RunContext
 
@@ -283,8 +283,6 @@ def plan_run(scenario, *, out_dir: str | Path | None = None, runs: int | None = 
     """Every check that can be made before the Monte Carlo, with no side effect: the result folder
     (replaceable, not a mount point, a valid name, creatable), the run count against
     ``montecarlo.max_runs`` (``yes`` lifts it). Raises :class:`ConfigError` / :class:`OutputError`."""
-    from netkf_cli.errors import Problem
-
     out, cache = result_paths(scenario, out_dir, runs)
     replaces = io.check_target(out, force=force, scenario_hash=scenario_hash(scenario, runs),
                                same=lambda man: same_scenario(man, scenario, runs))
@@ -300,8 +298,6 @@ def plan_run(scenario, *, out_dir: str | Path | None = None, runs: int | None = 
 def check_run_count(scenario, runs: int | None = None, *, quick: bool = False, yes: bool = False, jobs: int = 1,
                     runs_option: str = "--runs") -> tuple[int, int, float]:
     """Refuse a run count above ``montecarlo.max_runs`` unless ``yes``; returns (runs, run-steps, ETA s)."""
-    from netkf_cli.errors import Problem
-
     mc = scenario.montecarlo
     counts = run_counts(scenario, runs, quick)
     n = max(counts)
@@ -441,8 +437,6 @@ def run_scenario_file(path: str | Path, *, out_dir: str | Path | None = None, ru
                       progress=None, set_total=None, **execution) -> Path:
     """Load a scenario file (with ``overrides``: ``key=value`` strings or ``{dotted.path: value}``)
     and run it; returns the result folder."""
-    from netkf_cli.loader import parse_overrides
-
     scenario = load_scenario(path, overrides)
     texts = [o.text for o in parse_overrides(overrides)]
     return run_scenario(scenario, source=path, out_dir=out_dir, runs=runs, quick=quick, force=force,

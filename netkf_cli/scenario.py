@@ -16,6 +16,7 @@ from typing import Annotated, Any, Literal, Union
 
 from pydantic import AfterValidator, BeforeValidator, Field, create_model, model_validator
 
+from netkf_cli.errors import ConfigError
 from netkf_cli import channels, estimators, metrics, recipes
 from netkf_cli.spec import (
     AnalysisModel,
@@ -186,15 +187,11 @@ class ScenarioBase(StrictModel):
     """Shared behaviour of the generated Scenario model."""
 
     def linear_system(self) -> LinearSystem:
-        from netkf_cli.errors import ConfigError
-
         if self.system is None:  # type: ignore[attr-defined]
             raise ConfigError.at("system", "this analysis needs a `system:` block (A, C, Q, R)")
         return self.system.build()  # type: ignore[attr-defined]
 
     def require_channel(self, *allowed: str):
-        from netkf_cli.errors import ConfigError
-
         ch = self.channel  # type: ignore[attr-defined]
         if ch is None or (allowed and ch.kind not in allowed):
             got = "none" if ch is None else ch.kind
@@ -208,8 +205,6 @@ class ScenarioBase(StrictModel):
         return [] if self.estimator is None else [self.estimator]  # type: ignore[attr-defined]
 
     def require_estimator(self, *allowed: str):
-        from netkf_cli.errors import ConfigError
-
         es = self.estimator  # type: ignore[attr-defined]
         if es is None and self.estimators:  # type: ignore[attr-defined]
             raise ConfigError.at("estimators", "this analysis takes one `estimator:`; `estimators:` (a list) is for "

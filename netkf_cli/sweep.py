@@ -20,6 +20,7 @@ import pandas as pd
 from pydantic import Field, model_validator
 
 from netkf_cli.errors import ConfigError, Problem
+from netkf_cli.plotting import footnote, new_figure
 from netkf_cli.spec import StrictModel
 
 
@@ -201,8 +202,6 @@ def add_coords(df: pd.DataFrame, coords: dict) -> pd.DataFrame:
 
 def plot(tables, scenario):
     """Default sweep figure: value against the first swept field, one line per value of the second."""
-    from netkf_cli.plotting import footnote, new_figure
-
     t = tables["main"]
     spec = scenario.sweep
     axes = list(spec.axes)

@@ -14,7 +14,9 @@ Use::
 
 (create the pool in the thread that submits to it: see :func:`pool_kwargs`), and for Dask::
 
-    client.register_plugin(workers.DieWithParentPlugin())
+    from netkf_cli.dask_plugin import DieWithParentPlugin  # needs distributed (netkf[dask])
+
+    client.register_plugin(DieWithParentPlugin())
 
 Each worker then (1) ignores SIGINT (the parent handles Ctrl-C and shuts the pool down), (2) on
 Linux asks the kernel for SIGTERM when its parent dies (``prctl(PR_SET_PDEATHSIG)``), and (3) runs
@@ -26,9 +28,9 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import multiprocessing
 import os
 import signal
-import socket
 import sys
 import threading
 import time
@@ -72,8 +74,6 @@ def _origin() -> int:
     netkf process, even under the forkserver start method where ``getppid()`` is the server), so
     it is right even if that process died before this runs."""
     try:
-        import multiprocessing
-
         pp = multiprocessing.parent_process()
         if pp is not None and pp.pid:
             return int(pp.pid)
@@ -130,36 +130,6 @@ def pool_kwargs() -> dict:
     alone does the job."""
     in_main = threading.current_thread() is threading.main_thread()
     return {"initializer": init_worker, "initargs": (os.getpid(), in_main)}
-
-
-try:  # optional: Dask
-    from distributed.diagnostics.plugin import WorkerPlugin as _WorkerPlugin
-except ImportError:  # pragma: no cover - dask not installed
-    _WorkerPlugin = object  # type: ignore[assignment,misc]
-
-
-class DieWithParentPlugin(_WorkerPlugin):  # type: ignore[misc,valid-type]
-    """Dask worker plugin: a worker of a ``LocalCluster`` started by netkf exits when the netkf
-    process is gone (watchdog only: Dask starts worker processes from helper threads, so
-    PR_SET_PDEATHSIG could fire too early), and ignores SIGINT where it runs in the main thread.
-
-    Register with ``client.register_plugin(DieWithParentPlugin())`` (``register_worker_plugin``
-    on older ``distributed``). Only meant for local clusters: a remote worker's netkf process is
-    not on its machine, so :meth:`setup` does nothing when the pid does not exist locally at
-    registration time or the host differs."""
-
-    name = "netkf-die-with-parent"
-
-    def __init__(self, main_pid: int | None = None):
-        self.main_pid = os.getpid() if main_pid is None else main_pid
-        self.host = socket.gethostname()
-
-    def setup(self, worker) -> None:  # noqa: D401 - Dask API
-        if socket.gethostname() != self.host or not _alive(self.main_pid):
-            return  # not on the machine of the netkf process (remote cluster): nothing to watch
-        if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-        start_watchdog(self.main_pid)
 
 
 def die_with_parent(main_pid: int | None = None, pdeathsig: bool = True) -> None:

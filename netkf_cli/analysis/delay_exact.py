@@ -47,6 +47,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from netkf_cli import riccati
 from netkf_cli.analysis.delay_bounds import max_kept_delay
@@ -108,7 +109,6 @@ def _open_loop_bound(s: LinearSystem) -> np.ndarray | None:
     """X∞ solving X = A X Aᵀ + Q when A is Schur stable, else None."""
     if np.max(np.abs(np.linalg.eigvals(s.A))) >= 1 - 1e-9:
         return None
-    import scipy.linalg
 
     X = scipy.linalg.solve_discrete_lyapunov(s.A, s.Q)
     return (X + X.T) / 2

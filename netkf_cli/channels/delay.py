@@ -20,6 +20,7 @@ from scipy import stats
 
 # the buffer rule is the paper's (closed forms use it too): defined with them, one layer down
 from netkf_cli.analysis.delay_bounds import CONVENTION_HELP, DEFAULT_CONVENTION, Convention, max_kept_delay  # noqa: F401
+from netkf_cli.kalman import AUTO_MIN_RUN_STEPS
 from netkf_cli.spec import ChannelModel, NonNegFloat, PositiveInt, Probability, StrictModel
 from netkf_cli.trace import LOST, Trace  # LOST: the delay of a packet that never arrives
 
@@ -217,8 +218,6 @@ def inverse_cdf(u: np.ndarray, table: np.ndarray, buckets: int = 1 << 12, compil
     lo = np.searchsorted(table, edges[:-1], side="right").astype(np.int32)
     hi = np.searchsorted(table, np.nextafter(edges[1:], 0.0), side="right").astype(np.int32)
     if compiled is None:
-        from netkf_cli.kalman import AUTO_MIN_RUN_STEPS
-
         compiled = u.size >= AUTO_MIN_RUN_STEPS
     if compiled:
         try:

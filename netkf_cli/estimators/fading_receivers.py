@@ -50,6 +50,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 from scipy import special
+from scipy import special
 
 from netkf_cli import kalman
 from netkf_cli.analysis import fading as fa

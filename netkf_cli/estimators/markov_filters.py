@@ -801,7 +801,7 @@ _NB_KERNEL = None
 
 def numba_available() -> bool:
     try:
-        import numba  # noqa: F401
+        import numba  # noqa: F401  (optional: probed only, never required)
     except ImportError:
         return False
     return True
@@ -822,9 +822,9 @@ def _numba_kernel():
     global _NB_KERNEL
     if _NB_KERNEL is not None:
         return _NB_KERNEL
-    import numba
+    import numba  # optional (netkf[fast]): imported only when the compiled backend runs
 
-    from netkf_cli import kalman_numba as kn
+    from netkf_cli import kalman_numba as kn  # needs numba: the compiled primitives
 
     @numba.njit(cache=True, nogil=True)
     def run(P, xi, ys, xs, modes, t0, t1, H, Rq, rowptr, cols, vals, D, Qb, scale, rtol, n, has_x, limit,

@@ -31,6 +31,7 @@ import pandas as pd
 from pydantic import Field, model_validator
 
 from netkf_cli.analysis import critical as cr
+from netkf_cli.channels.bernoulli import BernoulliChannel
 from netkf_cli.errors import ConfigError
 from netkf_cli.metrics.tail import kf_for, time_average_mean
 from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
@@ -268,8 +269,6 @@ def critical_answer(*, config: Path | None = None, scenario=None, locate=None, a
     else:
         s, label = LinearSystem.create(**DEFAULT_SYSTEM), DEFAULT_LABEL
     if arrival is not None:
-        from netkf_cli.channels.bernoulli import BernoulliChannel
-
         channel = BernoulliChannel(kind="bernoulli", arrival=arrival)
     rep = cr.critical_report(s.A, s.C, tol=tol, Q=s.Q, R=s.R)
     return CriticalAnswer(label, s, rep, channel_answer(s, channel, rep))
@@ -308,8 +307,6 @@ class CriticalAnalysis(AnalysisModel):
         return np.round(g, 6)
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
-        from netkf_cli.channels.bernoulli import BernoulliChannel
-
         s = scenario.linear_system()
         rep = cr.critical_report(s.A, s.C, tol=self.bisection_tol, Q=s.Q, R=s.R)
         lm, e = rep.lam_max, rep.exact

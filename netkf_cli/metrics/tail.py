@@ -41,9 +41,11 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 from pydantic import Field, model_validator
+from scipy import stats as sps
 
 from netkf_cli.analysis import critical as cr
 from netkf_cli.errors import ConfigError
+from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.metrics.common import MGrid, PaperRef, labels, m_values, needs
 from netkf_cli.montecarlo import run_chunked, wilson_interval
 from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
@@ -84,8 +86,6 @@ def covariances(est, system, trace, steps, quantity: str = "filtered"):
 
 def kf_for(quantity: str):
     """A ``kf`` estimator reporting ``quantity`` under either contract (old: ``report:``; new: ``quantities=``)."""
-    from netkf_cli.estimators.kf import KalmanFilterEstimator
-
     fields = getattr(KalmanFilterEstimator, "model_fields", {})
     if "report" in fields and not accepts_quantities(KalmanFilterEstimator(kind="kf")):
         return KalmanFilterEstimator(kind="kf", report=quantity)
@@ -379,7 +379,6 @@ class TailMetric(AnalysisModel):
                                      lo=lo0[i], hi=hi0[i], count=cnt0[i], reliable=float(cnt0[i] >= MIN_CONTRIBUTORS)))
             mask = (p > 0) & (p <= self.fit_below) & good
             slope, sej, nb = jackknife_slope(M, st[f"bwf_{j}"], st["n_b"], mask) if mask.sum() >= 3 else (math.nan, math.nan, 0)
-            from scipy import stats as sps
 
             tq = float(sps.t.ppf(0.975, max(nb - 1, 1))) if nb >= 3 else math.nan
             theo, why = (None, "theory only for the Kalman filter (kind: kf)")
