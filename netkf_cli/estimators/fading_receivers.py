@@ -50,7 +50,6 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 from scipy import special
-from scipy import special
 
 from netkf_cli import kalman
 from netkf_cli.analysis import fading as fa

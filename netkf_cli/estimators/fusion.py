@@ -46,7 +46,6 @@ from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
 from netkf_cli.system import LinearSystem
 from netkf_cli.trace import Trace
-from netkf_cli.trace import Trace
 
 Strategy = Literal["mf", "ibf", "olpef"]
 STRATEGIES: tuple[str, ...] = ("mf", "ibf", "olpef")

@@ -54,13 +54,11 @@ from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
 import cvxpy as cp
-import cvxpy as cp
 import numpy as np
 from pydantic import Field
 
 from netkf_cli import kalman
 from netkf_cli.errors import ConfigError
-from netkf_cli.estimators.kf import channel_streams
 from netkf_cli.estimators.kf import channel_streams
 from netkf_cli.estimators.markov_filters import (
     N_MODES,

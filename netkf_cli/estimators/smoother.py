@@ -54,7 +54,6 @@ from netkf_cli import batched as bt
 from netkf_cli import kalman
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators.kf import channel_streams
-from netkf_cli.estimators.kf import channel_streams
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel, NonNegInt
 from netkf_cli.system import LinearSystem
