@@ -423,9 +423,14 @@ class MarkovLMIEstimator(EstimatorModel):
 
     def check(self, system, channel) -> None:
         """S of the right shape, 4 design marginals, one packet stream."""
-        if self.S is not None and np.asarray(self.S, float).shape != (system.n, system.m):
-            raise ConfigError.at("estimator.S", f"must be {system.n}×{system.m} (rows = states, columns = outputs), "
-                                                f"got {np.asarray(self.S, float).shape}")
+        if self.S is not None:
+            if np.asarray(self.S, float).shape != (system.n, system.m):
+                raise ConfigError.at("estimator.S", f"must be {system.n}×{system.m} (rows = states, columns = outputs), "
+                                                    f"got {np.asarray(self.S, float).shape}")
+            try:
+                self._model(system)
+            except ValueError as e:
+                raise ConfigError.at("estimator.S", str(e)) from None
         if self.rho != "stationary":
             if len(self.rho) != N_MODES:
                 raise ConfigError.at("estimator.rho", f"needs 4 marginals ρ_1..ρ_4, got {len(self.rho)}")

@@ -73,9 +73,12 @@ class MarkovExactAnalysis(AnalysisModel):
         if mc.burn_in >= mc.horizon:
             problems.append(Problem("montecarlo.burn_in", f"must be < horizon = {mc.horizon} (the MSE is averaged over "
                                                           f"k = burn_in … horizon−1), got {mc.burn_in}"))
+        try:
+            est.check(sysm, ch)
+        except ConfigError as e:
+            problems.extend(e.problems)
         if problems:
             raise ConfigError(problems)
-        est.check(sysm, ch)
         model = est._model(sysm)[0]
         rho = ch.rho if est.rho == "stationary" else np.asarray(est.rho, float)
         P0 = sysm.P0 if sysm.P0 is not None else np.zeros((n, n))

@@ -14,7 +14,7 @@ PRINTED_RHO = {"example1": [0.8, 0.02, 0.09, 0.09], "example2": [0.7, 0.045, 0.0
 
 
 def setup_of(name: str, **over):
-    sc = load_scenario(CONFIGS / f"{name}.yaml", over or None)
+    sc = load_scenario(CONFIGS / f"{name}_exact.yaml", over or None)
     return sc, sc.analysis._setup(sc)
 
 

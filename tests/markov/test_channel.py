@@ -96,16 +96,18 @@ def test_scenario_error_has_dotted_path():
 def test_recipe_input_errors(tmp_path):
     from netkf_cli.recipes.base import RunContext
 
-    base = (CONFIGS / "example1.yaml").read_text()
-    sc = load_scenario_text(base.replace("S: [[0.2], [0.0]]", "S: [0.2, 0.0]").replace("xs0: [2, -2]", "xs0: [2, -2, 1]"))
+    base = (CONFIGS / "example1_exact.yaml").read_text()
+    with pytest.raises(ConfigError) as ei:  # refused at load time (netkf validate)
+        load_scenario_text(base.replace("S: [[0.2], [0.0]]", "S: [[0.2, 0.0]]"))
+    assert "estimator.S" in {p.path for p in ei.value.problems}
+    sc = load_scenario_text(base.replace("xs0: [2, -2]", "xs0: [2, -2, 1]"))
     with pytest.raises(ConfigError) as ei:
         sc.analysis.compute(sc, RunContext(runs=10))
-    paths = {p.path for p in ei.value.problems}
-    assert {"analysis.S", "analysis.xs0"} <= paths
-    sc = load_scenario_text(base.replace("S: [[0.2], [0.0]]", "S: [[5.0], [0.0]]"))
-    with pytest.raises(ConfigError, match="positive semi-definite") as ei:
+    assert "analysis.xs0" in {p.path for p in ei.value.problems}
+    with pytest.raises(ConfigError, match="positive semi-definite") as ei:  # refused at load time or at compute
+        sc = load_scenario_text(base.replace("S: [[0.2], [0.0]]", "S: [[5.0], [0.0]]"))
         sc.analysis.compute(sc, RunContext(runs=10))
-    assert ei.value.problems[0].path == "analysis.S"
+    assert ei.value.problems[0].path == "estimator.S"
     with pytest.raises(ConfigError, match="montecarlo.burn_in"):  # refused at load time (netkf validate) or at compute
         sc = load_scenario_text(base.replace("burn_in: 50", "burn_in: 100"))
         sc.analysis.compute(sc, RunContext(runs=10))

@@ -21,8 +21,11 @@ from netkf_cli.estimators.markov_filters import (
     pinv_psd,
 )
 from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator, lmi_design
+from netkf_cli.loader import load_scenario_text
 from netkf_cli.trace import Trace
 from netkf_cli.system import LinearSystem
+
+from .conftest import CONFIGS
 
 EX2 = LinearSystem.create([[0.8, 0], [0.9, 0.2]], [[1, 1]], [[0.36, 0.30], [0.30, 0.25]], 0.25, P0=[[0, 0], [0, 0]])
 CHAIN = [[0.7, 0.0, 0.1, 0.2], [0.7, 0.15, 0.05, 0.1], [0.7, 0.15, 0.05, 0.1], [0.7, 0.15, 0.05, 0.1]]
@@ -142,10 +145,24 @@ def test_fixed_gain_covariances_average_to_the_exact_mse(which):
         assert abs(m - ex[k - 1]) <= 5 * se + 1e-12, (which, k, m, ex[k - 1], se)
 
 
-def test_lmmse_is_refused_with_a_clear_message():
+def test_lmmse_reports_its_expected_covariance_and_per_run_metrics_refuse_it():
+    """The exact LMMSE's P is E[e eᵀ] over all mode paths (the same in every run): metrics of means may use it
+    (it is then exact_mse on netkf's time base), a metric of each run's P (Pr[P_k ≤ M]) refuses it."""
     est = MarkovLMIEstimator(kind="markov_lmi", filter="lmmse")
-    with pytest.raises(ConfigError, match="expectation over all mode paths"):
-        est.check(EX2, _ch())
+    assert not est.per_run_covariance()
+    tr = _ch().sample_trace(np.random.default_rng(4), 7, 10)
+    md = AugmentedModel.build(EX2.A, EX2.C, EX2.Q, EX2.R)
+    x0, P0 = np.zeros(2), np.asarray(EX2.P0, float)
+    filt = lmmse_filter(md, _ch().T, _ch().pi0, x0, P0, 11, base="contract")
+    ex_p, ex_f = exact_mse(md, filt, _ch().T, _ch().pi0, x0, P0, base="contract")
+    for k, Ps in est.covariances(EX2, tr, [1, 4, 10], ("filtered", "predicted")):
+        for q, ex in (("filtered", ex_f[k - 1]), ("predicted", ex_p[k])):
+            assert np.allclose(Ps[q], Ps[q][:, :, :1])  # the same P in every run
+            assert np.trace(Ps[q][:, :, 0]) == pytest.approx(ex, rel=1e-9)
+    text = (CONFIGS / "example2_exact.yaml").read_text().split("analysis:")[0].replace(
+        "kind: markov_lmi", "kind: markov_lmi\n  filter: lmmse")
+    with pytest.raises(ConfigError, match="each run's covariance"):
+        load_scenario_text(text + "analysis: {kind: distribution, M: [1, 2]}\nmontecarlo: {runs: 10, horizon: 5}\n")
 
 
 def test_mse_kernel_is_picklable_and_has_fixed_keys():
