@@ -34,7 +34,7 @@ from netkf_cli import kalman
 from netkf_cli.channels.delay import (CONVENTION_HELP, DEFAULT_CONVENTION, LOST, delay_label, kept_at, kept_by,
                                       max_kept_delay, trace_delays, trace_max_kept_delay)
 from netkf_cli.errors import ConfigError
-from netkf_cli.estimators.kf import channel_streams
+from netkf_cli.estimators.kf import channel_streams, filter_estimates
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
 from netkf_cli.system import LinearSystem
@@ -97,6 +97,23 @@ class BufferedEstimator(EstimatorModel):
         qs = kalman.check_quantities(quantities, self.quantities, "buffered")
         yield from buffered_covariances(system, trace, steps, packet_span(system, self.packet), qs,
                                         backend=self.backend)
+
+    def estimates(self, system: LinearSystem, trace, y, steps, quantities=("filtered",)):
+        """Yield (k, {quantity: (x̂, P)}): the MKF over the time-k view run with the state (``kf.filter_estimates``:
+        the same ``Filter`` steps as :meth:`covariances`, the gain of each step from that recursion), from
+        x̂_{0|0} = 0, P_{0|0} at every k (the re-run of Prop. 3.1 from the start: O(k) per step; numpy path).
+        ``y`` (m, horizon+1, runs) the sensor's measurements; a pair packet's y_t is used when packet t or t + 1
+        is kept."""
+        qs = kalman.check_quantities(quantities, self.quantities, "buffered")
+        span = packet_span(system, self.packet)
+        d = trace_delays(trace).astype(np.int64)
+        Dmax = trace_max_kept_delay(trace)
+        f = kalman.Filter.of(system, 1, "estimator.kind")
+        P0 = initial_covariance(system)
+        for k in sorted({int(k) for k in steps}):
+            avail = availability(kept_by(d, k, Dmax), span)[:k]
+            (_, out), = filter_estimates(f, P0, avail[None], y, [k], qs)
+            yield k, out
 
     def updates(self, system: LinearSystem, trace, steps):
         """Yield (k, R_k (runs,)): the filter recursions (MKF runs, Prop. 3.1) run at time k — 1 + the age

@@ -29,6 +29,7 @@ from pydantic import Field
 from netkf_cli import kalman
 from netkf_cli.channels.delay import kept_by, trace_delays, trace_max_kept_delay
 from netkf_cli.estimators.buffered import delay_conventions, single_link
+from netkf_cli.estimators.kf import filter_estimates
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
 from netkf_cli.system import LinearSystem
@@ -60,6 +61,27 @@ class SmartSensorEstimator(EstimatorModel):
         qs = kalman.check_quantities(quantities, self.quantities, "smart_sensor")
         yield from smart_covariances(system, trace, steps, qs)
 
+    def estimates(self, system: LinearSystem, trace, y, steps, quantities=("filtered",)):
+        """Yield (k, {quantity: (x̂, P)}): x̂_{k|k} = A^{N_k} x̂^s_{k−N_k} beside the P of :meth:`covariances`
+        (numpy path). x̂^s is the sensor's Kalman filter on every y_t (``kf.filter_estimates``, every γ = 1,
+        x̂^s_0 = 0); ``y`` (m, horizon+1, runs) the sensor's measurements (:mod:`netkf_cli.state`)."""
+        qs = kalman.check_quantities(quantities, self.quantities, "smart_sensor")
+        want = sorted({int(k) for k in steps})
+        if not want:
+            return
+        f = kalman.Filter.of(system, 1, "estimator.kind")
+        runs, n = trace.runs, f.A.shape[0]
+        xs = np.zeros((n, want[-1] + 1, runs))
+        every = np.ones((1, trace.horizon, runs), dtype=bool)
+        for t, out in filter_estimates(f, initial_covariance(system), every, y, range(1, want[-1] + 1)):
+            xs[:, t] = out["filtered"][0]
+        for k, Ps, N in smart_covariances(system, trace, want, qs, with_age=True):
+            x = np.empty((n, runs))
+            for age in np.unique(N):
+                idx = np.flatnonzero(N == age)
+                x[:, idx] = np.linalg.matrix_power(f.A, int(age)) @ xs[:, k - int(age), idx]
+            yield k, {q: (x if q == "filtered" else f.A @ x, P) for q, P in Ps.items()}
+
 
 def _finite_or_inf(G: np.ndarray) -> np.ndarray:
     bad = ~np.isfinite(G).all(axis=(0, 1))
@@ -68,7 +90,7 @@ def _finite_or_inf(G: np.ndarray) -> np.ndarray:
     return G
 
 
-def smart_covariances(s: LinearSystem, trace, steps, quantities=("filtered",)):
+def smart_covariances(s: LinearSystem, trace, steps, quantities=("filtered",), with_age: bool = False):
     """Generator behind :meth:`SmartSensorEstimator.covariances`.
 
     G_k[:, :, j] = h^j(P^s_{k−j}), j = 0 … k, is carried forward in k: G_k = [P^s_k, h(G_{k−1})]
@@ -101,4 +123,5 @@ def smart_covariances(s: LinearSystem, trace, steps, quantities=("filtered",)):
             done += 1
         kept = kept_by(d, k, Dmax, w0)[::-1]  # (k − w0, runs), row j = packet k − j (age j ≤ D_max)
         N = np.where(kept.any(axis=0), np.argmax(kept, axis=0), np.where(last > 0, k - last, k))
-        yield k, kalman.report(np.ascontiguousarray(G[:, :, N]), quantities, f.A, f.Q)
+        out = kalman.report(np.ascontiguousarray(G[:, :, N]), quantities, f.A, f.Q)
+        yield (k, out, N) if with_age else (k, out)

@@ -13,9 +13,12 @@ import numpy as np
 import pytest
 
 from netkf_cli import state
+from netkf_cli.channels.delay import DelayChannel
 from netkf_cli.channels.markov_modes import MarkovModesChannel
+from netkf_cli.estimators.buffered import BufferedEstimator
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator
+from netkf_cli.estimators.smart_sensor import SmartSensorEstimator
 from netkf_cli.stats import mean_se
 from netkf_cli.system import LinearSystem
 from netkf_cli.trace import Trace
@@ -73,6 +76,11 @@ EX1_S = [[0.2], [0.0]]
 EX1_CH = MarkovModesChannel(kind="markov_modes", transition=[[0.8, 0, 0.1, 0.1], [0.8, 0.1, 0.05, 0.05],
                                                              [0.8, 0.1, 0.05, 0.05], [0.8, 0.1, 0.05, 0.05]],
                             initial="stationary")
+DELAY = DelayChannel(kind="delay", delay={"kind": "poisson", "mean": 1.5}, buffer=3)
+PAIR_SYS = LinearSystem(A=SYS2.A, C=np.array([[1.0, 0.0]]), Q=SYS2.Q, R=np.array([[0.5]]))  # [C; CA] invertible
+CASES["buffered (delays, D = 3)"] = (SYS2, DELAY, BufferedEstimator(kind="buffered"))
+CASES["buffered, pair packets (y_t, y_t-1)"] = (PAIR_SYS, DELAY, BufferedEstimator(kind="buffered", packet="pair"))
+CASES["smart sensor (delays, D = 3)"] = (SYS2, DELAY, SmartSensorEstimator(kind="smart_sensor"))
 for f in ("mode_aware", "naive", "lmi", "lmmse"):
     CASES[f"markov {f}, correlated noise (Example 1)"] = (EX1_SYS, EX1_CH,
                                                           MarkovLMIEstimator(kind="markov_lmi", filter=f, S=EX1_S))
