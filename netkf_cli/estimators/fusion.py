@@ -40,8 +40,9 @@ from netkf_cli import batched as bt
 from netkf_cli import kalman
 from netkf_cli import kalman_codegen as kc
 from netkf_cli.analysis.fusion_bounds import _as2d, p_m
+from netkf_cli.channels.multi import RAW_BLOCK
 from netkf_cli.errors import ConfigError
-from netkf_cli.estimators.kf import channel_streams
+from netkf_cli.estimators.kf import channel_streams, filter_estimates
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
 from netkf_cli.system import LinearSystem
@@ -203,7 +204,7 @@ class FusionEstimator(EstimatorModel):
         if sens.identical and _mf_backend(self.backend, sens, trace.runs * trace.horizon) == "numba":
             yield from _history_compiled(strat, sens, ibf if strat == "ibf" else tables, trace, want, qs)
             return
-        for k, tau in _taus(trace.arrival, want):
+        for k, tau in _taus(trace, want):
             t = k - 1
             if strat == "ibf":
                 P = ibf.at(tau, t)
@@ -211,6 +212,29 @@ class FusionEstimator(EstimatorModel):
                 Pf = tables.error_cov(np.ascontiguousarray(tau.T), np.full(tau.shape[1], t))
                 P = np.ascontiguousarray(np.moveaxis(Pf, 0, -1))
             yield k, kalman.report(P, qs, A, Q)
+
+
+    def estimates(self, system, trace, y, steps, quantities=("filtered",)):
+        """Yield (k, {quantity: (x̂, P)}) of ``strategies[0]`` with the state (numpy path, ``kf.filter_estimates``):
+        MF is the Kalman filter with the sensors that arrived (``Sensors.filt``, as :meth:`covariances`); IBF the
+        same filter over the time-k view — sensor i's y^i_s for every s up to its last arrival — re-run from
+        x̂_{0|0} = 0, P_{0|0} at each k (O(k) per step). OLPEF has none: its covariance assumes partial filters
+        in steady state since −∞, which a simulation from x_0 does not have."""
+        qs = kalman.check_quantities(quantities, self.quantities, "fusion")
+        sens = Sensors.of(system, trace.sensors, "estimator.kind")
+        P0 = initial_covariance(system)
+        strat = self.strategies[0]
+        if strat == "olpef":
+            raise ConfigError.at("estimator.strategies", "olpef has no state-level estimates (its covariance assumes "
+                                                         "partial filters in steady state since −∞); use mf or ibf")
+        if strat == "mf":
+            yield from filter_estimates(sens.filt, P0, trace.arrival, y, steps, qs)
+            return
+        for k in sorted({int(k) for k in steps}):
+            t = np.arange(k)[None, :, None]
+            last = np.where(trace.arrival[:, :k], t, -1).max(axis=1)  # (S, runs): last arrival's trace step
+            (_, out), = filter_estimates(sens.filt, P0, t <= last[:, None, :], y, [k], qs)
+            yield k, out
 
 
 def _mf_backend(backend: str, sens: Sensors, run_steps: int) -> str:
@@ -304,7 +328,6 @@ def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
     n, N, runs = A.shape[0], sens.N, trace.runs
     last = np.full((N, runs), -1, dtype=np.int32)
     out = np.empty((n * (n + 1) // 2, runs))
-    arrival = np.ascontiguousarray(trace.arrival)
     if strat == "ibf":
         kern = kc.kernel_ibf(A, sens.C1, Q, sens.R1, sens.filt.rescue.limit)
         full = np.ascontiguousarray(np.stack([kc.pack(model._full(j))[:, 0] for j in range(trace.horizon + 1)]))
@@ -318,36 +341,68 @@ def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
             return (np.ascontiguousarray(model.sxxM), np.ascontiguousarray(model.linM),
                     np.ascontiguousarray(model.diagM), np.ascontiguousarray(model.TM))
         tab = tabs()
+    blocks = _Blocks(trace)
     t = 0
     for k in want:
         tt = k - 1
+        for blk, off, s0, s1 in blocks.segments(t, k):  # the last segment's evaluation is the one kept
+            if strat == "ibf":
+                flag[:] = False
+                kern(blk, off, last, s0, s1, full, out, flag, cum)
+            else:
+                worst = kern(blk, off, last, s0, s1, *tab, out, vals, cnts)
         if strat == "ibf":
-            flag[:] = False
-            kern(arrival, last, t, k, full, out, flag, cum)
             P = kc.unpack(out, n)
             idx = np.flatnonzero(flag)
             if idx.size:
                 P[:, :, idx] = model.at(tt - last[:, idx], tt)
         else:
-            worst = kern(arrival, last, t, k, *tab, out, vals, cnts)
             if worst > model._K:
                 model._extend(int(worst))
                 tab = tabs()
-                kern(arrival, last, k, k, *tab, out, vals, cnts)
+                kern(blk, off, last, k, k, *tab, out, vals, cnts)
             P = kc.unpack(out, n)
         t = k
         yield k, kalman.report(P, qs, A, Q)
 
 
-def _taus(arrival: np.ndarray, want):
+class _Blocks:
+    """Blocks of a trace's arrivals for a pass over time: the whole array of an eager (or materialised)
+    trace, else the trace's ``steps(t0, t1)`` in blocks of RAW_BLOCK draws per sensor (a lazily drawn
+    :class:`~netkf_cli.channels.multi.SensorTrace` is never materialised whole)."""
+
+    def __init__(self, trace):
+        self.trace, self.T = trace, trace.horizon
+        lazy = hasattr(trace, "steps") and not getattr(trace, "materialized", True)
+        self.B = max(1, min(self.T, RAW_BLOCK // max(trace.runs, 1))) if lazy else self.T
+        self.blk, self.b0, self.b1 = (None, 0, 0) if lazy else (trace.arrival, 0, self.T)
+
+    def segments(self, t: int, k: int):
+        """(block, its first step, s0, s1) covering the steps [t, k)."""
+        while t < k:
+            if not self.b0 <= t < self.b1:
+                self.b0, self.b1 = t, min(self.T, t + self.B)
+                self.blk = np.ascontiguousarray(self.trace.steps(self.b0, self.b1))
+            s1 = min(k, self.b1)
+            yield self.blk, self.b0, t, s1
+            t = s1
+
+    def step(self, t: int) -> np.ndarray:
+        """Arrivals of step t, (N, runs)."""
+        for blk, off, _, _ in self.segments(t, t + 1):
+            return blk[:, t - off]
+
+
+def _taus(trace, want):
     """(k, τ) for k in ``want``: τ (N, runs) int32 = steps since each sensor's last arrival at trace step
-    k − 1 (k when nothing arrived yet: only P0 is known), updated incrementally (memory O(N · runs))."""
-    N, T, runs = arrival.shape
-    last = np.full((N, runs), -1, dtype=np.int32)
+    k − 1 (k when nothing arrived yet: only P0 is known), updated incrementally (memory O(N · runs), the
+    trace read in blocks)."""
+    blocks = _Blocks(trace)
+    last = np.full((trace.sensors, trace.runs), -1, dtype=np.int32)
     t = 0
     for k in want:
         while t < k:
-            np.copyto(last, np.int32(t), where=arrival[:, t])
+            np.copyto(last, np.int32(t), where=blocks.step(t))
             t += 1
         yield k, (k - 1) - last
 

@@ -16,6 +16,7 @@ from netkf_cli import state
 from netkf_cli.channels.delay import DelayChannel
 from netkf_cli.channels.markov_modes import MarkovModesChannel
 from netkf_cli.estimators.buffered import BufferedEstimator
+from netkf_cli.estimators.fusion import FusionEstimator
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator
 from netkf_cli.estimators.smart_sensor import SmartSensorEstimator
@@ -81,6 +82,10 @@ PAIR_SYS = LinearSystem(A=SYS2.A, C=np.array([[1.0, 0.0]]), Q=SYS2.Q, R=np.array
 CASES["buffered (delays, D = 3)"] = (SYS2, DELAY, BufferedEstimator(kind="buffered"))
 CASES["buffered, pair packets (y_t, y_t-1)"] = (PAIR_SYS, DELAY, BufferedEstimator(kind="buffered", packet="pair"))
 CASES["smart sensor (delays, D = 3)"] = (SYS2, DELAY, SmartSensorEstimator(kind="smart_sensor"))
+TWO_SENSORS = LinearSystem(A=SYS2.A, C=np.array([[1.0, 0.0], [1.0, 0.0]]), Q=SYS2.Q, R=np.diag([0.5, 0.5]),
+                           sensors=((0,), (1,)))  # two identical sensors, one link each
+CASES["fusion MF (two sensors)"] = (TWO_SENSORS, TwoLinks(), FusionEstimator(kind="fusion", strategies=["mf"]))
+CASES["fusion IBF (two sensors)"] = (TWO_SENSORS, TwoLinks(), FusionEstimator(kind="fusion", strategies=["ibf"]))
 for f in ("mode_aware", "naive", "lmi", "lmmse"):
     CASES[f"markov {f}, correlated noise (Example 1)"] = (EX1_SYS, EX1_CH,
                                                           MarkovLMIEstimator(kind="markov_lmi", filter=f, S=EX1_S))
