@@ -238,8 +238,9 @@ def source_counts(A, C1, Q, R1, limit: float) -> str:
 
 
 def source_ibf(A, C1, Q, R1, limit: float) -> str:
-    """The source of ``ibf_eval(arrival, last, t0, t1, full, out, flag, cum)``: ``last`` (N, runs) int32
-    (the last arrival, −1 = nothing yet) advanced over trace steps t0 … t1 − 1 of ``arrival`` (N, T, runs),
+    """The source of ``ibf_eval(arrival, off, last, t0, t1, full, out, flag, cum)``: ``last`` (N, runs) int32
+    (the last arrival, −1 = nothing yet) advanced over trace steps t0 … t1 − 1 of ``arrival`` (N, steps, runs)
+    holding trace steps off, off + 1, …,
     then the infinite-bandwidth centre with N identical sensors at trace step t = t1 − 1, per run
     (:class:`netkf_cli.estimators.fusion.IBF`): τ_i = t − last_i, K = max τ (≤ t + 1); from the full-information
     ``full[t + 1 − K]`` (packed upper triangle, (J, n(n+1)/2)), K count steps with ℓ_b = #{i : τ_i ≤ b},
@@ -248,7 +249,7 @@ def source_ibf(A, C1, Q, R1, limit: float) -> str:
     A, C1, Q, R1 = _as2(A, C1, Q, R1)
     n = A.shape[0]
     tri = [(i, j) for i in range(n) for j in range(i, n)]
-    L = _header("ibf_eval", "arrival, last, t0, t1, full, out, flag, cum", limit)
+    L = _header("ibf_eval", "arrival, off, last, t0, t1, full, out, flag, cum", limit)
     L += _advance_last()
     L += ["    t = t1 - 1",
           "    for r in range(runs):",
@@ -271,17 +272,18 @@ def source_ibf(A, C1, Q, R1, limit: float) -> str:
 
 
 def _advance_last() -> list[str]:
-    """Lines updating ``last`` (N, runs) with the arrivals of trace steps t0 … t1 − 1 (run axis innermost)."""
+    """Lines updating ``last`` (N, runs) with the arrivals of trace steps t0 … t1 − 1 (run axis innermost;
+    ``arrival`` holds steps off, off + 1, …: a block of the trace)."""
     return ["    N, runs = last.shape",
             "    for s in range(t0, t1):",
             "        for i in range(N):",
             "            for r in range(runs):",
-            "                if arrival[i, s, r]:",
+            "                if arrival[i, s - off, r]:",
             "                    last[i, r] = s"]
 
 
 def source_olpef(n: int) -> str:
-    """The source of ``olpef_eval(arrival, last, t0, t1, sxx, lin, diag, TM, out, vals, cnts)`` (``last``
+    """The source of ``olpef_eval(arrival, off, last, t0, t1, sxx, lin, diag, TM, out, vals, cnts)`` (``last``
     advanced as in :func:`source_ibf`, then at t = t1 − 1): OLPEF's error
     covariance (Chiuso & Schenato eqs (10)–(11); :meth:`netkf_cli.estimators.fusion.OLPEFTables.error_cov`)
     per run from the histogram h of the received τ_i = t − last_i ≤ t (``cnts`` float scratch of ≥ L
@@ -292,7 +294,7 @@ def source_olpef(n: int) -> str:
     tri = [(i, j) for i in range(n) for j in range(i, n)]
     L = ["import numpy as np", "import numba as nb", "",
          "@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')",
-         "def olpef_eval(arrival, last, t0, t1, sxx, lin, diag, TM, out, vals, cnts):"]
+         "def olpef_eval(arrival, off, last, t0, t1, sxx, lin, diag, TM, out, vals, cnts):"]
     L += _advance_last()
     L += ["    t = t1 - 1",
          "    Kmax = lin.shape[0] - 1",

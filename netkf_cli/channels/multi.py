@@ -158,6 +158,88 @@ def arrivals_given_counts(rng: np.random.Generator, counts: np.ndarray, N: int) 
     return out
 
 
+def _block_steps(horizon: int, runs: int) -> int:
+    """Time steps per block so a block of one sensor's raw draws holds :data:`RAW_BLOCK` of them."""
+    return max(1, min(horizon, RAW_BLOCK // max(runs, 1)))
+
+
+class SensorTrace(Trace):
+    """The per-sensor multi-channel trace (``sampling: per_sensor``), drawn lazily and bit for bit what
+    :func:`sample_multi_trace_arrivals` draws: the generator's state is kept and the parent stream
+    advanced past the N·horizon·runs raw draws at sampling time; the draw of (sensor i, step t, run r) is
+    raw number i·horizon·runs + t·runs + r of that state (PCG64 jumps there in O(log) time).
+
+    ``arrival`` (N, horizon, runs) is drawn on first read (the contract, for any estimator);
+    :meth:`steps` gives a block of steps without materialising the whole trace, and ``counts``
+    (horizon, runs) the number of sensors that arrived, block by block (memory O(N · block · runs))."""
+
+    def __init__(self, runs: int, horizon: int, state: dict, loss: np.ndarray, meta: dict | None = None):
+        self._arrival = None
+        self._counts = None
+        self._state, self._loss = state, np.asarray(loss, dtype=float).reshape(-1)
+        self._thr = _raw_threshold(1.0 - self._loss)
+        super().__init__(runs=runs, horizon=horizon, meta=dict(meta or {}))
+
+    def __post_init__(self) -> None:
+        pass
+
+    def steps(self, t0: int, t1: int) -> np.ndarray:
+        """Arrivals of steps t0 … t1 − 1, (N, t1 − t0, runs) bool (a view once materialised)."""
+        if self._arrival is not None:
+            return self._arrival[:, t0:t1]
+        N, T, R = self._loss.size, self.horizon, self.runs
+        out = np.empty((N, t1 - t0, R), dtype=bool)
+        bg = np.random.PCG64()
+        for i in range(N):
+            if self._loss[i] <= 0.0:
+                out[i] = True  # exactly, as the eager sampler
+                continue
+            bg.state = self._state
+            bg.advance(i * T * R + t0 * R)
+            np.less(bg.random_raw((t1 - t0) * R).reshape(t1 - t0, R), self._thr[i], out=out[i])
+        return out
+
+    @property
+    def arrival(self) -> np.ndarray:  # type: ignore[override]
+        if self._arrival is None:
+            out = np.empty((self._loss.size, self.horizon, self.runs), dtype=bool)
+            b = _block_steps(self.horizon, self.runs)
+            for t0 in range(0, self.horizon, b):
+                out[:, t0 : t0 + b] = self.steps(t0, min(self.horizon, t0 + b))
+            self._arrival = out
+        return self._arrival
+
+    @arrival.setter
+    def arrival(self, value) -> None:
+        if value is not None:
+            self._arrival = value
+
+    @property
+    def materialized(self) -> bool:
+        return self._arrival is not None
+
+    @property
+    def counts(self) -> np.ndarray:
+        """ℓ_t = Σ_i γ_t^i, (horizon, runs) uint8 (int32 for N ≥ 256), block by block."""
+        if self._counts is None:
+            N = self._loss.size
+            c = np.empty((self.horizon, self.runs), dtype=np.uint8 if N < 256 else np.int32)
+            b = _block_steps(self.horizon, self.runs)
+            for t0 in range(0, self.horizon, b):
+                t1 = min(self.horizon, t0 + b)
+                self.steps(t0, t1).sum(axis=0, dtype=c.dtype, out=c[t0:t1])
+            self._counts = c
+        return self._counts
+
+    @property
+    def kinds(self) -> frozenset[str]:
+        return frozenset({"arrival"})
+
+    @property
+    def sensors(self) -> int:
+        return int(self._loss.size)
+
+
 class CountTrace(Trace):
     """A multi-channel trace sampled as counts (``sampling: counts``): ``counts`` (horizon, runs) is
     ℓ_t = Σ_i γ_t^i; ``arrival`` (N, horizon, runs) is drawn on first read, given the counts
@@ -191,6 +273,10 @@ class CountTrace(Trace):
     def materialized(self) -> bool:
         """Whether the per-sensor pattern has been drawn (an estimator read ``arrival``)."""
         return self._arrival is not None
+
+    def steps(self, t0: int, t1: int) -> np.ndarray:
+        """Arrivals of steps t0 … t1 − 1 (the pattern is drawn whole on first use)."""
+        return self.arrival[:, t0:t1]
 
     @property
     def kinds(self) -> frozenset[str]:
@@ -294,6 +380,8 @@ class MultiChannel(ChannelModel):
     def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
         """``Trace.arrival`` (N, horizon, runs): γ_t^i ~ Bernoulli(1 − loss_i), independent (eq. (2)).
 
+        ``sampling: per_sensor`` on a PCG64 stream (netkf's): a :class:`SensorTrace`, the same bits drawn
+        lazily (block by block for the estimators that can, whole when ``arrival`` is read).
         ``sampling: counts``: a :class:`CountTrace` — ``counts`` ℓ_t (horizon, runs) from one raw draw per
         run-step (then two raw draws seed the per-sensor pattern, drawn given ℓ only when read)."""
         meta = {"channel": "multi", "sensors": self.sensors, "loss": self.loss_array.tolist(), "sampling": self.sampling}
@@ -301,6 +389,10 @@ class MultiChannel(ChannelModel):
             counts = sample_counts(rng, runs, horizon, self.sensors, float(self.loss_array[0]))
             seed = rng.bit_generator.random_raw(2)
             return CountTrace(runs, horizon, counts, self.sensors, seed, meta)
+        if isinstance(rng.bit_generator, np.random.PCG64):  # lazy, the same bits (see SensorTrace)
+            state = rng.bit_generator.state
+            rng.bit_generator.advance(self.sensors * horizon * runs)
+            return SensorTrace(runs, horizon, state, self.loss_array, meta)
         arr = sample_multi_trace_arrivals(rng, runs, horizon, self.loss_array)
         return Trace(runs=runs, horizon=horizon, arrival=arr, meta=meta)
 

@@ -487,3 +487,52 @@ def test_compiled_ibf_and_olpef_equal_numpy_on_the_same_trace(strategy, name):
             fin = np.isfinite(a[k][q])
             np.testing.assert_array_equal(fin, np.isfinite(b[k][q]))
             np.testing.assert_allclose(b[k][q][fin], a[k][q][fin], rtol=1e-9, atol=1e-12 * np.abs(a[k][q][fin]).max())
+
+
+def test_lazy_per_sensor_trace_is_the_eager_sampler_bit_for_bit(monkeypatch):
+    """sampling: per_sensor draws lazily (SensorTrace): its blocks, counts and whole arrival equal the eager
+    sampler's bits, and the parent stream continues exactly where the eager sampler leaves it."""
+    from netkf_cli.channels import multi
+    from netkf_cli.channels.multi import SensorTrace
+
+    monkeypatch.setattr(multi, "RAW_BLOCK", 3 * 301 + 5)
+    loss = np.array([0.0, 0.3, 0.7, 1.0, 0.5])
+    ch = MultiChannel(kind="multi", sensors=5, loss=loss.tolist())
+    rng = np.random.default_rng(np.random.SeedSequence(4, spawn_key=(0, 2)))
+    tr = ch.sample_trace(rng, 301, 23)
+    after = rng.bit_generator.random_raw(4)
+    rng2 = np.random.default_rng(np.random.SeedSequence(4, spawn_key=(0, 2)))
+    ref = sample_multi_trace_arrivals(rng2, 301, 23, loss)
+    np.testing.assert_array_equal(after, rng2.bit_generator.random_raw(4))
+    assert isinstance(tr, SensorTrace) and tr.sensors == 5 and tr.kinds == {"arrival"}
+    np.testing.assert_array_equal(tr.steps(4, 11), ref[:, 4:11])
+    np.testing.assert_array_equal(tr.counts, ref.sum(axis=0))
+    assert not tr.materialized
+    np.testing.assert_array_equal(tr.arrival, ref)
+    assert tr.materialized
+
+
+@pytest.mark.parametrize("strategy, backend", [("ibf", "numpy"), ("olpef", "numpy"),
+                                               pytest.param("ibf", "numba", marks=needs_numba),
+                                               pytest.param("olpef", "numba", marks=needs_numba),
+                                               pytest.param("mf", "numba", marks=needs_numba)])
+def test_blocked_reading_of_a_lazy_trace_equals_the_whole_trace(monkeypatch, strategy, backend):
+    """IBF / OLPEF / MF read a lazy trace in blocks of a few steps (block edges between reported steps, and
+    reported steps several blocks apart) and give what they give on the materialised trace."""
+    from netkf_cli.channels import multi
+    from netkf_cli.estimators import fusion
+
+    N, runs, T = 6, 250, 30
+    monkeypatch.setattr(multi, "RAW_BLOCK", 4 * runs)
+    monkeypatch.setattr(fusion, "RAW_BLOCK", 4 * runs)
+    system = identical_sensors(A2, C2, Q2, R2, N)
+    steps = [1, 2, 3, 5, 6, 7, 8, 9, 19, 30]
+    est = FusionEstimator(kind="fusion", strategies=[strategy], backend=backend)
+    lazy = _trace(N, 0.6, runs, T, seed=5)
+    got = _all(est, system, lazy, steps)
+    assert not lazy.materialized or strategy == "mf"
+    whole = Trace(runs=runs, horizon=T, arrival=_trace(N, 0.6, runs, T, seed=5).arrival)
+    ref = _all(est, system, whole, steps)
+    for k in steps:
+        for q in BOTH:
+            np.testing.assert_array_equal(got[k][q], ref[k][q])
