@@ -53,7 +53,7 @@ from pydantic import Field
 from netkf_cli import batched as bt
 from netkf_cli import kalman
 from netkf_cli.errors import ConfigError
-from netkf_cli.estimators.kf import channel_streams
+from netkf_cli.estimators.kf import channel_streams, filter_estimates
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel, NonNegInt
 from netkf_cli.system import LinearSystem
@@ -124,6 +124,45 @@ class SmootherEstimator(EstimatorModel):
         if trace.arrival is None:
             raise ConfigError.at("estimator.kind", "the smoother needs a trace with arrival indicators")
         yield from run(system, trace.arrival, steps, qs, int(self.lag), backend=self.backend)
+
+    def estimates(self, system: LinearSystem, trace, y, steps, quantities=("filtered",)):
+        """Yield (k, {quantity: (x̂, P)}) (numpy path): the filter's x̂_{t|t}, P_{t|t} (``kf.filter_estimates``,
+        exactly kf) and, for ``smoothed``, N Rauch–Tung–Striebel steps back from k on the core — the gain
+        J = ``kalman.gain``(P_{t|t}, A, Q) of :class:`kalman.SmoothStep` (the update of P_{t|t} by x_{t+1}),
+        x̂_{t|k} = x̂_{t|t} + J (x̂_{t+1|k} − A x̂_{t|t}), P_{t|k} = ``SmoothStep``. x̂_{0|0} = 0."""
+        qs = kalman.check_quantities(quantities, self.quantities, "smoother")
+        want = sorted({int(k) for k in steps})
+        if not want:
+            return
+        f = kalman.Filter.of(system, trace.arrival.shape[0], "estimator.kind")
+        N = int(self.lag) if "smoothed" in qs else 0
+        back = kalman.SmoothStep.of(f.A, f.Q)
+        P0 = initial_covariance(system)
+        runs, n = trace.runs, f.A.shape[0]
+        hist = {0: (np.zeros((n, runs)), np.repeat(P0[:, :, None], runs, axis=2))}
+        wset = set(want)
+        fq = tuple(q for q in qs if q != "smoothed")
+        for k, out in filter_estimates(f, P0, trace.arrival, y, range(1, want[-1] + 1), ("filtered",)):
+            hist[k] = out["filtered"]
+            for old in [u for u in hist if u < k - N]:
+                del hist[old]
+            if k not in wset:
+                continue
+            x, P = hist[k]
+            res = {q: ((x, P) if q == "filtered" else (f.A @ x, kalman.predict(P, f.A, f.Q))) for q in fq}
+            if "smoothed" in qs:
+                if k < N:
+                    res["smoothed"] = (np.full((n, runs), np.nan), np.full((n, n, runs), np.nan))
+                else:
+                    xs, Ps = x, P
+                    for t in range(k - 1, k - N - 1, -1):
+                        xf, Pf = hist[t]
+                        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+                            J = kalman.gain(Pf, f.A, f.Q)
+                            xs = xf + np.einsum("nmr,mr->nr", J, xs - f.A @ xf)
+                        Ps = back(Ps, Pf)
+                    res["smoothed"] = (xs, Ps)
+            yield k, {q: res[q] for q in qs}
 
 
 # =============================================================================================

@@ -20,6 +20,7 @@ from netkf_cli.estimators.fusion import FusionEstimator
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator
 from netkf_cli.estimators.smart_sensor import SmartSensorEstimator
+from netkf_cli.estimators.smoother import SmootherEstimator
 from netkf_cli.stats import mean_se
 from netkf_cli.system import LinearSystem
 from netkf_cli.trace import Trace
@@ -82,6 +83,7 @@ PAIR_SYS = LinearSystem(A=SYS2.A, C=np.array([[1.0, 0.0]]), Q=SYS2.Q, R=np.array
 CASES["buffered (delays, D = 3)"] = (SYS2, DELAY, BufferedEstimator(kind="buffered"))
 CASES["buffered, pair packets (y_t, y_t-1)"] = (PAIR_SYS, DELAY, BufferedEstimator(kind="buffered", packet="pair"))
 CASES["smart sensor (delays, D = 3)"] = (SYS2, DELAY, SmartSensorEstimator(kind="smart_sensor"))
+CASES["smoother lag 2 (its filter)"] = (SYS2, OneLink(), SmootherEstimator(kind="smoother", lag=2))
 TWO_SENSORS = LinearSystem(A=SYS2.A, C=np.array([[1.0, 0.0], [1.0, 0.0]]), Q=SYS2.Q, R=np.diag([0.5, 0.5]),
                            sensors=((0,), (1,)))  # two identical sensors, one link each
 CASES["fusion MF (two sensors)"] = (TWO_SENSORS, TwoLinks(), FusionEstimator(kind="fusion", strategies=["mf"]))
@@ -114,6 +116,20 @@ def test_empirical_error_covariance_equals_reported_P(case, quantity):
     assert np.all(np.abs(d) <= Z * d_se), (case, quantity, d, d_se)
     # the test has power: an estimator reporting 0.7 P would be caught (NEES 1/0.7 = 1.43× its expectation)
     assert np.all(0.43 * rank > 2 * Z * ne_se)
+
+
+@pytest.mark.parametrize("system,channel", [(SYS2, OneLink()), (TWO_SENSORS, TwoLinks())], ids=["one link", "two sensors"])
+def test_smoothed_estimates_are_consistent(system, channel):
+    """x̂_{k−N|k} against x_{k−N} (N = 2; the first smoothed step is k = N, back to x_0)."""
+    est = SmootherEstimator(kind="smoother", lag=2)
+    st = state.simulate_errors(system, channel, [est], steps=[2, 3, 5, 8, 12], runs=RUNS, horizon=HORIZON, seed=23,
+                               chunk=RUNS, quantity="smoothed")
+    c = _consistency(st, 0, RUNS)
+    (ne, ne_se), rank, (d, d_se) = c["nees"], c["rank"], c["d"]
+    assert np.all(np.abs(ne - rank) <= Z * ne_se), (ne, rank, ne_se)
+    assert np.all(np.abs(d) <= Z * d_se), (d, d_se)
+    filt = state.simulate_errors(system, channel, [est], steps=[10], runs=RUNS, horizon=HORIZON, seed=23, chunk=RUNS)
+    assert st["sum_e2_0"][-1] < filt["sum_e2_0"][-1]  # x̂_{10|12} beats x̂_{10|10} on the same runs
 
 
 def test_nees_detects_a_wrong_covariance():
