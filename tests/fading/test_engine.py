@@ -134,7 +134,10 @@ def test_work_happens_in_worker_processes():
 
 
 @pytest.mark.parametrize("stem,extra", [("fig6", {"montecarlo": {"burn_in": 10},
-                                                 "analysis": {"over": {"channel.threshold.value": [0, 9, 16]}}}),
+                                                 "analysis": {"over": {"channel.threshold.value": [0, 9, 16]}},
+                                                 # numpy: what is tested is the executor, not compiled code
+                                                 "estimators": [{"kind": "receiver", "scenario": s, "backend": "numpy"}
+                                                                for s in (2, 3)]}),
                                         ("fig7", {"analysis": {"smc_chunk": 2, "smc_runs": 4}})])
 def test_jobs2_csv_equals_serial_byte_for_byte(tmp_path, stem, extra):
     """Worker processes give the same bytes as the parent (no BLAS product whose rounding depends on the
