@@ -266,7 +266,7 @@ class FadingScenario2Steady(AnalysisModel):
         a, d = _ber_params(ch)
         s = scenario.linear_system()
         if s.m != s.n or abs(np.linalg.det(s.C)) < 1e-12:
-            raise ConfigError.at("system.C", "eq. (20) needs an invertible (square) C; see kind fading_receivers for general C")
+            raise ConfigError.at("system.C", "eq. (20) needs an invertible (square) C; for a general C simulate the receivers (configs/fading/sec42.yaml: time_average)")
         rho = fa.rho_max(s.A)
         assum = fa.theorem1_assumptions(s.A, s.C, s.Q)
         varsigma, q = float(s.C[0, 0]), float(s.Q[0, 0])
