@@ -13,6 +13,8 @@ signal each receiver sees at step k (:func:`received`):
 
 * an ``arrival`` / ``delay`` trace: the sensor's measurement y_k itself (the estimator decides from
   the trace which packets it has);
+* an ``snr`` trace (a fading link, Mostofi & Murray 2009): y_k + n_k, n_k ~ N(0, σ_n²(Υ_k) I) with the
+  channel's noise model (a dropped packet is never read);
 * a ``mode`` trace (Moayedi et al. 2009, four packet modes): mode 1 on time z_k = y_k, mode 2
   delayed z_k = y_{k−1}, mode 3 missing z_k = v_k (noise only), mode 4 dropout z_k = z_{k−1}
   (the last received value held; z_0 = v_0, nothing received at time 0) — the packet model of
@@ -83,11 +85,23 @@ def simulate(system, trace, rng: np.random.Generator, S: np.ndarray | None = Non
     for k in range(T + 1):
         x[:, k + 1] = A @ x[:, k] + w[:, k]
     y = np.einsum("mn,ntr->mtr", C, x) + v
-    return States(x, y, v, received(trace, y, v))
+    comm = None
+    if trace.snr is not None and callable(trace.meta.get("noise")):  # a fading link's communication noise
+        comm = rng.standard_normal((m, T, runs))
+    return States(x, y, v, received(trace, y, v, comm))
 
 
-def received(trace, y: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """What the receiver sees at each step (module docstring): ``y`` unless the trace carries modes."""
+def received(trace, y: np.ndarray, v: np.ndarray, comm: np.ndarray | None = None) -> np.ndarray:
+    """What the receiver sees at each step (module docstring): ``y`` unless the trace carries modes or SNRs;
+    a fading link adds σ_n(Υ_k) · ``comm`` (standard normal draws, (m, horizon, runs)) to y_k, k ≥ 1, with the
+    channel's noise model σ_n²(Υ) (``trace.meta['noise']``; a dropped packet is never read)."""
+    if comm is not None:
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            s2 = np.asarray(trace.meta["noise"](np.asarray(trace.snr, float)), float)
+        sd = np.sqrt(np.where(np.isfinite(s2), np.maximum(s2, 0.0), 0.0))
+        z = y.copy()
+        z[:, 1: trace.horizon + 1] += sd[None] * comm
+        return z
     if trace.mode is None:
         return y
     z = np.empty_like(y)

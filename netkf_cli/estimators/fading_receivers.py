@@ -181,6 +181,48 @@ class ReceiverEstimator(EstimatorModel):
             yield k, {q: out[q] for q in qs}
 
 
+    def estimates(self, system, trace, y, steps, quantities=("filtered",)):
+        """Yield (k, {quantity: (x̂, P)}) (numpy path, ``variance_reduction`` none): the receiver's recursion
+        (:func:`correct` / :func:`predict`, as :meth:`covariances`) with the state, x̂_{0|0} = 0 — the gain of a
+        kept packet from that recursion: scenario 1 ``kalman.gain``(P, C, R), scenario 3 with ``extra_R`` =
+        σ_n²(Υ) I, scenario 2 C⁻¹ or ``kalman.gain`` of the receiver's own P_f with zero noise. ``y`` (m,
+        horizon+1, runs): the packets as received (:func:`netkf_cli.state.received`: y_k plus the channel's
+        communication noise). Scenario 1's P assumes kept packets are noise-free (eq. 7, S₁ = 0): on a link
+        with communication noise it is NOT the error covariance (a NEES check detects it); 2 and 3 report the
+        true one."""
+        qs = kalman.check_quantities(quantities, self.quantities, "receiver")
+        noise = trace.meta.get("noise")
+        if noise is None or trace.snr is None:
+            raise ConfigError.at("channel", "the receiver needs an SNR trace with its noise model (channel kind fading)")
+        rm = self.model(system, noise)
+        T = self.threshold.linear if self.threshold is not None else trace.meta.get("threshold")
+        B, n, m = trace.runs, rm.n, rm.C.shape[0]
+        state = predict(rm, initial_state(rm, initial_covariance(system), B))
+        x = np.zeros((n, B))
+        want = sorted({int(k) for k in steps})
+        wset = set(want)
+        for t in range(want[-1] if want else 0):
+            Y = trace.snr[t]
+            keep = Y >= T
+            s2 = np.zeros(B) if rm.scenario == 1 else rm.noise(np.where(keep, Y, 1.0))
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                if rm.scenario in (1, 3):
+                    extra = None if rm.scenario == 1 else s2[None, None, :] * np.eye(m)[:, :, None]
+                    K = kalman.gain(state[0], rm.C, rm.R, extra)
+                elif rm.state_size() == 1:
+                    K = np.broadcast_to(rm.gain_inv[:, :, None], (n, m, B))
+                else:
+                    K = kalman.gain(state[0], rm.C, np.zeros((m, m)))
+                innov = (y[:, t + 1] - rm.C @ x) * keep.astype(float)[None, :]
+                x = x + np.einsum("nmr,mr->nr", np.nan_to_num(K), innov)
+            post = correct(rm, state, keep, s2)
+            if t + 1 in wset:
+                P = true_cov(post)
+                out = {"filtered": (x, P), "predicted": (rm.A @ x, true_cov(predict(rm, post)))}
+                yield t + 1, {q: out[q] for q in qs}
+            state, x = predict(rm, post), rm.A @ x  # P_{k+1|k}, x̂_{k+1|k}
+
+
 # --------------------------------------------------------------------------- the model of one receiver
 
 

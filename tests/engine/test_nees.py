@@ -14,8 +14,10 @@ import pytest
 
 from netkf_cli import state
 from netkf_cli.channels.delay import DelayChannel
+from netkf_cli.channels.fading import FadingChannel
 from netkf_cli.channels.markov_modes import MarkovModesChannel
 from netkf_cli.estimators.buffered import BufferedEstimator
+from netkf_cli.estimators.fading_receivers import ReceiverEstimator
 from netkf_cli.estimators.fusion import FusionEstimator
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator
@@ -84,6 +86,17 @@ CASES["buffered (delays, D = 3)"] = (SYS2, DELAY, BufferedEstimator(kind="buffer
 CASES["buffered, pair packets (y_t, y_t-1)"] = (PAIR_SYS, DELAY, BufferedEstimator(kind="buffered", packet="pair"))
 CASES["smart sensor (delays, D = 3)"] = (SYS2, DELAY, SmartSensorEstimator(kind="smart_sensor"))
 CASES["smoother lag 2 (its filter)"] = (SYS2, OneLink(), SmootherEstimator(kind="smoother", lag=2))
+FADING = FadingChannel(kind="fading", snr_avg={"value": 6, "unit": "linear"}, threshold={"value": 2, "unit": "linear"},
+                       noise={"model": "inverse_snr", "beta": 0.5})  # σ_n² = 0.5/Υ on kept packets
+NOISE_FREE = FadingChannel(kind="fading", snr_avg={"value": 6, "unit": "linear"}, threshold={"value": 2, "unit": "linear"},
+                           noise={"model": "inverse_snr", "beta": 0.0})
+for sc in (2, 3):
+    CASES[f"receiver scenario {sc} (fading, σ_n² = 0.5/Υ)"] = (SYS2, FADING, ReceiverEstimator(kind="receiver", scenario=sc,
+                                                                                                variance_reduction="none"))
+CASES["receiver scenario 2, C 1×2 (the receiver's own P_f gain)"] = (PAIR_SYS, FADING, ReceiverEstimator(
+    kind="receiver", scenario=2, variance_reduction="none"))
+CASES["receiver scenario 1 (no communication noise)"] = (SYS2, NOISE_FREE, ReceiverEstimator(kind="receiver", scenario=1,
+                                                                                               variance_reduction="none"))
 TWO_SENSORS = LinearSystem(A=SYS2.A, C=np.array([[1.0, 0.0], [1.0, 0.0]]), Q=SYS2.Q, R=np.diag([0.5, 0.5]),
                            sensors=((0,), (1,)))  # two identical sensors, one link each
 CASES["fusion MF (two sensors)"] = (TWO_SENSORS, TwoLinks(), FusionEstimator(kind="fusion", strategies=["mf"]))
@@ -116,6 +129,15 @@ def test_empirical_error_covariance_equals_reported_P(case, quantity):
     assert np.all(np.abs(d) <= Z * d_se), (case, quantity, d, d_se)
     # the test has power: an estimator reporting 0.7 P would be caught (NEES 1/0.7 = 1.43× its expectation)
     assert np.all(0.43 * rank > 2 * Z * ne_se)
+
+
+def test_nees_detects_scenario_1_on_a_noisy_link():
+    """Mostofi's scenario 1 assumes kept packets carry no communication noise (eq. 7, S₁ = 0): its P is the error
+    covariance only on such a link; with σ_n² = 0.5/Υ its errors exceed what it reports, and NEES says so."""
+    est = ReceiverEstimator(kind="receiver", scenario=1, variance_reduction="none")
+    st = state.simulate_errors(SYS2, FADING, [est], steps=STEPS, runs=RUNS, horizon=HORIZON, seed=24, chunk=RUNS)
+    (ne, ne_se), rank = mean_se(st["sum_nees_0"], st["sumsq_nees_0"], RUNS), st["sum_rank_0"] / RUNS
+    assert np.all(ne[1:] - rank[1:] > Z * ne_se[1:]), (ne, rank, ne_se)
 
 
 @pytest.mark.parametrize("system,channel", [(SYS2, OneLink()), (TWO_SENSORS, TwoLinks())], ids=["one link", "two sensors"])
