@@ -67,6 +67,8 @@ def describe(compat: dict | None = None) -> dict[str, dict[str, dict]]:
                 entry["conditions"] = {c: v["condition"] for c, v in col.items() if v["status"] == "conditional"}
 
                 entry["quantities"] = {q: MEANING[q] for q in getattr(cls, "quantities", ("filtered",))}
+                entry["state_estimates"] = ("numpy path (state_error: x̂ beside P)" if callable(getattr(cls, "estimates", None))
+                                            else "none")
             else:
                 entry["generic"] = k in GENERIC_METRICS
                 if k in GENERIC_METRICS:

@@ -48,7 +48,7 @@ SERIES_TEXT = {"empirical": "empirical E‖x − x̂‖²", "reported": "reporte
 
 
 class StateError(GenericMetric):
-    """``kind: state_error`` — empirical error covariance vs reported P, NEES, and trajectories of any estimator."""
+    """``kind: state_error`` — empirical error covariance vs reported P, NEES and trajectories of any estimator (numpy path)."""
 
     kind: Literal["state_error"]
     quantities: list[Quantity] | None = Field(None, description="several quantities in one pass (default: `quantity`); "
