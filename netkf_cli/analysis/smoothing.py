@@ -660,7 +660,11 @@ def _columns(point) -> list[tuple[str, str, int | None]]:
             elif q == "filtered":
                 out.append((lab, q, 0))
             elif q == "smoothed" and e.get("kind") == "smoother":
-                out.append((lab, q, int(e.get("lag", 0))))
+                lag = int(e.get("lag", 0))
+                if lag > min(MAX_EXACT_LAG, MAX_MEAN_LAG):
+                    raise ConfigError.at("analysis.references", f"Leong's closed forms enumerate the 2^(N+1) future "
+                                         f"arrival patterns: smoother lags up to {MAX_EXACT_LAG}, got {lag} ({lab})")
+                out.append((lab, q, lag))
     return out
 
 

@@ -56,15 +56,15 @@ def test_huge_a_critical_rate_is_a_result_not_a_traceback(tmp_path):
 
 
 def test_huge_a_exact_and_monte_carlo_agree(tmp_path):
-    """A = 10⁶, M = 10¹³ (M̄ ≈ 10¹²): P_{k|k} ≤ M iff y_k arrived (after a loss P ≥ A²·r ≈ 10¹²·… > M),
-    P_{k|k+1} ≤ M iff y_k or y_{k+1} arrived: λ and 1 − (1 − λ)². An absolute PSD tolerance in the information
-    form (10⁻¹⁰ against M⁻¹ = 10⁻¹³) once reported 1.0 here. Monte Carlo within 5 s.e."""
+    """A = 10⁶, M = 10¹³ (M̄ ≈ 10¹², k₁ = 1): one loss after an arrival keeps P ≈ A² r/c² ≈ 10¹² ≤ M, two do
+    not, so Pr[P_{k|k} ≤ M] = 1 − (1 − λ)² and Pr[P_{k|k+1} ≤ M] = 1 − (1 − λ)³. An absolute PSD tolerance in
+    the information form (10⁻¹⁰ against M⁻¹ = 10⁻¹³) once reported 1.0 here. Monte Carlo within 5 s.e."""
     lam = 0.5
     t = _run(tmp_path, f"name: big\nsystem: {{A: 1.0e6, C: 1, Q: 0.5, R: 1}}\nchannel: {{kind: bernoulli, arrival: {lam}}}\n"
                        "estimators: [{kind: smoother, lag: 0}, {kind: smoother, lag: 1}]\n"
                        "montecarlo: {runs: 1000, burn_in: 30, horizon: 80, chunk: 1000}\n"
                        "analysis: {kind: time_average, quantity: smoothed, M: 1.0e13, references: [leong_exact]}\n")
     ex = t[t.source == "closed_form"].set_index("estimator").value
-    np.testing.assert_allclose([ex["smoother lag=0"], ex["smoother lag=1"]], [lam, 1 - (1 - lam) ** 2], atol=1e-9)
+    np.testing.assert_allclose([ex["smoother lag=0"], ex["smoother lag=1"]], [1 - (1 - lam) ** 2, 1 - (1 - lam) ** 3], atol=1e-9)
     mc = t[(t.source == "monte_carlo") & (t.series == "Pr[P<=M]")].set_index("estimator")
     assert (np.abs(mc.value - ex[mc.index]) <= 5 * mc.stderr).all()
