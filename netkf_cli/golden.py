@@ -249,7 +249,9 @@ def compare_tables(fresh: pd.DataFrame, golden: pd.DataFrame, rules: Iterable[Go
     text = [c for c in golden.columns if not pd.api.types.is_numeric_dtype(golden[c])
             or not pd.api.types.is_numeric_dtype(fresh[c])]
     for c in text:
-        bad = fresh[c].astype(str).to_numpy() != golden[c].astype(str).to_numpy()
+        # an empty cell reads back as missing (NaN under pandas' string dtype, where NaN != NaN): compare as ""
+        bad = (fresh[c].astype(object).where(fresh[c].notna(), "").astype(str).to_numpy()
+               != golden[c].astype(object).where(golden[c].notna(), "").astype(str).to_numpy())
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             res.problems.append(f"{name} row {i}: {c} is {fresh[c].iloc[i]!r}, golden {golden[c].iloc[i]!r} (layout changed)")

@@ -3,7 +3,8 @@
 ``REGISTRY`` maps a name to ``"module:function"`` (resolved when used, so this module imports no
 closed form and the closed forms import nothing above them). A provider is ``fn(point) -> list[dict]``:
 ``point`` is a :class:`Point` of plain values (the system's matrices, the channel's, estimators' and
-metric's fields as dicts, the labels of the estimators, the ``over`` coordinates); each dict returned
+metric's and the Monte Carlo block's fields as dicts, the labels of the estimators, the ``over``
+coordinates); each dict returned
 is one row with ``series`` (what it is, e.g. ``"upper bound, eq. 13"``), ``value``, and optionally
 ``estimator`` (one of ``point.labels``; default every estimator: ""), ``quantity``, ``M`` and ``k``.
 The metric marks them ``source = closed_form`` with no standard error.
@@ -46,6 +47,7 @@ class Point:
     quantities: list[str]
     metric: dict
     coords: dict = field(default_factory=dict)
+    montecarlo: dict = field(default_factory=dict)  # horizon, burn_in …: a provider may give finite-time values
 
 
 def describe() -> dict[str, str]:

@@ -263,7 +263,8 @@ class GenericMetric(AnalysisModel):
         point = references.Point(system=needs(scenario, "system"),
                                  channel=scenario.channel.model_dump() if scenario.channel is not None else {},
                                  estimators=[e.model_dump() for e in ests], labels=list(labs),
-                                 quantities=self.quantity_list(), metric=self.model_dump(), coords={})
+                                 quantities=self.quantity_list(), metric=self.model_dump(), coords={},
+                                 montecarlo=scenario.montecarlo.model_dump())
         rows = []
         for name in self.references:
             for r in references.evaluate(name, point):

@@ -82,7 +82,17 @@ class MeanVsTime(GenericMetric):
                                              rare_event=bool(flags["rare"][i]), **lab_cols[j]))
         for w in warnings_:  # one line on the terminal, and in the manifest
             warnings.warn(w, stacklevel=2)
-        table = pd.DataFrame(rows, columns=COLUMNS)
+        cols = COLUMNS
+        if self.references:  # closed forms at every step they give (k), or stationary (k empty)
+            cols = COLUMNS + ["source", "reference"]
+            for r in rows:
+                r.update(source="monte_carlo", reference="")
+            for r in self.reference_rows(scenario, labs):
+                rows.append(dict(k=r.get("k", np.nan), estimator=r.get("estimator", ""), series=r["series"],
+                                 value=r["value"], stderr=np.nan, n=0, nonfinite=0, heavy_tail=False, rare_event=False,
+                                 quantity=r.get("quantity", self.quantity), P0="", conventions="",
+                                 source="closed_form", reference=r["reference"]))
+        table = pd.DataFrame(rows, columns=cols)
         return Artefact(table, meta={"runs": int(st["n"]), "estimators": labs, "steps": f"{ks[0]}…{ks[-1]}",
                                      "quantity": self.quantity, "labels": dict(zip(labs, lab_cols)),
                               "backends": backends(scenario, s, ests, labs, n_runs_of(st), horizon_of(scenario, self)),
@@ -92,7 +102,17 @@ class MeanVsTime(GenericMetric):
 
     def plot(self, tables, scenario):
         t = fold_over(tables["main"], self.over)
+        ref = t[t.source == "closed_form"] if "source" in t else t.iloc[:0]
+        t = t[t.source != "closed_form"] if "source" in t else t
         fig, ax = new_figure(width=7.4, height=4.6)
+        for i, ((lab, ser), g) in enumerate(ref.fillna({"estimator": ""}).groupby(["estimator", "series"], sort=False)):
+            g = g.sort_values("k")
+            name = f"{lab}: {ser}" if lab else ser
+            if g.k.notna().any():
+                ax.plot(g.k, g.value, ls=(0, (5, 2 + i)), color="black", lw=1.1, label=f"{name} (closed form)", zorder=4)
+            else:  # a stationary value: a horizontal line
+                ax.axhline(float(g.value.iloc[0]), ls=(0, (5, 2 + i)), color="black", lw=1.0,
+                           label=f"{name} (closed form, stationary)")
         one = len(t) > 0 and int(t.n.max()) == 1  # one run (e.g. a replayed recording): the sequence itself
         left_out = 0
         for i, ((lab, ser), g) in enumerate(t.groupby(["estimator", "series"], sort=False)):
