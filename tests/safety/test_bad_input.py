@@ -104,11 +104,11 @@ CASES = [
     # ---- markov: Moayedi, Soh & Foo --------------------------------------------------------
     ("markov-transition-not-stochastic", "markov/example1.yaml", "- [0.8, 0.0, 0.10, 0.10]", "- [0.9, 0.0, 0.10, 0.10]", "channel.transition[0]", "must sum to 1", None, V),
     ("markov-transition-3-columns", "markov/example1.yaml", "- [0.8, 0.0, 0.10, 0.10]", "- [0.8, 0.0, 0.20]", "channel.transition", "not a matrix", "transition:", V),
-    ("markov-rho-length", "markov/example1.yaml", "rho: [0.8, 0.02, 0.09, 0.09]", "rho: [0.8, 0.2]", "estimator.rho", "", None, V),
-    ("markov-solver-unknown", "markov/example1.yaml", "solver: CLARABEL", "solver: MAGIC", "estimator.solver", "", None, V),
+    ("markov-rho-length", "markov/example1_exact.yaml", "rho: [0.8, 0.02, 0.09, 0.09]", "rho: [0.8, 0.2]", "estimator.rho", "", None, V),
+    ("markov-solver-unknown", "markov/example1_exact.yaml", "solver: CLARABEL", "solver: MAGIC", "estimator.solver", "", None, V),
     ("markov-Q-not-psd", "markov/example1.yaml", "Q: [[1, 0], [0, 0]]", "Q: [[1, 2], [2, 1]]", "system.Q", "positive semi-definite", None, V),
     ("markov-initial-not-distribution", "markov/example1.yaml", "initial: stationary", "initial: [0.5, 0.6]", "channel.initial", "needs 4 probabilities", None, V),
-    ("markov-S-wrong-dims", "markov/example1.yaml", "S: [[0.2], [0.0]]", "S: [[0.2, 0.1, 0.0]]", "analysis.S", "", None, R),
+    ("markov-S-wrong-dims", "markov/example1_exact.yaml", "S: [[0.2], [0.0]]", "S: [[0.2, 0.1, 0.0]]", "estimator.S", "", None, V),
     # ---- smoothing: Leong, Dey & Evans ---------------------------------------------------
     ("smoothing-eps-above-1", "smoothing/table1.yaml", "eps: 0.05", "eps: 1.5", "analysis.eps", "", None, V),
     ("smoothing-lag-below-minus-1", "smoothing/table1.yaml", "lags: [-1, 0,", "lags: [-2, 0,", "analysis.lags", "use −1", None, V),
