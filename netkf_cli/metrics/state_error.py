@@ -178,6 +178,8 @@ class StateError(GenericMetric):
     # ------------------------------------------------------------------------------------ plot
     def plot(self, tables, scenario):
         q = self.quantity_list()[0]  # the figure draws the first quantity (the CSVs hold all)
+        if self.over:
+            return self._plot_over(tables, q)
         t = tables["main"]
         t = t[t["quantity"] == q] if "quantity" in t else t
         traj = tables.get("trajectories")
@@ -241,6 +243,41 @@ class StateError(GenericMetric):
         if comps:
             note += "; trajectories: run 0 of stream 1"
         footnote(fig, note)
+        return fig
+
+
+    def _plot_over(self, tables, q: str):
+        """With ``over``: the window averages against the grid's first path (E‖e‖² beside E tr P; NEES)."""
+        path = next(iter(self.over))
+        sm = tables["summary"]
+        sm = sm[(sm["quantity"] == q) & (sm["estimator"].notna())] if "quantity" in sm else sm
+        fig, axes = new_figure(nrows=2, width=7.6, height=3.4)
+        labs = [e for e in dict.fromkeys(sm.estimator) if isinstance(e, str) and e]
+        for i, lab in enumerate(labs):
+            sty = series_style(i + 1)
+            e = sm[(sm.estimator == lab) & (sm.series == "empirical")].sort_values(path)
+            r = sm[(sm.estimator == lab) & (sm.series == "reported")].sort_values(path)
+            axes[0].errorbar(e[path], e.value, yerr=1.96 * e.stderr, color=sty["color"], marker=sty["marker"], ls="-",
+                             lw=1.2, capsize=3, label=f"{lab}: empirical E‖x − x̂‖² (±1.96 s.e.)")
+            axes[0].plot(r[path], r.value, color=sty["color"], ls=(0, (1, 1.5)), lw=1.6, label=f"{lab}: reported E[tr P]")
+            ne = sm[(sm.estimator == lab) & (sm.series == "nees")].sort_values(path)
+            axes[1].errorbar(ne[path], ne.value, yerr=Z * ne.stderr, color=sty["color"], marker=sty["marker"], ls="-",
+                             lw=1.2, capsize=3, label=f"{lab} (±{Z:g} s.e.)")
+            axes[1].plot(ne[path], ne.expected, color=sty["color"], ls=(0, (1, 1)), lw=0.8,
+                         label=r"dotted: $\chi^2$ expectation E[rank P]" if i == 0 else "_nolegend_")
+        for ax in axes:
+            ax.set_xlabel(path)
+            legend_outside(ax)
+        axes[0].set_ylabel("squared error")
+        axes[0].set_ylim(bottom=0)
+        axes[1].set_ylabel(r"mean NEES $e^\top P^{+} e$")
+        w = sm.window.iloc[0] if len(sm) else ""
+        axes[0].set_title(f"window average ({w}) of the error and of the reported {quantity_text(q, '$P_k$')}")
+        axes[1].set_title("consistency: mean NEES against its chi-square expectation")
+        what = self.title or "estimation error vs reported covariance (NEES)"
+        fig.suptitle(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
+        footnote(fig, f"n = {int(sm.n.max()) if len(sm) else 0:,} runs per point; {q} ${quantity_text(q)}$; "
+                      f"per-step values in the CSV")
         return fig
 
 
