@@ -64,6 +64,15 @@ def anchors(only: list[str] | None):
 
 
 CLI_SCENARIOS = {
+    # the floor: the plain kf on a Bernoulli link (what any netkf run costs: interpreter, libraries, workers)
+    "kf bernoulli (scalar; the floor)": """\
+name: bench_kf_floor
+system: {{A: 1.2, C: 1, Q: 1, R: 1}}
+channel: {{kind: bernoulli, arrival: 0.8}}
+estimator: {{kind: kf}}
+analysis: {{kind: time_average, quantity: filtered}}
+montecarlo: {{runs: {runs}, horizon: 200, burn_in: 100, seed: 1}}
+""",
     # issue 20's composed fusion scenario: the 4-state vehicle, N = 25 identical sensors, loss 0.5
     "fusion MF (vehicle, N=25)": """\
 name: bench_fusion_mf

@@ -7,6 +7,17 @@ config can never be read the wrong way round (``arrival = 1 − loss``).
 Links are independent across sensors and i.i.d. in time (the paper's Bernoulli model).
 ``loss`` is one number for every sensor or a list of N per-sensor rates.
 
+The trace (issue 20). ``sampling: per_sensor`` (default): γ_t^i from one raw 64-bit draw per sensor, step
+and run — the reference stream, drawn lazily (:class:`SensorTrace`: the same bits as
+:func:`sample_multi_trace_arrivals`, any block of steps on demand, so an estimator that reads the trace in
+blocks never holds the (N, horizon, runs) array; ``arrival`` is the whole array for any other reader).
+``sampling: counts`` (one common loss): the trace is the count ℓ_t = Σ_i γ_t^i ~ Binomial(N, 1 − loss)
+from ONE raw draw per run-step (:func:`sample_counts`), exposed as ``trace.counts`` (horizon, runs) beside
+the contract's ``arrival``, which is drawn given ℓ only when read (:class:`CountTrace`,
+:func:`arrivals_given_counts`: a uniform subset of size ℓ, the same joint law as N independent links) —
+another stream with the same statistics (tested within 5 s.e.). MF with identical sensors reads only
+``counts``; IBF, OLPEF, kf and the metrics read ``arrival``, consistent with the counts.
+
 What a stream carries (the one sensor model, :func:`netkf_cli.kalman.stream_rows`): stream i is
 sensor i's WHOLE measurement y_k^i = C_i x_k + v_k^i, sensor i of ``system.sensors`` — so the
 channel's ``sensors`` must equal the system's number of sensors (``system.sensors: N`` for N
@@ -158,9 +169,10 @@ def arrivals_given_counts(rng: np.random.Generator, counts: np.ndarray, N: int) 
     return out
 
 
-def _block_steps(horizon: int, runs: int) -> int:
-    """Time steps per block so a block of one sensor's raw draws holds :data:`RAW_BLOCK` of them."""
-    return max(1, min(horizon, RAW_BLOCK // max(runs, 1)))
+def block_steps(horizon: int, runs: int, sensors: int = 1) -> int:
+    """Time steps per block of a lazy trace: a block of all ``sensors`` holds about :data:`RAW_BLOCK`
+    arrivals (1 MB of bools), so reading a trace in blocks costs O(RAW_BLOCK) memory whatever the runs."""
+    return max(1, min(horizon, RAW_BLOCK // max(runs * sensors, 1)))
 
 
 class SensorTrace(Trace):
@@ -203,7 +215,7 @@ class SensorTrace(Trace):
     def arrival(self) -> np.ndarray:  # type: ignore[override]
         if self._arrival is None:
             out = np.empty((self._loss.size, self.horizon, self.runs), dtype=bool)
-            b = _block_steps(self.horizon, self.runs)
+            b = block_steps(self.horizon, self.runs, self._loss.size)
             for t0 in range(0, self.horizon, b):
                 out[:, t0 : t0 + b] = self.steps(t0, min(self.horizon, t0 + b))
             self._arrival = out
@@ -224,7 +236,7 @@ class SensorTrace(Trace):
         if self._counts is None:
             N = self._loss.size
             c = np.empty((self.horizon, self.runs), dtype=np.uint8 if N < 256 else np.int32)
-            b = _block_steps(self.horizon, self.runs)
+            b = block_steps(self.horizon, self.runs, self._loss.size)
             for t0 in range(0, self.horizon, b):
                 t1 = min(self.horizon, t0 + b)
                 self.steps(t0, t1).sum(axis=0, dtype=c.dtype, out=c[t0:t1])

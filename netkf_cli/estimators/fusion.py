@@ -40,7 +40,7 @@ from netkf_cli import batched as bt
 from netkf_cli import kalman
 from netkf_cli import kalman_codegen as kc
 from netkf_cli.analysis.fusion_bounds import _as2d, p_m
-from netkf_cli.channels.multi import RAW_BLOCK
+from netkf_cli.channels.multi import block_steps
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators.kf import channel_streams, filter_estimates
 from netkf_cli.riccati import initial_covariance
@@ -368,13 +368,13 @@ def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
 
 class _Blocks:
     """Blocks of a trace's arrivals for a pass over time: the whole array of an eager (or materialised)
-    trace, else the trace's ``steps(t0, t1)`` in blocks of RAW_BLOCK draws per sensor (a lazily drawn
+    trace, else the trace's ``steps(t0, t1)`` in blocks of ~RAW_BLOCK arrivals (a lazily drawn
     :class:`~netkf_cli.channels.multi.SensorTrace` is never materialised whole)."""
 
     def __init__(self, trace):
         self.trace, self.T = trace, trace.horizon
         lazy = hasattr(trace, "steps") and not getattr(trace, "materialized", True)
-        self.B = max(1, min(self.T, RAW_BLOCK // max(trace.runs, 1))) if lazy else self.T
+        self.B = block_steps(self.T, trace.runs, trace.sensors) if lazy else self.T
         self.blk, self.b0, self.b1 = (None, 0, 0) if lazy else (trace.arrival, 0, self.T)
 
     def segments(self, t: int, k: int):

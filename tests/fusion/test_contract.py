@@ -520,11 +520,10 @@ def test_blocked_reading_of_a_lazy_trace_equals_the_whole_trace(monkeypatch, str
     """IBF / OLPEF / MF read a lazy trace in blocks of a few steps (block edges between reported steps, and
     reported steps several blocks apart) and give what they give on the materialised trace."""
     from netkf_cli.channels import multi
-    from netkf_cli.estimators import fusion
 
     N, runs, T = 6, 250, 30
-    monkeypatch.setattr(multi, "RAW_BLOCK", 4 * runs)
-    monkeypatch.setattr(fusion, "RAW_BLOCK", 4 * runs)
+    monkeypatch.setattr(multi, "RAW_BLOCK", 4 * runs * N)  # blocks of 4 steps
+    assert multi.block_steps(T, runs, N) == 4
     system = identical_sensors(A2, C2, Q2, R2, N)
     steps = [1, 2, 3, 5, 6, 7, 8, 9, 19, 30]
     est = FusionEstimator(kind="fusion", strategies=[strategy], backend=backend)

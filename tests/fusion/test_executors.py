@@ -21,7 +21,7 @@ from netkf_cli.runner import run_scenario_file
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = ROOT / "configs" / "fusion" / "fig3.yaml"
-SMALL = {"montecarlo": {"horizon": 40, "burn_in": 20, "chunk": 50}, "analysis": {"loss": [0.2, 0.6]}}
+SMALL = {"montecarlo": {"horizon": 40, "burn_in": 20, "chunk": 50}, "analysis": {"over": {"channel.loss": [0.2, 0.6]}}}
 RUNS = 200  # 4 chunks per grid point
 
 
