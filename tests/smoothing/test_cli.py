@@ -8,7 +8,10 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
+from netkf_cli import runner
+from netkf_cli.artefact import RunContext
 from netkf_cli.cli import app
+from netkf_cli.loader import load_scenario_text
 
 BASE = "name: bad\nsystem: {A: 1.3, C: 1, Q: 0.5, R: 1}\nmontecarlo: {runs: 100, burn_in: 10, horizon: 30}\n"
 TA = "analysis: {kind: time_average, M: 6.25, references: [leong_exact]}\nestimator: {kind: smoother, lag: 1}\n"
@@ -42,6 +45,12 @@ def _run(tmp_path, text: str) -> pd.DataFrame:
     return pd.read_csv(tmp_path / "out" / "big.csv")
 
 
+def _compute(text: str) -> pd.DataFrame:
+    """The main table without the figure (the CLI path is test_huge_a_critical_rate_is_a_result_not_a_traceback)."""
+    sc = load_scenario_text(text)
+    return runner.compute(sc, RunContext()).table
+
+
 def test_huge_a_critical_rate_is_a_result_not_a_traceback(tmp_path):
     """A = 10⁶: every E[P] is ∞ (λ ≤ λ_c = 1 − 10⁻¹²), exit 0, the Monte Carlo means flagged."""
     t = _run(tmp_path, "name: big\nsystem: {A: 1.0e6, C: 1, Q: 0.5, R: 1}\nchannel: {kind: bernoulli, arrival: 0.5}\n"
@@ -55,12 +64,12 @@ def test_huge_a_critical_rate_is_a_result_not_a_traceback(tmp_path):
     assert (mc.heavy_tail | mc.rare_event | ~np.isfinite(mc.value)).all()
 
 
-def test_huge_a_exact_and_monte_carlo_agree(tmp_path):
+def test_huge_a_exact_and_monte_carlo_agree():
     """A = 10⁶, M = 10¹³ (M̄ ≈ 10¹², k₁ = 1): one loss after an arrival keeps P ≈ A² r/c² ≈ 10¹² ≤ M, two do
     not, so Pr[P_{k|k} ≤ M] = 1 − (1 − λ)² and Pr[P_{k|k+1} ≤ M] = 1 − (1 − λ)³. An absolute PSD tolerance in
     the information form (10⁻¹⁰ against M⁻¹ = 10⁻¹³) once reported 1.0 here. Monte Carlo within 5 s.e."""
     lam = 0.5
-    t = _run(tmp_path, f"name: big\nsystem: {{A: 1.0e6, C: 1, Q: 0.5, R: 1}}\nchannel: {{kind: bernoulli, arrival: {lam}}}\n"
+    t = _compute(f"name: big\nsystem: {{A: 1.0e6, C: 1, Q: 0.5, R: 1}}\nchannel: {{kind: bernoulli, arrival: {lam}}}\n"
                        "estimators: [{kind: smoother, lag: 0}, {kind: smoother, lag: 1}]\n"
                        "montecarlo: {runs: 1000, burn_in: 30, horizon: 80, chunk: 1000}\n"
                        "analysis: {kind: time_average, quantity: smoothed, M: 1.0e13, references: [leong_exact]}\n")

@@ -93,9 +93,9 @@ def test_regression(name, outputs):
 
 
 def test_figure_is_written(tmp_path):
-    runs, ov = SMALL["retransmission"]
-    out = run_scenario_file(CONFIGS / "retransmission.yaml", out_dir=tmp_path / "r", runs=runs, force=True, overrides=ov)
-    assert (out / "smoothing_retransmission.png").stat().st_size > 10_000
+    runs, ov = SMALL["table1_predictor"]  # every config's figure: netkf reproduce --quick
+    out = run_scenario_file(CONFIGS / "table1_predictor.yaml", out_dir=tmp_path / "r", runs=runs, force=True, overrides=ov)
+    assert (out / "smoothing_table1_predictor.png").stat().st_size > 10_000
 
 
 @pytest.mark.parametrize("name, path", [("table1", "channel.arrival"), ("table1_predictor", "channel.arrival"),
