@@ -190,7 +190,7 @@ class StateError(GenericMetric):
         fig, axes = new_figure(nrows=nrow, width=9.0, height=2.8)
         axes = list(np.atleast_1d(axes))
         labs = list(dict.fromkeys(t.estimator))
-        hat = r"\hat{x}_{k|k}" if q == "filtered" else r"\hat{x}_{k|k-1}"
+        hat = r"\hat{x}_{k\mid k}" if q == "filtered" else r"\hat{x}_{k\mid k-1}"
         for ax, c in zip(axes, comps):
             d = traj[(traj.component == c) & (traj.run == 0)]
             tru = d[d.series == "true"]
@@ -219,7 +219,7 @@ class StateError(GenericMetric):
             ax.set_ylim(bottom=0)
         ax.set_xlabel(r"time step $k$")
         ax.set_ylabel("squared error")
-        ax.set_title(f"empirical error covariance (trace) vs reported {quantity_text(q, '$P_k$')}".replace("$P_", "$P_"))
+        ax.set_title(f"empirical error covariance (trace) vs reported {_qtext(q, '$P_k$')}")
         legend_outside(ax)
         ax = axes[len(comps) + 1]
         for i, lab in enumerate(labs):
@@ -237,7 +237,7 @@ class StateError(GenericMetric):
         fig.suptitle(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
         n = int(t.n.max()) if len(t) else 0
         lab0 = t.iloc[0] if len(t) else None
-        note = f"n = {n:,} runs per step; {q} ${quantity_text(q)}$"
+        note = f"n = {n:,} runs per step; {q} ${_qtext(q)}$"
         if lab0 is not None:
             note += f"; {math_text(lab0.P0)}; {conventions_note(dict(zip(t.estimator, t.conventions)))}"
         if comps:
@@ -272,13 +272,18 @@ class StateError(GenericMetric):
         axes[0].set_ylim(bottom=0)
         axes[1].set_ylabel(r"mean NEES $e^\top P^{+} e$")
         w = sm.window.iloc[0] if len(sm) else ""
-        axes[0].set_title(f"window average ({w}) of the error and of the reported {quantity_text(q, '$P_k$')}")
+        axes[0].set_title(f"window average ({w}) of the error and of the reported {_qtext(q, '$P_k$')}")
         axes[1].set_title("consistency: mean NEES against its chi-square expectation")
         what = self.title or "estimation error vs reported covariance (NEES)"
         fig.suptitle(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
-        footnote(fig, f"n = {int(sm.n.max()) if len(sm) else 0:,} runs per point; {q} ${quantity_text(q)}$; "
+        footnote(fig, f"n = {int(sm.n.max()) if len(sm) else 0:,} runs per point; {q} ${_qtext(q)}$; "
                       f"per-step values in the CSV")
         return fig
+
+
+def _qtext(quantity: str, what: str = "P_k") -> str:
+    """:func:`quantity_text` with a visible conditioning bar (mathtext drops a bare ``|`` in a subscript)."""
+    return quantity_text(quantity, what).replace("|", r"\mid ")
 
 
 def _trajectory_table(tr: dict, labs: list[str], cols, steps: list[int]) -> pd.DataFrame:

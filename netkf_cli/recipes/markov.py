@@ -128,7 +128,7 @@ class MarkovExactAnalysis(AnalysisModel):
                     label=r"LMI design's bound $\Lambda_\zeta$ (Sec. III-C)")
             ax.set_ylim(bottom=0)
             ax.set_xlabel("time step k")
-            hat = r"\hat{x}_{k|k-1}" if e == "predicted" else r"\hat{x}_{k|k}"
+            hat = r"\hat{x}_{k\mid k-1}" if e == "predicted" else r"\hat{x}_{k\mid k}"
             ax.set_ylabel(rf"exact $\mathrm{{E}}\,\|x_k-{hat}\|^2$")
             ax.set_title(f"({'ab'[ESTIMATES.index(e)]}) {e} estimate ${hat}$")
         legend_outside(axes[-1], loc="below", ncol=2)
