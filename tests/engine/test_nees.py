@@ -16,6 +16,7 @@ from netkf_cli import state
 from netkf_cli.channels.delay import DelayChannel
 from netkf_cli.channels.fading import FadingChannel
 from netkf_cli.channels.markov_modes import MarkovModesChannel
+from netkf_cli.channels.multi import MultiChannel
 from netkf_cli.estimators.buffered import BufferedEstimator
 from netkf_cli.estimators.fading_receivers import ReceiverEstimator
 from netkf_cli.estimators.fusion import FusionEstimator
@@ -101,6 +102,8 @@ TWO_SENSORS = LinearSystem(A=SYS2.A, C=np.array([[1.0, 0.0], [1.0, 0.0]]), Q=SYS
                            sensors=((0,), (1,)))  # two identical sensors, one link each
 CASES["fusion MF (two sensors)"] = (TWO_SENSORS, TwoLinks(), FusionEstimator(kind="fusion", strategies=["mf"]))
 CASES["fusion IBF (two sensors)"] = (TWO_SENSORS, TwoLinks(), FusionEstimator(kind="fusion", strategies=["ibf"]))
+CASES["fusion IBF on a multi channel"] = (TWO_SENSORS, MultiChannel(kind="multi", sensors=2, loss=0.4),
+                                          FusionEstimator(kind="fusion", strategies=["ibf"]))
 for f in ("mode_aware", "naive", "lmi", "lmmse"):
     CASES[f"markov {f}, correlated noise (Example 1)"] = (EX1_SYS, EX1_CH,
                                                           MarkovLMIEstimator(kind="markov_lmi", filter=f, S=EX1_S))
