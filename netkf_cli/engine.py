@@ -234,10 +234,14 @@ class StationaryReducer:
     of the trace mean, counted as not ≤ M) and ``max_nsteps_j``. A column may cover fewer steps than
     ``steps`` (a smoother's lag): the average is over the steps it reported."""
 
-    def __init__(self, steps: list[int], M=None):
+    def __init__(self, steps: list[int], M=None, shift: dict | None = None):
         self.steps = list(steps)
         self.M = None if M is None else np.atleast_1d(np.asarray(M, dtype=float))
         self.means_only = self.M is None  # Pr[P_k ≤ M] needs each run's own covariance
+        self.shift = dict(shift or {})
+        """Per column, a constant c subtracted before the power sums (``sum_avg`` … hold Σ(a − c)^p): the
+        same for every chunk, near the mean, so the 4th central moment keeps its digits when the runs
+        differ by 1e-5 relative (raw Σa⁴ would cancel every digit). ``max_avg`` stays raw."""
 
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         if k not in self.steps:
@@ -264,9 +268,10 @@ class StationaryReducer:
             T = max(a["steps"], 1)
             ok = ~a["bad"]
             avg = np.where(ok, a["tr"] / T, 0.0)
+            d = np.where(ok, avg - self.shift.get(j, 0.0), 0.0)
             with np.errstate(over="ignore"):
-                for key, val in (("sum", avg.sum()), ("sumsq", (avg * avg).sum()), ("sum3", (avg**3).sum()),
-                                 ("sum4", (avg**4).sum())):
+                for key, val in (("sum", d.sum()), ("sumsq", (d * d).sum()), ("sum3", (d**3).sum()),
+                                 ("sum4", (d**4).sum())):
                     stats[f"{key}_avg_{j}"] = stats.get(f"{key}_avg_{j}", 0.0) + val
             stats[f"max_avg_{j}"] = max(stats.get(f"max_avg_{j}", 0.0), float(avg.max()) if avg.size else 0.0)
             stats[f"nonfinite_{j}"] = stats.get(f"nonfinite_{j}", 0) + int((~ok).sum())

@@ -8,6 +8,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from netkf_cli import engine, kalman
+from netkf_cli.analysis import critical as cr
 from netkf_cli.analysis import references
 from netkf_cli.errors import ConfigError
 from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt, StrictModel
@@ -270,6 +271,33 @@ class GenericMetric(AnalysisModel):
             for r in references.evaluate(name, point):
                 rows.append(dict(r, reference=name))
         return rows
+
+
+KF_FORWARD = ("kf", "smoother")
+"""Estimators whose covariances are the intermittent Kalman filter's (the smoother's forward pass): the
+loss-burst tail law of Mo & Sinopoli 2012 applies to them."""
+
+
+def loss_burst_law(channel) -> tuple[float | None, Any]:
+    """(s, chain): the probability s that a loss burst continues (1 − λ i.i.d.; 1 − q Gilbert–Elliott) and
+    the arrival chain, or (None, None) for channels without a geometric loss-burst law."""
+    kind = getattr(channel, "kind", "")
+    if kind == "bernoulli":
+        return 1.0 - float(channel.arrival), cr.iid_chain(float(channel.arrival))
+    if kind == "gilbert_elliott":
+        return 1.0 - float(channel.transition[1]), cr.ge_chain(*channel.transition)
+    return None, None
+
+
+def kf_tail_exponent(system, channel, est) -> tuple[float | None, str]:
+    """φ of Pr[tr P_k > M] ~ M^φ at stationarity for the KF's covariances (:func:`cr.tail_exponent`), or
+    (None, why). φ ≥ −2 means E[(tr P)²] = ∞: a sample mean's standard error then means nothing."""
+    if getattr(est, "kind", "") not in KF_FORWARD:
+        return None, "theory only for the Kalman filter (kind: kf) and the smoother's forward pass"
+    s, T = loss_burst_law(channel)
+    if s is None:
+        return None, f"no loss-burst law for channel {getattr(channel, 'kind', '')!r}"
+    return cr.tail_exponent(system.A, system.C, loss_stay=s, channel=channel.kind, T=T)
 
 
 def fold_over(t, over: dict | None):

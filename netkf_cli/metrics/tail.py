@@ -46,7 +46,7 @@ from scipy import stats as sps
 from netkf_cli.analysis import critical as cr
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators.kf import KalmanFilterEstimator
-from netkf_cli.metrics.common import MGrid, PaperRef, labels, m_values, needs
+from netkf_cli.metrics.common import kf_tail_exponent, loss_burst_law, MGrid, PaperRef, labels, m_values, needs
 from netkf_cli.montecarlo import run_chunked, wilson_interval
 from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.artefact import Artefact, RunContext
@@ -351,11 +351,7 @@ class TailMetric(AnalysisModel):
         n0 = int(st["n_c"][0])
         rows, fits = [], []
         kind = getattr(ch, "kind", "")
-        loss_stay = None
-        if kind == "bernoulli":
-            loss_stay = 1.0 - float(ch.arrival)
-        elif kind == "gilbert_elliott":
-            loss_stay = 1.0 - float(ch.transition[1])
+        loss_stay, _ = loss_burst_law(ch)
         for j, lab in enumerate(labs):
             cnt0 = st[f"cnt0_{j}"]
             lo0, hi0 = wilson_interval(cnt0, max(n0, 1))
@@ -383,8 +379,7 @@ class TailMetric(AnalysisModel):
             tq = float(sps.t.ppf(0.975, max(nb - 1, 1))) if nb >= 3 else math.nan
             theo, why = (None, "theory only for the Kalman filter (kind: kf)")
             if ests[j].kind == "kf" and loss_stay is not None:
-                T = cr.ge_chain(*ch.transition) if kind == "gilbert_elliott" else cr.iid_chain(float(ch.arrival))
-                theo, why = cr.tail_exponent(s.A, s.C, loss_stay=loss_stay, channel=kind, T=T)
+                theo, why = kf_tail_exponent(s, ch, ests[j])
             elif loss_stay is None:
                 why = f"no loss-burst law for channel {kind!r}"
             # the exceedance law is a staircase in log M (burst lengths are integers: one step = 2 log ρ(A) in log M,

@@ -24,12 +24,15 @@ from netkf_cli import engine, kalman
 from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.errors import ConfigError
 from netkf_cli.metrics import derived
-from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, labels,
-                                      math_text, PaperRef, Quantity)
+from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric,
+                                      kf_tail_exponent, labels, math_text, PaperRef, Quantity)
 from netkf_cli.plotting import LINESTYLES, MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.stats import heavy_tail_flag, mean_se, rare_event_flag
 
 TRACE, PROB = "E[tr P]", "Pr[P<=M]"
+PILOT_RUNS = 64
+PILOT_STREAM = 2**31 - 1
+"""The pilot that fixes the power sums' shift: 64 runs on a stream no chunk uses (chunks use (stream, i))."""
 COLUMNS = ["estimator", "quantity", "series", "M", "value", "stderr", "n", "nonfinite", "heavy_tail", "rare_event",
            "source", "reference"] + LABEL_COLUMNS[1:]
 
@@ -76,10 +79,12 @@ class TimeAverage(GenericMetric):
         qs = self.quantity_list()
         steps = list(range(mc.burn_in + 1, mc.horizon + 1))
         Ms = None if self.M is None else np.atleast_1d(np.asarray(self.M, dtype=float))
-        s, ests, st = self.simulate(scenario, ctx, engine.StationaryReducer(steps, Ms), steps, mc.horizon, quantities=qs)
+        shift = self._pilot_shift(scenario, steps, qs)
+        s, ests, st = self.simulate(scenario, ctx, engine.StationaryReducer(steps, Ms, shift), steps, mc.horizon,
+                                    quantities=qs)
         labs = labels(ests)
         n = int(st["n"])
-        rows = []
+        rows, theory_flags = [], {}
         for j, (e, lab) in enumerate(zip(ests, labs)):
             for qi, q in enumerate(qs):
                 c = engine.column(j, qi, len(qs))
@@ -88,12 +93,19 @@ class TimeAverage(GenericMetric):
                 lab_cols = describe(scenario, s, [e], q)[0]
                 bad = int(st[f"nonfinite_{c}"])
                 m_ok = max(n - bad, 1)
-                mean, se = (float(x) for x in mean_se(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], m_ok))
+                c0 = shift.get(c, 0.0)  # the sums are of (a − c0): shift-invariant variance and 4th moment
+                dmean, se = (float(x) for x in mean_se(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], m_ok))
+                mean = c0 + dmean
                 _, _, heavy = heavy_tail_flag(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], st[f"sum3_avg_{c}"],
                                               st[f"sum4_avg_{c}"], m_ok, bad)
-                rare = bool(rare_event_flag(st[f"sum_avg_{c}"], st[f"max_avg_{c}"], m_ok))
+                rare = bool(rare_event_flag(st[f"sum_avg_{c}"] + m_ok * c0, st[f"max_avg_{c}"], m_ok))
                 base = dict(estimator=lab, quantity=q, n=n, nonfinite=bad, source="monte_carlo", reference="",
                             P0=lab_cols["P0"], conventions=lab_cols["conventions"])
+                phi, why = kf_tail_exponent(s, scenario.channel, e)
+                if phi is not None and phi >= -2.0:  # E[(tr P)²] = ∞: the sample's variance (and s.e.) mean nothing
+                    heavy = True
+                    theory_flags[lab] = (f"tail exponent φ = {phi:.3g} ≥ −2 (Mo & Sinopoli 2012: E[(tr P)²] = ∞"
+                                         + (", E[tr P] = ∞" if phi >= -1.0 else "") + f"; {why})")
                 rows.append(dict(base, series=TRACE, M=np.nan, value=mean if bad == 0 else np.inf, stderr=se,
                                  heavy_tail=bool(heavy), rare_event=rare))
                 if Ms is not None:  # a non-finite run counts as not ≤ M: the probability is over every run
@@ -111,14 +123,34 @@ class TimeAverage(GenericMetric):
                                      "average": f"per run over k = {steps[0]}…{steps[-1]} (burn-in {mc.burn_in})",
                                      "backends": backends(scenario, s, ests, labs, n, mc.horizon),
                                      "references": list(self.references),
-                                     "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE} "
-                                                        f"or any non-finite run"})
+                                     "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE}, "
+                                                        f"any non-finite run, or (kf and the smoother on i.i.d. or "
+                                                        f"Gilbert–Elliott loss) the theoretical tail exponent ≥ −2",
+                                     "heavy_tail_by_theory": theory_flags})
 
     def finish_over(self, scenario, art: Artefact) -> Artefact:
         """The over grid's derived tables (``pairs``: MC vs MC / closed form at each point; ``trend``: along each
         path) beside the main table, for claims (:mod:`netkf_cli.metrics.derived`)."""
         return Artefact(art.table, meta=art.meta,
                         extra_tables={**art.extra_tables, **derived.tables(art.table, list(self.over or {}))})
+
+    def _pilot_shift(self, scenario, steps, qs) -> dict:
+        """Per column, the mean time-averaged tr P of a small pilot (``PILOT_RUNS`` runs on a stream of its own,
+        so every chunking and executor gets the same constant): the shift of the power sums. The statistics
+        are shift-invariant; the pilot only keeps the 4th moment's digits."""
+        s, ch, ests = scenario.linear_system(), scenario.channel, scenario.estimator_list()
+        mc = scenario.montecarlo
+        red = engine.StationaryReducer(steps)
+        kern = engine.PairKernel(s, ch, [e.for_means(ch) for e in ests], mc.horizon, steps, red, tuple(qs))
+        st = kern(np.random.default_rng(np.random.SeedSequence(mc.seed, spawn_key=(PILOT_STREAM,))), PILOT_RUNS)
+        out = {}
+        for key, v in st.items():
+            if key.startswith("sum_avg_"):
+                c = int(key.rsplit("_", 1)[1])
+                ok = PILOT_RUNS - int(st[f"nonfinite_{c}"])
+                if ok > 0 and np.isfinite(v):
+                    out[c] = float(v) / ok
+        return out
 
     # --- the figure -------------------------------------------------------------------------------------
     def plot(self, tables, scenario):

@@ -45,7 +45,7 @@ def sample_estimators() -> dict[str, dict]:
     from netkf_cli.scenario import kinds
     from netkf_cli.spec import EstimatorModel
 
-    from_configs = {"fusion": _block("fusion/fig1.yaml", "estimator"), "markov_lmi": _block("markov/example2_exact.yaml", "estimator")}
+    from_configs = {"fusion": _block("fusion/fig1.yaml", "estimators"), "markov_lmi": _block("markov/example1.yaml", "estimators")}
     special = {"buffered": {"kind": "buffered", "packet": "measurement"}, "smoother": {"kind": "smoother", "lag": 1},
                "receiver": {"kind": "receiver", "scenario": 2, "threshold": {"value": 2, "unit": "linear"}}}
     out = {}

@@ -131,3 +131,14 @@ def test_runner_counts_over_points_in_the_work_size():
     assert runner.sweep_points(sc) == 3
     assert runner.work_size(sc) == 3 * sc.montecarlo.runs * sc.montecarlo.horizon
     assert replace(RunContext(), stream=2).stream == 2
+
+
+def test_theoretical_tail_flags_means_whose_variance_is_infinite():
+    # a = 1.3: E[(tr P)²] = ∞ iff (1 − λ)·a⁴ ≥ 1 (φ = log(1−λ)/(2 log a) ≥ −2), i.e. λ ≤ 1 − 1/a⁴ ≈ 0.650,
+    # whatever the sample shows; λ = 0.9 is a result
+    text = BASE.format(extra="quantities: [predicted]\n  over: {channel.arrival: [0.6, 0.9]}").replace(
+        "A: 1.2", "A: 1.3").replace("  quantities: [predicted, filtered, smoothed]\n", "")
+    t = _mc(runner.compute(load_scenario_text(text), RunContext()).table)
+    tr = t[t.series == "E[tr P]"]
+    assert tr[tr["channel.arrival"] == 0.6].heavy_tail.all()
+    assert not tr[tr["channel.arrival"] == 0.9].heavy_tail.any()

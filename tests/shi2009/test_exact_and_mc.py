@@ -8,7 +8,6 @@ from hypothesis import strategies as st
 from netkf_cli.analysis import delay_bounds as db
 from netkf_cli.analysis.delay_exact import (brute_force_probability, exact_probability, expected_updates)
 from netkf_cli import engine
-from netkf_cli.channels.delay import UpdatesKernel
 from netkf_cli.estimators.buffered import BufferedEstimator
 from netkf_cli.estimators.smart_sensor import SmartSensorEstimator
 from netkf_cli.montecarlo import mean_and_stderr, run_chunked
@@ -99,13 +98,15 @@ def test_smart_sensor_monte_carlo_equals_thm41(s, ch, M):
 
 @pytest.mark.parametrize("ch", [poisson(5, 10), poisson(3, 4, "delay_lt_D"), pmf([0.2, 0.3, 0.1, 0.2], 3)])
 def test_expected_updates_closed_form_equals_monte_carlo(ch):
-    """E[MKF runs] closed form vs Monte Carlo: 5 s.e. of the sample mean — for the kernel (inverse
-    transform of I_k) and for a direct simulation of the delays of the packets of age 0..D_max
-    (independent of the closed form's algebra)."""
+    """E[MKF runs] closed form vs Monte Carlo: 5 s.e. of the sample mean — for the buffered estimator's
+    updates() hook on sampled traces (per-run averages over the stationary steps k > D_max) and for a
+    direct simulation of the delays of the packets of age 0..D_max (independent of the closed form's algebra)."""
     n = 100_000
-    st_ = run_chunked(UpdatesKernel(ch), n, 20_000, 4)
-    mu, se = mean_and_stderr(st_["sum"], st_["sumsq"], n)
-    assert abs(mu - expected_updates(ch)) <= 5 * se
+    T = 2 * (ch.D + 1)
+    tr = ch.sample_trace(np.random.default_rng(4), 20_000, T)
+    steps = range(ch.D + 1, T + 1)
+    avg = sum(r for _, r in BufferedEstimator(kind="buffered").updates(scalar_system(), tr, steps)) / len(steps)
+    assert abs(avg.mean() - expected_updates(ch)) <= 5 * avg.std(ddof=1) / np.sqrt(avg.size)
     rng = np.random.default_rng(5)
     Dmax = ch.D if ch.convention == "delay_le_D" else ch.D - 1
     F = ch.cdf(np.arange(Dmax + 1))
