@@ -283,45 +283,46 @@ def _advance_last() -> list[str]:
 
 
 def source_olpef(n: int) -> str:
-    """The source of ``olpef_eval(arrival, off, last, t0, t1, sxx, lin, diag, TM, out, vals, cnts)`` (``last``
-    advanced as in :func:`source_ibf`, then at t = t1 − 1): OLPEF's error
-    covariance (Chiuso & Schenato eqs (10)–(11); :meth:`netkf_cli.estimators.fusion.OLPEFTables.error_cov`)
-    per run from the histogram h of the received τ_i = t − last_i ≤ t (``cnts`` float scratch of ≥ L
-    zeros, left zero; ``vals`` int64 scratch of N entries: the distinct τ): Σ = sxx − Σ_a h_a (lin_a + lin_aᵀ) + Σ_a h_a diag_a + Σ_ab h_a h_b TM_ab, symmetrized,
-    every n × n table full (lin (L, n, n), diag (L, n, n), TM (L, L, n, n)); ``out`` (n(n+1)/2, runs).
-    Returns the largest received τ: if it is ≥ L the tables were too short (those runs are wrong) and
-    the caller extends them and calls again."""
-    tri = [(i, j) for i in range(n) for j in range(i, n)]
+    """The source of ``olpef_eval(arrival, off, last, t0, t1, sxx, D, TS, out, vals, cnts)`` (``last``
+    advanced as in :func:`source_ibf`, then at t = t1 − 1): OLPEF's error covariance (Chiuso & Schenato
+    eqs (10)–(11); :meth:`netkf_cli.estimators.fusion.OLPEFTables.error_cov`) per run from the histogram h
+    of the received τ_i = t − last_i ≤ t (``cnts`` float scratch of ≥ L zeros, left zero; ``vals`` int64
+    scratch of N entries: the distinct τ):
+
+        Σ = sxx + Σ_a h_a D_a + Σ_a h_a² TS_aa + 2 Σ_{a<b} h_a h_b TS_ab,
+
+    D_a = sym(diag_a) − lin_a − lin_aᵀ and TS_ab = sym(TM_ab) = TS_ba, every table packed as upper
+    triangles (sxx (n(n+1)/2,), D (L, ·), TS (L, L, ·)); ``out`` (n(n+1)/2, runs). Returns the largest
+    received τ: if it is ≥ L the tables were too short (those runs are wrong) and the caller extends them
+    and calls again."""
+    nt = n * (n + 1) // 2
     L = ["import numpy as np", "import numba as nb", "",
          "@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')",
-         "def olpef_eval(arrival, off, last, t0, t1, sxx, lin, diag, TM, out, vals, cnts):"]
+         "def olpef_eval(arrival, off, last, t0, t1, sxx, D, TS, out, vals, cnts):"]
     L += _advance_last()
     L += ["    t = t1 - 1",
-         "    Kmax = lin.shape[0] - 1",
-         "    worst = 0",
-         "    for r in range(runs):",
-         "        m = 0",
-         "        for i in range(N):",
-         "            tau = t - last[i, r]",
-         "            if tau > t:",
-         "                continue",
-         "            if tau > worst:",
-         "                worst = tau",
-         "            if tau > Kmax:",
-         "                continue",
-         "            if cnts[tau] == 0.0:",
-         "                vals[m] = tau",
-         "                m += 1",
-         "            cnts[tau] += 1.0"]
-    for i, j in tri:
-        L.append(f"        e{i}_{j} = sxx[{i}, {j}]")
-    L += ["        for q in range(m):", "            a = vals[q]", "            h = cnts[a]"]
-    for i, j in tri:
-        L.append(f"            e{i}_{j} += h * (0.5 * (diag[a, {i}, {j}] + diag[a, {j}, {i}]) - lin[a, {i}, {j}] - lin[a, {j}, {i}])")
-    L += ["            for q2 in range(m):", "                b = vals[q2]", "                hb = h * cnts[b]"]
-    for i, j in tri:
-        L.append(f"                e{i}_{j} += hb * (0.5 * (TM[a, b, {i}, {j}] + TM[a, b, {j}, {i}]))")
-    L += [f"        out[{k}, r] = e{i}_{j}" for k, (i, j) in enumerate(tri)]
+          "    Kmax = D.shape[0] - 1",
+          "    worst = 0",
+          "    for r in range(runs):",
+          "        m = 0",
+          "        for i in range(N):",
+          "            tau = t - last[i, r]",
+          "            if tau > t:",
+          "                continue",
+          "            if tau > worst:",
+          "                worst = tau",
+          "            if tau > Kmax:",
+          "                continue",
+          "            if cnts[tau] == 0.0:",
+          "                vals[m] = tau",
+          "                m += 1",
+          "            cnts[tau] += 1.0"]
+    L += [f"        e{k} = sxx[{k}]" for k in range(nt)]
+    L += ["        for q in range(m):", "            a = vals[q]", "            h = cnts[a]", "            hh = h * h"]
+    L += [f"            e{k} += h * D[a, {k}] + hh * TS[a, a, {k}]" for k in range(nt)]
+    L += ["            for q2 in range(q + 1, m):", "                b = vals[q2]", "                hb = 2.0 * h * cnts[b]"]
+    L += [f"                e{k} += hb * TS[a, b, {k}]" for k in range(nt)]
+    L += [f"        out[{k}, r] = e{k}" for k in range(nt)]
     L += ["        for q in range(m):", "            cnts[vals[q]] = 0.0"]
     L.append("    return worst")
     return "\n".join(L) + "\n"

@@ -337,9 +337,14 @@ def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
         kern = kc.kernel_olpef(n)
         vals, cnts = np.zeros(N, dtype=np.int64), np.zeros(trace.horizon + 2)
 
-        def tabs():
-            return (np.ascontiguousarray(model.sxxM), np.ascontiguousarray(model.linM),
-                    np.ascontiguousarray(model.diagM), np.ascontiguousarray(model.TM))
+        iu = np.triu_indices(n)
+
+        def tabs():  # packed upper triangles (kalman_codegen.source_olpef)
+            sw = np.swapaxes
+            D = 0.5 * (model.diagM + sw(model.diagM, -1, -2)) - model.linM - sw(model.linM, -1, -2)
+            TS = 0.5 * (model.TM + sw(model.TM, -1, -2))
+            return (np.ascontiguousarray(model.sxxM[iu]), np.ascontiguousarray(D[:, iu[0], iu[1]]),
+                    np.ascontiguousarray(TS[:, :, iu[0], iu[1]]))
         tab = tabs()
     blocks = _Blocks(trace)
     t = 0
