@@ -34,6 +34,8 @@ import numpy as np
 import scipy.stats
 from pydantic import Field, ValidationInfo, field_validator
 
+from netkf_cli import kalman
+from netkf_cli import kalman_codegen as kc
 from netkf_cli.spec import ChannelModel, PositiveInt, Probability
 from netkf_cli.trace import Trace
 
@@ -149,22 +151,28 @@ def sample_counts(rng: np.random.Generator, runs: int, horizon: int, N: int, los
     return out
 
 
-def arrivals_given_counts(rng: np.random.Generator, counts: np.ndarray, N: int) -> np.ndarray:
+def arrivals_given_counts(rng: np.random.Generator, counts: np.ndarray, N: int, compiled: bool = True) -> np.ndarray:
     """Per-sensor arrivals (N, horizon, runs) bool with ``counts`` (horizon, runs) arrived: a uniformly
     random subset of that size (selection sampling: sensor i arrives with probability r/(N − i), r the
     arrivals still to place; one raw draw per sensor, step and run, exact on the 2⁵³ grid).
-    Given ℓ ~ Binomial(N, p), this IS the law of N independent Bernoulli(p) links."""
+    Given ℓ ~ Binomial(N, p), this IS the law of N independent Bernoulli(p) links. ``compiled`` (default):
+    the per-sensor pass through :func:`netkf_cli.kalman_codegen.kernel_select` where numba imports (the
+    same bits as the numpy passes, tested)."""
     T, runs = counts.shape
     out = np.empty((N, T, runs), dtype=bool)
     block = max(1, min(T, RAW_BLOCK // max(runs, 1)))
     one53 = np.uint64(1) << np.uint64(53)
+    sel = kc.kernel_select() if compiled and kalman.numba_available() else None  # the same bits, one fused pass
     for t0 in range(0, T, block):
         t1 = min(T, t0 + block)
         r = counts[t0:t1].astype(np.uint64) * one53  # arrivals still to place, scaled by 2⁵³
         for i in range(N):
-            u = rng.bit_generator.random_raw((t1 - t0) * runs).reshape(t1 - t0, runs) >> np.uint64(11)
+            raw = rng.bit_generator.random_raw((t1 - t0) * runs)
             hit = out[i, t0:t1]
-            np.less(u * np.uint64(N - i), r, out=hit)
+            if sel is not None:
+                sel(raw, N - i, r.reshape(-1), hit.reshape(-1))
+                continue
+            np.less((raw >> np.uint64(11)).reshape(t1 - t0, runs) * np.uint64(N - i), r, out=hit)
             r -= hit.astype(np.uint64) * one53
     return out
 

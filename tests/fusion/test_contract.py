@@ -535,3 +535,12 @@ def test_blocked_reading_of_a_lazy_trace_equals_the_whole_trace(monkeypatch, str
     for k in steps:
         for q in BOTH:
             np.testing.assert_array_equal(got[k][q], ref[k][q])
+
+
+@needs_numba
+def test_compiled_selection_sampler_gives_the_numpy_bits():
+    counts = sample_counts(np.random.default_rng(1), 777, 31, 13, 0.45)
+    a = arrivals_given_counts(np.random.default_rng(2), counts, 13, compiled=False)
+    b = arrivals_given_counts(np.random.default_rng(2), counts, 13, compiled=True)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(b.sum(axis=0), counts)
