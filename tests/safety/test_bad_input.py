@@ -90,9 +90,9 @@ CASES = [
     ("fading-snr-value-nan", "fading/fig3.yaml", "{value: 20, unit: dB}", "{value: .nan, unit: dB}", "channel.snr_avg.value", "must be a finite number", None, V),
     ("fading-noise-model-unknown", "fading/thm4.yaml", "{model: inverse_snr,", "{model: inverse_noise,", "channel.noise.model", "", None, V),
     ("fading-beta-negative", "fading/thm4.yaml", "beta: 1.0}", "beta: -1.0}", "channel.noise.beta", "greater than or equal to 0", None, V),
-    ("fading-a-inf", "fading/thm4.yaml", "a: 1.5", "a: .inf", "analysis.a", "must be a finite number", None, V),
-    ("fading-kmax-negative", "fading/thm4.yaml", "k_max: 30", "k_max: -1", "analysis.k_max", "", None, V),
-    ("fading-unknown-key", "fading/thm4.yaml", "k_max: 30", "k_max: 30\n  kmax: 30", "analysis.kmax", "unknown key", None, V),
+    ("fading-a-inf", "fading/thm4.yaml", "A: 1.5,", "A: .inf,", "system.A", "must be a finite number", None, V),  # a = system.A
+    ("fading-kmax-negative", "fading/thm4.yaml", "horizon: 30,", "horizon: -1,", "montecarlo.horizon", "greater than 0", None, V),  # k_max = horizon
+    ("fading-unknown-key", "fading/thm4.yaml", "  references: [fading_theorem4,", "  kmax: 30\n  references: [fading_theorem4,", "analysis.kmax", "unknown key", "kmax: 30", V),
     # ---- fusion: Chiuso & Schenato -----------------------------------------------------------
     ("fusion-sensors-zero", "fusion/fig1.yaml", "sensors: 25", "sensors: 0", "channel.sensors", "greater than 0", None, V),
     ("fusion-loss-above-1", "fusion/fig1.yaml", "loss: 0.5 ", "loss: 1.5 ", "channel.loss", "less than or equal to 1", None, V),
@@ -104,18 +104,24 @@ CASES = [
     # ---- markov: Moayedi, Soh & Foo --------------------------------------------------------
     ("markov-transition-not-stochastic", "markov/example1.yaml", "- [0.8, 0.0, 0.10, 0.10]", "- [0.9, 0.0, 0.10, 0.10]", "channel.transition[0]", "must sum to 1", None, V),
     ("markov-transition-3-columns", "markov/example1.yaml", "- [0.8, 0.0, 0.10, 0.10]", "- [0.8, 0.0, 0.20]", "channel.transition", "not a matrix", "transition:", V),
-    ("markov-rho-length", "markov/example1.yaml", "rho: [0.8, 0.02, 0.09, 0.09]", "rho: [0.8, 0.2]", "estimator.rho", "", None, V),
-    ("markov-solver-unknown", "markov/example1.yaml", "solver: CLARABEL", "solver: MAGIC", "estimator.solver", "", None, V),
+    ("markov-rho-length", "markov/example1_exact.yaml", "rho: [0.8, 0.02, 0.09, 0.09]", "rho: [0.8, 0.2]", "estimator.rho", "needs 4 marginals", None, V),
+    ("markov-solver-unknown", "markov/example1_exact.yaml", "solver: CLARABEL", "solver: MAGIC", "estimator.solver", "'CLARABEL' or 'SCS'", None, V),
     ("markov-Q-not-psd", "markov/example1.yaml", "Q: [[1, 0], [0, 0]]", "Q: [[1, 2], [2, 1]]", "system.Q", "positive semi-definite", None, V),
     ("markov-initial-not-distribution", "markov/example1.yaml", "initial: stationary", "initial: [0.5, 0.6]", "channel.initial", "needs 4 probabilities", None, V),
-    ("markov-S-wrong-dims", "markov/example1.yaml", "S: [[0.2], [0.0]]", "S: [[0.2, 0.1, 0.0]]", "analysis.S", "", None, R),
+    ("markov-S-wrong-dims", "markov/example1_exact.yaml", "S: [[0.2], [0.0]]", "S: [[0.2, 0.1, 0.0]]", "estimator.S", "must be 2×1", None, V),
+    ("markov-estimators-S-wrong-dims", "markov/example1.yaml", "S: [[0.2], [0.0]]", "S: [[0.2, 0.1, 0.0]]", "estimators[0].S", "must be 2×1", None, V),
+    ("markov-plant-S-wrong-dims", "markov/example1.yaml", "S: [[0.2], [0.0]]                   #", "S: [[0.2, 0.1, 0.0]]                #", "analysis.S", "must be 2×1", None, R),
     # ---- smoothing: Leong, Dey & Evans ---------------------------------------------------
-    ("smoothing-eps-above-1", "smoothing/table1.yaml", "eps: 0.05", "eps: 1.5", "analysis.eps", "", None, V),
-    ("smoothing-lag-below-minus-1", "smoothing/table1.yaml", "lags: [-1, 0,", "lags: [-2, 0,", "analysis.lags", "use −1", None, V),
+    # eps (Table I's 1 − guarantee) is gone: the config holds the arrival rates it gave, a probability grid
+    ("smoothing-eps-above-1", "smoothing/table1.yaml", "channel.arrival: [0.3481636551311609,", "channel.arrival: [1.3481636551311609,", "channel.arrival", "less than or equal to 1, got 1.348", None, V),
+    ("smoothing-eps-unknown-key", "smoothing/table1.yaml", "  M: 6.25", "  M: 6.25\n  eps: 0.05", "analysis.eps", "unknown key", None, V),
+    # lags are estimator blocks now (the predictor P_{k|k-1} is `quantity: predicted`): a negative lag is refused
+    ("smoothing-lag-below-minus-1", "smoothing/table1.yaml", "{kind: smoother, lag: 0}", "{kind: smoother, lag: -1}", "estimators[0].lag", "greater than or equal to 0", None, V),
     ("smoothing-M-nan", "smoothing/table1.yaml", "M: 6.25", "M: .nan", "analysis.M", "must be a finite number", None, V),
-    ("smoothing-retrans-p-above-1", "smoothing/retransmission.yaml", "p: [1.0, 0.5]", "p: [1.5, 0.5]", "analysis.p[0]", "", None, V),
-    ("smoothing-arrival-above-1", "smoothing/retransmission.yaml", "arrival: 0.6}", "arrival: 1.2}", "channel.arrival", "less than or equal to 1", None, V),
-    ("smoothing-ge-loss-rate-1", "smoothing/burstiness.yaml", "loss_rate: 0.4,", "loss_rate: 1,", "channel.loss_rate", "less than 1", None, V),
+    ("smoothing-retrans-p-above-1", "smoothing/retransmission.yaml", "channel.p: [0.0, 0.25,", "channel.p: [1.5, 0.25,", "channel.p", "less than or equal to 1, got 1.5 (over point channel.p=1.5)", None, V),
+    ("smoothing-retrans-channel-p-above-1", "smoothing/retransmission.yaml", "p: 1.0}", "p: 1.5}", "channel.p", "less than or equal to 1", None, V),
+    ("smoothing-arrival-above-1", "smoothing/retransmission.yaml", "arrival: 0.6,", "arrival: 1.2,", "channel.arrival", "less than or equal to 1", None, V),
+    ("smoothing-ge-loss-rate-1", "smoothing/burstiness.yaml", "loss_rate: 0.5492802716530588,", "loss_rate: 1,", "channel.loss_rate", "less than 1", None, V),
     ("smoothing-ge-burst-below-1", "smoothing/burstiness.yaml", "mean_burst: 3}", "mean_burst: 0.5}", "channel.mean_burst", "greater than or equal to 1", None, V),
 ]
 
