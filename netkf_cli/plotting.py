@@ -5,7 +5,8 @@ What every netkf figure uses (issue 13):
 * ``new_figure(...)`` — a figure in the project's style (fonts ≥ 9 pt at the saved size: font
   sizes are in points and figures are saved at their own size, never rescaled);
 * ``paper_title(topic, figure, what)`` — ``"Shi, Xie & Murray 2009 — Fig. 5: …"``;
-* mathtext for symbols: ``r"$\\Upsilon_T$"``, ``r"$P_{k|k-1}$"``, ``r"$L_f^{LB}$"``, rendered
+* mathtext for symbols: ``r"$\\Upsilon_T$"``, ``r"$P_{k \\mid k-1}$"`` (``\\mid``: a bare ``|`` in a
+  subscript reads as an l), ``r"$L_f^{LB}$"``, rendered
   with the STIX sans fonts (DejaVu Sans, the text font, draws a plain-Unicode Υ exactly like a
   Latin "Y": write ``$\\Upsilon$``; ≤ and θ are fine either way);
 * ``PALETTE`` (Okabe–Ito, colour-blind safe), ``LINESTYLES``, ``MARKERS`` and

@@ -160,8 +160,9 @@ def conventions_note(labels_by_estimator: dict[str, str]) -> str:
 
 
 def quantity_text(quantity: str, what: str = "P_k") -> str:
-    """Mathtext for a quantity: ``filtered`` → P_{k|k}."""
-    sub = {"filtered": "k|k", "predicted": "k+1|k", "smoothed": "k-N|k"}[quantity]
+    """Mathtext for a quantity: ``filtered`` → P_{k \\mid k} (a figure label: mathtext's STIX sans draws a bare ``|``
+    in a subscript like an l, "klk"; CSV text keeps P_{k|k}, :data:`netkf_cli.kalman.SYMBOL`)."""
+    sub = {"filtered": r"k \mid k", "predicted": r"k+1 \mid k", "smoothed": r"k-N \mid k"}[quantity]
     return what.replace("P_k", f"P_{{{sub}}}")
 
 

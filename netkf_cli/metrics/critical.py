@@ -457,7 +457,7 @@ class CriticalAnalysis(AnalysisModel):
         if len(good):
             st = series_style(2)
             ax.errorbar(good.lam, good.value, yerr=good.stderr, fmt=st["marker"], color=st["color"], ms=5, capsize=2,
-                        label=r"Monte Carlo $E[\mathrm{tr}\,P_{k|k-1}]$ ± 1 s.e.")
+                        label=r"Monte Carlo $E[\mathrm{tr}\,P_{k \mid k-1}]$ ± 1 s.e.")
         if len(bad):
             st = series_style(2)
             ax.plot(bad.lam, np.where(np.isfinite(bad.value), bad.value, np.nan), marker=st["marker"], mfc="none",
@@ -478,7 +478,7 @@ class CriticalAnalysis(AnalysisModel):
             ax.axvspan(lmin, lhi, color="0.85", alpha=0.6, lw=0, label=r"$\lambda_c$ undecided")
         ax.set_yscale("log")
         ax.set_xlabel(r"arrival rate $\lambda$ (probability)")
-        ax.set_ylabel(r"$\lim\ \mathrm{tr}\,E[P_{k|k-1}]$ (log scale)")
+        ax.set_ylabel(r"$\lim\ \mathrm{tr}\,E[P_{k \mid k-1}]$ (log scale)")
         ax.set_title(r"Bounds on $E[P]$ against $\lambda$", fontsize=10)
         legend_outside(ax, loc="right")
         # ---- right: Gilbert–Elliott plane ----

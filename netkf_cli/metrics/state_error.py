@@ -283,7 +283,7 @@ class StateError(GenericMetric):
 
 def _qtext(quantity: str, what: str = "P_k") -> str:
     """:func:`quantity_text` with a visible conditioning bar (mathtext drops a bare ``|`` in a subscript)."""
-    return quantity_text(quantity, what).replace("|", r"\mid ")
+    return quantity_text(quantity, what)  # quantity_text draws the bar with \mid itself
 
 
 def _trajectory_table(tr: dict, labs: list[str], cols, steps: list[int]) -> pd.DataFrame:

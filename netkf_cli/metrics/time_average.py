@@ -241,4 +241,4 @@ class TimeAverage(GenericMetric):
 
 
 def _sym(q: str) -> str:
-    return f"${kalman.SYMBOL.get(q, q)}$"
+    return f"${kalman.SYMBOL.get(q, q)}$".replace("|", r" \mid ")  # mathtext draws a bare | in a subscript as an l

@@ -517,7 +517,7 @@ class FadingCorrelation(AnalysisModel):
         fig.suptitle(paper_title("fading", 7, rf"correlated vs uncorrelated channel, scenario {self.receiver}, "
                                               rf"$\Upsilon_{{ave}}$ = {ch.snr_avg.value:g} {ch.snr_avg.unit}"))
         note = ("SMC: sequential Monte Carlo of the drop bursts (unbiased); plain sample means are heavy-tailed and not drawn; "
-                f"P[{scenario.montecarlo.horizon}] = predicted $P_{{k+1|k}}$, from P[0] = P0 (paper's start)")
+                f"P[{scenario.montecarlo.horizon}] = predicted $P_{{k+1 \\mid k}}$, from P[0] = P0 (paper's start)")
         if omitted:
             note += f"; {omitted} SMC point(s) with relative s.e. ≥ {RELIABLE_REL_SE:.0%} not drawn"
         footnote(fig, note)
