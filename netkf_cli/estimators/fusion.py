@@ -36,7 +36,6 @@ import numpy as np
 import scipy.linalg
 from pydantic import Field
 
-from netkf_cli import batched as bt
 from netkf_cli import kalman
 from netkf_cli import kalman_codegen as kc
 from netkf_cli.analysis.fusion_bounds import _as2d, p_m
@@ -46,7 +45,6 @@ from netkf_cli.estimators.kf import channel_streams, filter_estimates
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
 from netkf_cli.system import LinearSystem
-from netkf_cli.trace import Trace
 
 Strategy = Literal["mf", "ibf", "olpef"]
 STRATEGIES: tuple[str, ...] = ("mf", "ibf", "olpef")
@@ -562,99 +560,3 @@ class OLPEFTables:
             hb = h[r0 : r0 + 2048]
             out[r0 : r0 + 2048] += np.einsum("rkb,rb->rk", (hb @ TM).reshape(hb.shape[0], n * n, L), hb).reshape(-1, n, n)
         return (out + np.swapaxes(out, 1, 2)) / 2
-
-
-# ----------------------------------------------------------------------------------------
-# Per-run time averages (the paper figures' Monte Carlo) and the recipe kernel
-# ----------------------------------------------------------------------------------------
-
-
-def fusion_keys(strategies) -> tuple[str, ...]:
-    """The statistics a fusion Monte Carlo reports, in a fixed order (known before any chunk runs):
-    ``<strategy>_f`` (tr P_{k|k}) and, for mf and ibf, ``<strategy>_p`` (tr P_{k+1|k})."""
-    keys: list[str] = []
-    for s in STRATEGIES:
-        if s in strategies:
-            keys += [f"{s}_f"] + ([f"{s}_p"] if s != "olpef" else [])
-    return tuple(keys)
-
-
-def time_averages(system, trace, burn_in: int, strategies=STRATEGIES) -> dict[str, np.ndarray]:
-    """Per-run averages over steps k ∈ (burn_in, horizon] of tr P_{k|k} (``*_f``) and tr P_{k+1|k}
-    (``*_p``) of each strategy, each (runs,), keys :func:`fusion_keys` — from :meth:`FusionEstimator.covariances`."""
-    T = trace.horizon
-    if not 0 <= burn_in < T:
-        raise ConfigError.at("montecarlo.burn_in", f"must be in [0, horizon) = [0, {T}), got {burn_in}")
-    steps = range(burn_in + 1, T + 1)
-    out: dict[str, np.ndarray] = {}
-    for s in STRATEGIES:
-        if s not in strategies:
-            continue
-        qs = ("filtered", "predicted") if s != "olpef" else ("filtered",)
-        acc = {q: np.zeros(trace.runs) for q in qs}
-        with np.errstate(over="ignore", invalid="ignore"):
-            for _, Ps in FusionEstimator(kind="fusion", strategies=[s]).covariances(system, trace, steps, qs):
-                for q in qs:
-                    acc[q] += bt.trace(Ps[q])
-        out[f"{s}_f"] = acc["filtered"] / len(steps)
-        if "predicted" in acc:
-            out[f"{s}_p"] = acc["predicted"] / len(steps)
-    return {k: out[k] for k in fusion_keys(strategies)}
-
-
-def fusion_averages_tr(arrival: np.ndarray, A, C, Q, R, P0, burn_in: int, strategies=STRATEGIES) -> dict[str, np.ndarray]:
-    """:func:`time_averages` for N identical sensors (C, R) from an arrival array (N, T, runs); ``P0`` = P_{0|0}."""
-    N, T, runs = arrival.shape
-    return time_averages(identical_sensors(A, C, Q, R, N, P0), Trace(runs=runs, horizon=T, arrival=arrival), burn_in,
-                         strategies)
-
-
-def fusion_run_averages(gamma: np.ndarray, A, C, Q, R, P0, burn_in: int, strategies=STRATEGIES) -> dict[str, np.ndarray]:
-    """:func:`fusion_averages_tr` on the legacy layout γ (runs, T, N)."""
-    return fusion_averages_tr(np.ascontiguousarray(np.transpose(gamma, (2, 1, 0))), A, C, Q, R, P0, burn_in, strategies)
-
-
-class FusionKernel:
-    """Monte Carlo kernel of the fusion strategies' per-run time averages (module-level, picklable).
-
-    ``FusionKernel(system, channel, strategies, horizon, burn_in)`` (the system's sensors are the
-    channel's streams), or the identical-sensors form ``FusionKernel(A, C, Q, R, P0, channel,
-    strategies, horizon, burn_in)`` with ONE sensor's C, R replicated over ``channel.sensors``
-    (P0 = P_{0|0}). ``kernel(rng, runs)`` samples ``channel.sample_trace`` and returns additive
-    statistics with fixed keys over d = x − ``shift`` for the per-run averages x of :func:`fusion_keys`
-    (order ``self.keys``): ``sum`` (K,), ``cross`` (K, K) (for paired ratios), ``sum3``, ``sum4`` (K,)
-    (heavy-tail diagnostic) and ``nonfinite`` (K,). The mean is ``shift + sum / runs``.
-    """
-
-    def __init__(self, *args, **kw):
-        if isinstance(args[0] if args else kw.get("system"), LinearSystem):
-            vals = dict(zip(("system", "channel", "strategies", "horizon", "burn_in"), args), **kw)
-            system = vals["system"]
-        else:
-            vals = dict(zip(("A", "C", "Q", "R", "P0", "channel", "strategies", "horizon", "burn_in"), args), **kw)
-            system = identical_sensors(vals["A"], vals["C"], vals["Q"], vals["R"], vals["channel"].sensors, vals["P0"])
-        channel, strategies, horizon, burn_in = (vals[k] for k in ("channel", "strategies", "horizon", "burn_in"))
-        self.system, self.channel = system, channel
-        self.strategies = tuple(s for s in STRATEGIES if s in strategies)
-        self.horizon, self.burn_in = int(horizon), int(burn_in)
-        if not 0 <= self.burn_in < self.horizon:
-            raise ConfigError.at("montecarlo.burn_in", f"must be < horizon = {horizon}, got {burn_in}")
-        self.keys = fusion_keys(self.strategies)
-        # Moments are accumulated about a fixed shift c (a pilot mean from a private, fixed stream that
-        # never touches the Monte Carlo streams): per-run averages can vary by 1e-5 relative, and raw
-        # sums of x², x⁴ would cancel catastrophically in the variance and the kurtosis.
-        pilot = self._averages(np.random.default_rng(np.random.SeedSequence(0, spawn_key=(2**31 - 1,))), 64)
-        self.shift = np.where(np.isfinite(pilot).all(axis=1), pilot.mean(axis=1), 0.0)
-
-    def _averages(self, rng: np.random.Generator, runs: int) -> np.ndarray:
-        tr = self.channel.sample_trace(rng, runs, self.horizon)
-        avg = time_averages(self.system, tr, self.burn_in, self.strategies)
-        return np.stack([avg[k] for k in self.keys])  # (K, runs)
-
-    def __call__(self, rng: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
-        X = self._averages(rng, runs) - self.shift[:, None]
-        bad = ~np.isfinite(X)
-        Xf = np.where(bad, 0.0, X)
-        X2 = Xf * Xf
-        return {"sum": Xf.sum(axis=1), "cross": Xf @ Xf.T, "sum3": (X2 * Xf).sum(axis=1), "sum4": (X2 * X2).sum(axis=1),
-                "nonfinite": bad.sum(axis=1)}

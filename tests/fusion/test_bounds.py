@@ -13,7 +13,8 @@ from scipy import stats
 from netkf_cli.analysis import fusion_bounds as fb
 from netkf_cli.channels.multi import sample_multi_arrivals
 from netkf_cli.errors import ConfigError
-from netkf_cli.estimators import fusion as fe
+
+from ._run_averages import run_averages
 
 FIG2 = fb.ScalarFusionModel(0.9, 1.0, 1.0, 10.0, 6)
 FIG3 = fb.ScalarFusionModel(0.9, 1.0, 1e-4, 1e-2, 25)
@@ -142,7 +143,7 @@ def test_ordering_random_scalar_systems(a, c, q, r, N, loss, seed):
     m = fb.ScalarFusionModel(a, c, q, r, N)
     runs, T, burn = 300, 120, 80
     g = sample_multi_arrivals(np.random.default_rng(seed), runs, T, loss, N)
-    out = fe.fusion_run_averages(g, a, c, q, r, None, burn, strategies=("mf", "ibf"))
+    out = run_averages(g, a, c, q, r, None, burn, strategies=("mf", "ibf"))
     assert np.all(out["ibf_f"] <= out["mf_f"] * (1 + 1e-12))
 
     def mse(k):

@@ -9,11 +9,11 @@ import scipy.linalg
 import yaml
 from typer.testing import CliRunner
 
-from netkf_cli import kalman
+from netkf_cli import engine, kalman
 from netkf_cli.channels.multi import (MultiChannel, _raw_threshold, sample_multi_trace_arrivals, times_since_arrival,
                                       times_since_arrival_tr)
 from netkf_cli.errors import ConfigError
-from netkf_cli.estimators.fusion import FusionEstimator, FusionKernel, OLPEFTables, Sensors, identical_sensors
+from netkf_cli.estimators.fusion import FusionEstimator, OLPEFTables, Sensors, identical_sensors
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.system import LinearSystem
@@ -233,14 +233,14 @@ def test_ibf_with_sensors_of_their_own_is_at_least_as_good_as_mf():
 
 
 def test_vector_state_monte_carlo_runs():
+    # the three strategies on a 2-state system through the generic engine (identical sensors on a multi channel)
     ch = MultiChannel(kind="multi", sensors=3, loss=0.3)
-    k = FusionKernel(identical_sensors(A2, C2, Q2, R2, 3), ch, ["mf", "ibf", "olpef"], horizon=30, burn_in=10)
-    st = k(np.random.default_rng(0), 50)
-    assert np.all(np.isfinite(st["sum"])) and not st["nonfinite"].any()
-    legacy = FusionKernel(SYS2.A, SYS2.C, SYS2.Q, SYS2.R, None, ch, ["mf", "ibf", "olpef"], horizon=30, burn_in=10)
-    st2 = legacy(np.random.default_rng(0), 50)
-    for key in st:
-        np.testing.assert_array_equal(st[key], st2[key])
+    steps = list(range(11, 31))
+    ests = [FusionEstimator(kind="fusion", strategies=[s]) for s in ("mf", "ibf", "olpef")]
+    st = engine.simulate(identical_sensors(A2, C2, Q2, R2, 3), ch, ests, engine.StationaryReducer(steps), steps=steps,
+                         runs=50, horizon=30, seed=0, chunk=50)
+    for j in range(3):
+        assert st[f"nonfinite_{j}"] == 0 and np.isfinite(st[f"sum_avg_{j}"]) and st[f"max_nsteps_{j}"] == 20
 
 
 # ---------------------------------------------------------------------------------------- checks

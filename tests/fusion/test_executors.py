@@ -1,22 +1,21 @@
-"""Fusion Monte Carlo on every executor: module-level kernels, worker processes, resume (issue 12.5).
+"""Fusion Monte Carlo (fig3's generic config: MF, IBF, OLPEF on a multi channel over a loss grid) on every
+executor: byte-identical CSVs under --jobs 2, and resume after an interrupt (issue 12.5: the old closure
+kernel learned its statistic names while running, so a run whose chunks all came from the resume cache
+never learned them, ``KeyError: 'mf_f'``).
 
-The old closure kernel learned its statistic names while running, so a run whose chunks all came
-from the resume cache never learned them (``KeyError: 'mf_f'``); :class:`FusionKernel` knows its
-keys when it is built.
+The generic kernel's chunks really run on the workers (none in the parent) and pickle: tests/engine/
+test_executors.py (every per-run estimator, fusion included, serial = process pool = Dask bit for bit);
+fusion's kernel on Dask: tests/markov/test_executors.py::test_dask_runs_fusion_and_markov_kernels.
 """
 
 from __future__ import annotations
 
-import os
-import pickle
+import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from netkf_cli import montecarlo
-from netkf_cli.channels.multi import MultiChannel
-from netkf_cli.estimators.fusion import FusionKernel
 from netkf_cli.runner import run_scenario_file
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -25,41 +24,8 @@ SMALL = {"montecarlo": {"horizon": 40, "burn_in": 20, "chunk": 50}, "analysis": 
 RUNS = 200  # 4 chunks per grid point
 
 
-class ParentCounter:
-    """Wraps a kernel; counts the chunks that ran in the process that built it (must be 0 on a pool)."""
-
-    def __init__(self, inner):
-        self.inner, self.parent = inner, os.getpid()
-
-    def __call__(self, rng, n):
-        out = dict(self.inner(rng, n))
-        out["in_parent"] = np.array(int(os.getpid() == self.parent))
-        return out
-
-
-def _kernel(strategies=("mf", "ibf", "olpef")):
-    ch = MultiChannel(kind="multi", sensors=4, loss=0.4)
-    return FusionKernel(0.9, 1.0, 1e-2, 1.0, None, ch, strategies, horizon=30, burn_in=10)
-
-
-def test_kernel_is_picklable_with_fixed_keys():
-    k = _kernel()
-    k2 = pickle.loads(pickle.dumps(k))
-    a = k(np.random.default_rng(1), 30)
-    b = k2(np.random.default_rng(1), 30)
-    assert set(a) == {"sum", "cross", "sum3", "sum4", "nonfinite"} and k.keys == ("mf_f", "mf_p", "ibf_f", "ibf_p", "olpef_f")
-    for key in a:
-        np.testing.assert_array_equal(a[key], b[key])
-
-
-def test_worker_processes_do_the_work_and_agree_bitwise():
-    k = ParentCounter(_kernel())
-    serial = montecarlo.run_chunked(k, 120, 30, 5, stream=3)
-    with montecarlo.execution("process", jobs=2):
-        pooled = montecarlo.run_chunked(k, 120, 30, 5, stream=3)
-    assert serial["in_parent"] == 4 and pooled["in_parent"] == 0  # 4 chunks, none in the parent under --jobs 2
-    for key in ("sum", "cross", "sum3", "sum4", "nonfinite"):
-        np.testing.assert_array_equal(serial[key], pooled[key])
+def _in_parent(folder) -> int:
+    return json.loads((folder / "manifest.json").read_text())["execution"]["chunks_ran"]["chunks_in_parent"]
 
 
 def test_jobs2_csv_is_byte_identical(tmp_path):
@@ -67,7 +33,8 @@ def test_jobs2_csv_is_byte_identical(tmp_path):
     b = run_scenario_file(CFG, out_dir=tmp_path / "jobs2" / "f", runs=RUNS, overrides=SMALL, executor="process", jobs=2)
     for p in sorted(a.glob("*.csv")):
         assert p.read_bytes() == (b / p.name).read_bytes(), p.name
-    # Dask: tests/markov/test_executors.py::test_dask_runs_fusion_and_markov_kernels (one cluster for both)
+    # the chunks ran on the workers: the manifest's execution record
+    assert _in_parent(b) == 0 and _in_parent(a) == 8
 
 
 def test_resume_after_interrupt_equals_uninterrupted(tmp_path, monkeypatch):
