@@ -16,8 +16,12 @@ and in ``<name>_summary.csv`` the averages over the window k in (``window_from``
 three (one sample per run: exact s.e.), the paired difference of the windowed E‖e‖² against the first
 estimator (common random numbers), and per estimator the fraction of steps at which
 |NEES − expected| ≤ 5 s.e. and |E‖e‖² − E tr P| ≤ 5 s.e. (paired): ``nees_consistent_fraction``,
-``empirical_equals_reported_fraction``. ``trajectories: K`` draws the first K runs of stream 1
-(``<name>_trajectories.csv``: true state and every estimate, and the channel's mode or arrival path).
+``empirical_equals_reported_fraction``. ``trajectories: K`` draws the first K runs of the trajectory
+stream :data:`TRAJECTORY_STREAM` + s (s = the Monte Carlo's stream, ``ctx.stream``: 0, or the ``over``
+point's index under ``streams: independent``) (``<name>_trajectories.csv``: true state and every estimate,
+and the channel's mode or arrival path). Monte Carlo chunks draw from ``SeedSequence(seed, spawn_key=(s, i))``
+with s < 2³⁰ (an ``over`` grid or a sweep has at most 10 000 points), so the trajectories never reuse a
+chunk's random numbers — the old "stream + 1" was the next ``over`` point's stream under ``independent``.
 
 Which x the estimate aims at: ``filtered`` x̂_{k|k} → x_k, ``predicted`` x̂_{k+1|k} → x_{k+1}. The
 state-level recursions are numpy code (the compiled kernels compute covariances only).
@@ -41,7 +45,7 @@ from netkf_cli.spec import Matrix, NonNegInt, PositiveInt
 from netkf_cli.stats import mean_se
 
 Z = 5.0  # consistency tolerance in standard errors (a two-sided 5σ event has p ≈ 6e-7 per step)
-TRAJECTORY_STREAM_OFFSET = 1  # trajectories: the stream after the Monte Carlo's
+TRAJECTORY_STREAM = 2**30  # trajectories: stream TRAJECTORY_STREAM + s, reserved (no Monte Carlo stream reaches 2³⁰)
 COLUMNS = ["k", "estimator", "series", "value", "stderr", "expected", "n", "nonfinite"] + LABEL_COLUMNS
 SUMMARY_COLUMNS = ["estimator", "series", "value", "stderr", "z", "expected", "n", "window"] + LABEL_COLUMNS
 SERIES_TEXT = {"empirical": "empirical E‖x − x̂‖²", "reported": "reported E[tr P]", "nees": "mean NEES"}
@@ -56,8 +60,9 @@ class StateError(GenericMetric):
     every: PositiveInt | None = Field(None, description="report every this many steps (default: at most 200 points)")
     window_from: NonNegInt | None = Field(None, description="the summary averages over k in (window_from, horizon] "
                                                            "(default: montecarlo.burn_in)")
-    trajectories: NonNegInt = Field(0, description="draw the true state and the estimates of this many runs (stream 1, "
-                                                   "the first runs of one chunk)")
+    trajectories: NonNegInt = Field(0, description="draw the true state and the estimates of this many runs (the "
+                                                   "first runs of the reserved stream 2³⁰ + the Monte Carlo's stream: "
+                                                   "never a Monte Carlo chunk's random numbers)")
     S: Matrix | None = Field(None, description="cross-covariance E[w_k v_kᵀ] (n×m) of the simulated process and "
                                                "measurement noise (default 0); the estimators assume 0")
     log_y: bool = Field(False, description="logarithmic y axis for E‖e‖² and E tr P")
@@ -166,7 +171,7 @@ class StateError(GenericMetric):
                 "consistency_rule": f"|mean NEES − E rank P| ≤ {Z:g} s.e.; |E‖e‖² − E tr P| ≤ {Z:g} s.e. (paired)",
                 "backend": "numpy (state-level recursions)"}
         if self.trajectories:
-            tstream = stream + TRAJECTORY_STREAM_OFFSET
+            tstream = TRAJECTORY_STREAM + stream
             allk = list(range(first, H + 1))
             tr = state.trajectories(s, ch, ests, runs=self.trajectories, steps=allk, horizon=H, seed=mc.seed,
                                     stream=tstream, quantity=qs, S=S)
@@ -241,7 +246,7 @@ class StateError(GenericMetric):
         if lab0 is not None:
             note += f"; {math_text(lab0.P0)}; {conventions_note(dict(zip(t.estimator, t.conventions)))}"
         if comps:
-            note += "; trajectories: run 0 of stream 1"
+            note += "; trajectories: run 0 of the reserved stream 2³⁰ (+ the point's stream)"
         footnote(fig, note)
         return fig
 
