@@ -3,10 +3,14 @@
 ``CASES``: dicts ``{"estimator": "markov_lmi" | "markov_lmmse" | "markov_mode_aware" | "markov_naive",
 "system": ..., "backend": "numpy" | "numba", "threads": None | 1, "make": callable() -> (kernel, runs, horizon)}``
 (``numba``: the compiled mode-aware KF step, listed only when numba imports).
-The kernel is the artefacts' state-level Monte Carlo
-(:class:`netkf_cli.estimators.markov_filters.MarkovMSEKernel`) restricted to one filter: it samples
-the mode chain, the plant and its noise, runs the filter and returns squared-error statistics.
-One run advanced one step is one run-step. Gains are designed once in ``make()`` (closed form).
+The kernel is the one ``netkf run`` builds for the artefacts' ``analysis.kind: state_error`` (the generic
+state path :class:`netkf_cli.state.StateErrorKernel`) with one ``markov_lmi`` estimator: it samples the mode
+chain (``channel.sample_trace``), the plant and its noise (:func:`netkf_cli.state.simulate`), runs the
+filter's ``estimates`` and reduces squared errors, tr P and NEES per step (filtered, every step; window = the
+second half). One run advanced one step is one run-step. Gains are designed per chunk by the estimator
+(closed form). The compiled backend reaches the mode-aware KF's covariance-only path
+(:class:`netkf_cli.engine.PairKernel` + ``TimeAverageReducer``, what ``time_average`` / ``mean_vs_time`` run):
+the state-level ``estimates`` are numpy code.
 
 Systems (mode chain of Example 2):
 * scalar — A = 0.9, C = 1, Q = 1, R = 0.25 (augmented state ξ: d = 4);
@@ -25,14 +29,11 @@ from __future__ import annotations
 import numpy as np
 
 from netkf_cli.channels.markov_modes import MarkovModesChannel
-from netkf_cli.estimators.markov_filters import (
-    AugmentedModel,
-    MarkovMSEKernel,
-    lmmse_filter,
-    naive_filter,
-    numba_available,
-)
-from netkf_cli.estimators.markov_lmi import lmi_design
+from netkf_cli.engine import PairKernel, TimeAverageReducer
+from netkf_cli.estimators.markov_filters import numba_available
+from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator
+from netkf_cli.state import StateErrorKernel
+from netkf_cli.system import LinearSystem
 
 HORIZON = 100
 RUNS = 5_000
@@ -49,30 +50,28 @@ def systems() -> dict:
     }
 
 
-FILTER = {"markov_lmi": "lmi", "markov_lmmse": "lmmse", "markov_mode_aware": "mode_aware_kf", "markov_naive": "naive_kf"}
+FILTER = {"markov_lmi": "lmi", "markov_lmmse": "lmmse", "markov_mode_aware": "mode_aware", "markov_naive": "naive"}
 
 
 class _Make:
-    """Picklable ``make()``: designs the filter and returns the one-filter state-level kernel."""
+    """Picklable ``make()``: the one-filter generic kernel (state level for numpy, covariance only for numba)."""
 
     def __init__(self, estimator: str, system: str, backend: str = "numpy"):
         self.estimator, self.system, self.backend = estimator, system, backend
 
     def __call__(self):
         A, C, Q, R = systems()[self.system]
-        md = AugmentedModel.build(A, C, Q, R)
-        ch = MarkovModesChannel(kind="markov_modes", transition=CHAIN)
-        n, K = md.n, HORIZON
-        x0, P0 = np.zeros(n), np.zeros((n, n))
-        f = FILTER[self.estimator]
-        linear = {}
-        if f == "lmmse":
-            linear["lmmse"] = lmmse_filter(md, ch.T, ch.pi0, x0, P0, K)
-        elif f == "lmi":
-            linear["lmi"] = lmi_design(md, ch.rho, x0, P0, K, design="closed_form").filter
-        elif f == "naive_kf":
-            linear["naive_kf"] = naive_filter(md, x0, P0, K)
-        kernel = MarkovMSEKernel(md, ch, linear, x0, P0, K, K // 2, filters=(f,), backend=self.backend)
+        n = np.atleast_2d(A).shape[0]
+        sysm = LinearSystem.create(A, C, Q, R, P0=np.zeros((n, n)))
+        ch = MarkovModesChannel(kind="markov_modes", transition=CHAIN, initial="stationary")
+        est = MarkovLMIEstimator(kind="markov_lmi", filter=FILTER[self.estimator], design="closed_form", sdp_check=0,
+                                 backend=self.backend)
+        steps = list(range(1, HORIZON + 1))
+        if self.backend == "numba":
+            window = steps[HORIZON // 2:]
+            kernel = PairKernel(sysm, ch, [est], HORIZON, window, TimeAverageReducer(window))
+        else:
+            kernel = StateErrorKernel(sysm, ch, [est], HORIZON, steps, [(0, "filtered")], window=steps[HORIZON // 2:])
         return kernel, RUNS, HORIZON
 
 
@@ -85,8 +84,8 @@ BOUND = {
 CASES = [{"estimator": est, "system": name, "backend": "numpy", "threads": None, "make": _Make(est, name),
           "bound": BOUND[est]}
          for est in FILTER for name in ("scalar", "example2", "4-state")]
-if numba_available():  # the compiled mode-aware KF (per-run step, m = 1), one thread per chunk
+if numba_available():  # the compiled mode-aware KF (covariance only: per-run Riccati step), one thread per chunk
     CASES += [{"estimator": "markov_mode_aware", "system": name, "backend": "numba", "threads": 1,
                "make": _Make("markov_mode_aware", name, "numba"),
-               "bound": "flops: ≈ 3d³ per run-step in the compiled Riccati step, plus the shared numpy plant simulation"}
+               "bound": "flops: ≈ 3d³ per run-step in the compiled Riccati step (covariance only: no plant simulation)"}
               for name in ("scalar", "example2", "4-state")]

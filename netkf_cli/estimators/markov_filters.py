@@ -447,18 +447,6 @@ def plant_step(model: AugmentedModel, xi: np.ndarray, eps: np.ndarray, mode: np.
     return y, xi_next
 
 
-def run_linear(filt: LinearFilter, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Run a LinearFilter on y (horizon, runs, m); returns x̂(k|k−1), x̂(k|k), each (horizon, runs, n)."""
-    K, runs = ys.shape[0], ys.shape[1]
-    s = np.repeat(filt.s0[None], runs, axis=0)
-    xp = np.empty((K, runs, filt.Ep.shape[0])); xf = np.empty_like(xp)
-    for k in range(K):
-        xp[k] = s @ filt.Ep.T
-        xf[k] = s @ filt.Ef[k].T + ys[k] @ filt.Lf[k].T
-        s = s @ filt.As[k].T + ys[k] @ filt.Gs[k].T
-    return xp, xf
-
-
 # =========================================================================== run-innermost layout
 # Everything below keeps the run axis innermost (design.md): states (d, runs), covariances
 # (d, d, runs), traces (horizon, runs). Per-mode constant matrices are applied to the runs of
@@ -575,150 +563,6 @@ class ModeAwareKFTr:
         return xf, trf, Pfx
 
 
-
-def plant_outputs_tr(model: AugmentedModel, xi: np.ndarray, eps: np.ndarray, mode: np.ndarray) -> np.ndarray:
-    """y(k) (m, runs) of every run in its mode: H_θ ξ + J_θ ε (ξ (d, runs), ε (p, runs))."""
-    y_all = np.einsum("qmd,dr->qmr", model.H, xi) + np.einsum("qmp,pr->qmr", model.J, eps)
-    return np.take_along_axis(y_all, mode[None, None, :].astype(np.intp), axis=0)[0]
-
-
-def plant_next_tr(model: AugmentedModel, xi: np.ndarray, eps: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """ξ(k+1) = [A x + w; x; y; v] (d, runs)."""
-    n = model.n
-    x = xi[:n]
-    return np.concatenate([model.A @ x + eps[:n], x, y, eps[n:]], axis=0)
-
-
-class MarkovMSEKernel:
-    """Monte Carlo kernel of the Markov-mode comparison (module-level, picklable; issue 12.5).
-
-    Simulates the plant and the mode chain (``channel.sample_trace``) at the state level, runs the
-    mode-aware KF and every :class:`LinearFilter` in ``linear`` on the same runs (run axis
-    innermost) and returns additive statistics with fixed keys (:meth:`keys`): per-k sums and sums
-    of squares of ‖e‖², per-run window averages (sum, squares), paired differences for the ordering
-    claims, the mode-aware KF's own tr P, empirical mode fractions and non-finite counts.
-    """
-
-    FILTERS = ("mode_aware_kf", "lmmse", "lmi", "naive_kf")
-    ESTIMATES = ("predicted", "filtered")
-    PAIRS = (("lmmse", "mode_aware_kf"), ("lmi", "lmmse"), ("naive_kf", "lmmse"))
-
-    def __init__(self, model: AugmentedModel, channel, linear: dict, x0, P0, horizon: int, burn_in: int,
-                 filters: tuple[str, ...] | None = None, backend: str = "numpy"):
-        self.model, self.channel, self.linear = model, channel, dict(linear)
-        # mode-aware KF: "numpy" (reference) or "numba" (compiled per-run step, m = 1; equal to rounding)
-        self.backend = resolve_backend(backend, model.m)
-        self.x0, self.P0 = np.asarray(x0, float), np.asarray(P0, float)
-        self.K, self.burn = int(horizon), int(burn_in)
-        if not 0 <= self.burn < self.K:
-            raise ValueError(f"burn_in must be in [0, horizon), got {burn_in}")
-        # which filters run (default: all four); a subset is used by the per-estimator benchmarks
-        self.filters = tuple(f for f in self.FILTERS if filters is None or f in filters)
-        self.linear = {f: F for f, F in self.linear.items() if f in self.filters}
-        missing = set(self.filters) - {"mode_aware_kf"} - set(self.linear)
-        if missing:
-            raise ValueError(f"linear filters missing: {sorted(missing)}")
-        self.pairs = tuple((a, b) for a, b in self.PAIRS if a in self.filters and b in self.filters)
-
-    def keys(self) -> list[str]:
-        out = []
-        for f in self.filters:
-            for e in self.ESTIMATES:
-                out += [f"sum_{f}_{e}", f"sq_{f}_{e}", f"win_{f}_{e}", f"winsq_{f}_{e}", f"win3_{f}_{e}", f"win4_{f}_{e}"]
-        for e in self.ESTIMATES:
-            out += [f"sum_trP_{e}", f"sq_trP_{e}", f"win_trP_{e}", f"winsq_trP_{e}"]
-        for a, b in self.pairs:
-            for e in self.ESTIMATES:
-                out += [f"dwin_{a}_{b}_{e}", f"dwinsq_{a}_{b}_{e}"]
-        out += [f"nonfinite_{f}" for f in self.filters] + ["mode_frac_sum", "mode_frac_sq"]
-        return out
-
-    def __call__(self, rng: np.random.Generator, nr: int) -> dict[str, np.ndarray]:
-        md, K, burn = self.model, self.K, self.burn
-        n = md.n
-        modes = self.channel.sample_trace(rng, nr, K).mode  # (K, nr) int8
-        xbar, cov = md.initial_moments(self.x0, self.P0)
-        xi = xbar[:, None] + psd_sqrt(cov) @ rng.standard_normal((md.d, nr))
-        eps = np.einsum("pq,kqr->kpr", md.Lsig, rng.standard_normal((K, md.p, nr)))
-        states = {f: np.repeat(F.s0[:, None], nr, axis=1) for f, F in self.linear.items()}
-        st: dict = {}
-        win = {(f, e): np.zeros(nr) for f in self.filters for e in self.ESTIMATES}
-        for f in self.filters:
-            for e in self.ESTIMATES:
-                st[f"sum_{f}_{e}"] = np.zeros(K)
-                st[f"sq_{f}_{e}"] = np.zeros(K)
-        winP = {e: np.zeros(nr) for e in self.ESTIMATES}
-        for e in self.ESTIMATES:
-            st[f"sum_trP_{e}"] = np.zeros(K)
-            st[f"sq_trP_{e}"] = np.zeros(K)
-        mak = "mode_aware_kf" in self.filters
-        ys = np.empty((K, md.m, nr)) if mak else None
-        xs = np.empty((K, n, nr)) if mak else None
-
-        def accumulate(k, f, e, se):
-            st[f"sum_{f}_{e}"][k] = se.sum()
-            st[f"sq_{f}_{e}"][k] = (se * se).sum()
-            if k >= burn:
-                win[(f, e)] += se
-
-        for k in range(K):  # the plant and the fixed-gain filters
-            x = xi[:n]
-            y = plant_outputs_tr(md, xi, eps[k], modes[k])
-            if mak:
-                ys[k], xs[k] = y, x
-            for f, F in self.linear.items():
-                s = states[f]
-                ep = x - F.Ep @ s
-                ef = x - (F.Ef[k] @ s + F.Lf[k] @ y)
-                accumulate(k, f, "predicted", np.einsum("ir,ir->r", ep, ep))
-                accumulate(k, f, "filtered", np.einsum("ir,ir->r", ef, ef))
-                states[f] = F.As[k] @ s + F.Gs[k] @ y
-            xi = plant_next_tr(md, xi, eps[k], y)
-        if mak:  # the mode-aware KF on the same outputs: numpy step by step, or compiled run by run
-            if self.backend == "numba":
-                kf = ModeAwareCompiled(md, nr, self.x0, self.P0)
-                _, (se_p, se_f, trp, trf) = kf.advance(modes, 0, K, ys, xs)
-            else:
-                kf = ModeAwareKFTr(md, nr, self.x0, self.P0)
-                se_p, se_f, trp, trf = (np.empty((K, nr)) for _ in range(4))
-                for k in range(K):
-                    xp, trp[k] = kf.predicted()
-                    xf, trf[k], _ = kf.step(ys[k], modes[k], ModeGroups(modes[k]))
-                    se_p[k] = np.einsum("ir,ir->r", xs[k] - xp, xs[k] - xp)
-                    se_f[k] = np.einsum("ir,ir->r", xs[k] - xf, xs[k] - xf)
-            for k in range(K):
-                accumulate(k, "mode_aware_kf", "predicted", se_p[k])
-                accumulate(k, "mode_aware_kf", "filtered", se_f[k])
-                for e, tr in (("predicted", trp[k]), ("filtered", trf[k])):
-                    st[f"sum_trP_{e}"][k] = tr.sum()
-                    st[f"sq_trP_{e}"][k] = (tr * tr).sum()
-                    if k >= burn:
-                        winP[e] += tr
-        L = K - burn
-        for (f, e), v in win.items():
-            v = v / L
-            v2 = v * v
-            st[f"win_{f}_{e}"] = np.asarray(v.sum())
-            st[f"winsq_{f}_{e}"] = np.asarray(v2.sum())
-            st[f"win3_{f}_{e}"] = np.asarray((v2 * v).sum())  # for the heavy-tail diagnostic
-            st[f"win4_{f}_{e}"] = np.asarray((v2 * v2).sum())
-        for e in self.ESTIMATES:
-            v = winP[e] / L
-            st[f"win_trP_{e}"] = np.asarray(v.sum())
-            st[f"winsq_trP_{e}"] = np.asarray((v * v).sum())
-        for a, b in self.pairs:
-            for e in self.ESTIMATES:
-                dv = (win[(a, e)] - win[(b, e)]) / L
-                st[f"dwin_{a}_{b}_{e}"] = np.asarray(dv.sum())
-                st[f"dwinsq_{a}_{b}_{e}"] = np.asarray((dv * dv).sum())
-        for f in self.filters:
-            st[f"nonfinite_{f}"] = np.asarray(float(sum(int((~np.isfinite(win[(f, e)])).sum()) for e in self.ESTIMATES)))
-        freq = np.stack([(modes == q).mean(axis=0) for q in range(N_MODES)])  # (N, nr)
-        st["mode_frac_sum"] = freq.sum(axis=1)
-        st["mode_frac_sq"] = (freq * freq).sum(axis=1)
-        return st
-
-
 def _resolved(P: np.ndarray, C: np.ndarray, M: np.ndarray) -> np.ndarray:
     """P = C M Cᵀ (+ noise) per run, or ``inf`` where round-off can have cancelled its digits:
     ε_mach·‖C‖_F²·tr M > FIXED_GAIN_PRECISION·tr P (an unstable plant's second moment M grows without
@@ -818,7 +662,7 @@ def resolve_backend(backend: str, m: int | None = None) -> str:
 
 
 def _numba_kernel():
-    """Compile (once, cached on disk) the run-outer, time-inner mode-aware KF on kalman_numba's primitives."""
+    """Compile (once, cached on disk) the run-outer, time-inner mode-aware KF (covariance only) on kalman_numba's primitives."""
     global _NB_KERNEL
     if _NB_KERNEL is not None:
         return _NB_KERNEL
@@ -827,11 +671,10 @@ def _numba_kernel():
     from netkf_cli import kalman_numba as kn  # needs numba: the compiled primitives
 
     @numba.njit(cache=True, nogil=True)
-    def run(P, xi, ys, xs, modes, t0, t1, H, Rq, rowptr, cols, vals, D, Qb, scale, rtol, n, has_x, limit,
-            Pfx, se_p, se_f, trp, trf, flag):  # pragma: no cover - compiled
+    def run(P, modes, t0, t1, H, Rq, rowptr, cols, vals, Qb, scale, rtol, n, limit, Pfx, flag):  # pragma: no cover - compiled
         # F̄_q in CSR form (rowptr[q], cols[q], vals[q]): the augmented transition is mostly zeros
-        # P (runs, d, d) = P(t0|t0−1) in, P(t1|t1−1) out; xi (runs, d) likewise; Pfx (n, n, runs) = P_x(t1−1|t1−1);
-        # modes (runs, T), ys (runs, T, m), xs (runs, T, n), se_p … (runs, T): each run contiguous
+        # P (runs, d, d) = P(t0|t0−1) in, P(t1|t1−1) out; Pfx (n, n, runs) = P_x(t1−1|t1−1);
+        # modes (runs, T): each run contiguous
         d = P.shape[1]
         runs = P.shape[0]
         m = H.shape[1]
@@ -840,16 +683,12 @@ def _numba_kernel():
         tmp = np.empty((d, d))
         S = np.empty((m, m))
         X = np.empty((m, d))
-        e = np.empty(m)
+        e = np.zeros(m)
         dx = np.empty(d)
-        xl = np.empty(d)
-        xfl = np.empty(d)
         for r in range(runs):
             for i in range(d):
                 for j in range(d):
                     Pl[i, j] = P[r, i, j]
-                if has_x:
-                    xl[i] = xi[r, i]
             for t in range(t0, t1):
                 q = modes[r, t]
                 trx = 0.0
@@ -860,45 +699,12 @@ def _numba_kernel():
                         trx += Pl[i, i]
                 if (q == 0 or q == 2) and not (trx <= limit):
                     flag[r] = True  # the plain KF's overflow policy applies: numpy redoes this run
-                if has_x:
-                    trp[r, t] = trx
-                    s = 0.0
-                    for i in range(n):
-                        v = xs[r, t, i] - xl[i]
-                        s += v * v
-                    se_p[r, t] = s
                 if q == 2:
                     for i in range(d):
-                        dx[i] = 0.0
                         for j in range(d):
                             Pf[i, j] = Pl[i, j]
                 else:
-                    for a in range(m):
-                        acc = 0.0
-                        if has_x:
-                            acc = ys[r, t, a]
-                            for b in range(d):
-                                acc -= H[q, a, b] * xl[b]
-                        e[a] = acc
                     kn.update_pinv(Pl, H[q], Rq[q], rtol * (scale + tra), e, Pf, dx, S, X)
-                if has_x:
-                    s = 0.0
-                    tf = 0.0
-                    for i in range(d):
-                        xfl[i] = xl[i] + dx[i]
-                    for i in range(n):
-                        v = xs[r, t, i] - xfl[i]
-                        s += v * v
-                        tf += Pf[i, i]
-                    se_f[r, t] = s
-                    trf[r, t] = tf
-                    for i in range(d):
-                        acc = 0.0
-                        for kk in range(rowptr[q, i], rowptr[q, i + 1]):
-                            acc += vals[q, kk] * xfl[cols[q, kk]]
-                        for a in range(m):
-                            acc += D[q, i, a] * ys[r, t, a]
-                        xl[i] = acc
                 if t == t1 - 1:
                     for i in range(n):
                         for j in range(n):
@@ -909,8 +715,6 @@ def _numba_kernel():
             for i in range(d):
                 for j in range(d):
                     P[r, i, j] = Pl[i, j]
-                if has_x:
-                    xi[r, i] = xl[i]
 
     _NB_KERNEL = run
     return run
@@ -933,68 +737,45 @@ def _csr(F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 class ModeAwareCompiled:
-    """The mode-aware KF of :class:`ModeAwareKFTr` compiled (numba, kalman_numba's inlined
+    """The mode-aware KF of :class:`ModeAwareKFTr` compiled, covariance only (numba, kalman_numba's inlined
     ``update_pinv`` / ``predict``): a run-outer, time-inner loop on one run's d×d covariance at a time,
     the (d, d, runs) layout in and out. Equal to the numpy path to rounding (tested); a run whose
-    x block trips the plain KF's overflow flag (``kalman.Rescue``) is redone by the numpy path."""
+    x block trips the plain KF's overflow flag (``kalman.Rescue``) is redone by the numpy path. (The
+    state-level estimates are numpy code: :meth:`MarkovLMIEstimator.estimates`.)"""
 
-    def __init__(self, model: AugmentedModel, runs: int, xhat0, P0, states: bool = True, base: str = "paper"):
-        self.ref = ModeAwareKFTr(model, runs, xhat0, P0, states, base)
+    def __init__(self, model: AugmentedModel, runs: int, xhat0, P0, states: bool = False, base: str = "paper"):
+        if states:
+            raise ValueError("the compiled mode-aware KF is covariance only (states: the numpy ModeAwareKFTr)")
+        self.ref = ModeAwareKFTr(model, runs, xhat0, P0, False, base)
         self.model = model
         self._fn = _numba_kernel()
         self._args = (np.ascontiguousarray(model.H), np.ascontiguousarray(self.ref.Rq), *_csr(self.ref.Fb),
-                      np.ascontiguousarray(self.ref.D), np.ascontiguousarray(self.ref.Qb))
+                      np.ascontiguousarray(self.ref.Qb))
 
     @property
     def P(self):
         return self.ref.P
 
-    def advance(self, modes: np.ndarray, t0: int, t1: int, ys=None, xs=None):
-        """Run steps t0 … t1−1 (``modes`` (K, runs)); returns P_x(t1−1|t1−1) (n, n, runs) and, with
-        states (``ys`` (K, m, runs), ``xs`` (K, n, runs) the true x), (se_p, se_f, trp, trf) each (K, runs)
-        filled on t0 … t1−1 (squared errors of x̂(t|t−1), x̂(t|t) and the traces of P_x)."""
+    def advance(self, modes: np.ndarray, t0: int, t1: int):
+        """Run steps t0 … t1−1 (``modes`` (K, runs)); returns (P_x(t1−1|t1−1) (n, n, runs), None)."""
         md, ref = self.model, self.ref
         n, runs = md.n, modes.shape[1]
-        has_x = ref.xi is not None and ys is not None
-        K = modes.shape[0]
         PT = np.ascontiguousarray(np.moveaxis(ref.P, -1, 0))  # (runs, d, d): one run's P contiguous
-        xiT = np.ascontiguousarray(ref.xi.T) if has_x else np.zeros((1, md.d))
         Pfx = np.empty((n, n, runs))
-        # run-outer loop: each run's inputs and outputs contiguous in time ((runs, K, ·) copies)
-        arr = (lambda: np.zeros((runs, t1 - t0))) if has_x else (lambda: np.zeros((1, 1)))
-        se_p, se_f, trp, trf = arr(), arr(), arr(), arr()
         flag = np.zeros(runs, dtype=np.bool_)
-        mT = np.ascontiguousarray(modes[t0:t1].T, dtype=np.int64)
-        yT = np.ascontiguousarray(np.moveaxis(ys[t0:t1], -1, 0)) if has_x else np.zeros((1, 1, 1))
-        xT = np.ascontiguousarray(np.moveaxis(xs[t0:t1], -1, 0)) if has_x else np.zeros((1, 1, 1))
-        self._fn(PT, xiT, yT, xT, mT, 0, t1 - t0, *self._args, ref.scale,
-                 ZERO_INNOVATION_RTOL, n, has_x, ref.rescue.limit, Pfx, se_p, se_f, trp, trf, flag)
-        if has_x:  # back to the (K, runs) layout, rows t0 … t1−1
-            full = [np.zeros((K, runs)) for _ in range(4)]
-            for F_, a in zip(full, (se_p, se_f, trp, trf)):
-                F_[t0:t1] = a.T
-            se_p, se_f, trp, trf = full
-        P, xi = np.moveaxis(PT, 0, -1), (xiT.T if has_x else None)  # views in the (d, d, runs) layout
+        mT = np.ascontiguousarray(modes[t0:t1].T, dtype=np.int64)  # run-outer: each run's modes contiguous
+        self._fn(PT, mT, 0, t1 - t0, *self._args, ref.scale, ZERO_INNOVATION_RTOL, n, ref.rescue.limit, Pfx, flag)
+        P = np.moveaxis(PT, 0, -1)  # a view in the (d, d, runs) layout
         if flag.any():  # the overflow policy: these runs through the numpy reference
             idx = np.flatnonzero(flag)
             sub = ModeAwareKFTr.__new__(ModeAwareKFTr)
             sub.__dict__.update(ref.__dict__)
             sub.P = P[:, :, idx]  # flagged runs were left at their input
-            sub.xi = xi[:, idx] if has_x else None
+            sub.xi = None
             for t in range(t0, t1):
-                if has_x:
-                    xp, trp[t, idx] = sub.predicted()
-                    se_p[t, idx] = ((xs[t][:, idx] - xp) ** 2).sum(axis=0)
-                xf, tr_f, pf = sub.step(ys[t][:, idx] if has_x else None, modes[t, idx], want_cov=t == t1 - 1)
-                if has_x:
-                    trf[t, idx] = tr_f
-                    se_f[t, idx] = ((xs[t][:, idx] - xf) ** 2).sum(axis=0)
+                _, _, pf = sub.step(None, modes[t, idx], want_cov=t == t1 - 1)
                 if t == t1 - 1:
                     Pfx[:, :, idx] = pf
             P[:, :, idx] = sub.P
-            if has_x:
-                xi[:, idx] = sub.xi
         ref.P = P
-        if has_x:
-            ref.xi = xi
-        return Pfx, (se_p, se_f, trp, trf)
+        return Pfx, None

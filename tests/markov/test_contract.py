@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import pickle
-
 import numpy as np
 import pytest
 import scipy.linalg
@@ -13,7 +11,6 @@ from netkf_cli.errors import ConfigError
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.markov_filters import (
     AugmentedModel,
-    MarkovMSEKernel,
     ModeAwareKFTr,
     exact_mse,
     lmmse_filter,
@@ -163,38 +160,6 @@ def test_lmmse_reports_its_expected_covariance_and_per_run_metrics_refuse_it():
         "kind: markov_lmi", "kind: markov_lmi\n  filter: lmmse")
     with pytest.raises(ConfigError, match="each run's covariance"):
         load_scenario_text(text + "analysis: {kind: distribution, M: [1, 2]}\nmontecarlo: {runs: 10, horizon: 5}\n")
-
-
-def test_mse_kernel_is_picklable_and_has_fixed_keys():
-    md = AugmentedModel.build(EX2.A, EX2.C, EX2.Q, EX2.R)
-    ch = _ch()
-    x0, P0, K = np.zeros(2), np.zeros((2, 2)), 12
-    lin = {"lmmse": lmmse_filter(md, ch.T, ch.pi0, x0, P0, K), "naive_kf": naive_filter(md, x0, P0, K),
-           "lmi": lmi_design(md, ch.rho, x0, P0, K, design="closed_form").filter}
-    k = MarkovMSEKernel(md, ch, lin, x0, P0, K, 6)
-    k2 = pickle.loads(pickle.dumps(k))
-    a, b = k(np.random.default_rng(5), 20), k2(np.random.default_rng(5), 20)
-    assert sorted(a) == sorted(k.keys())
-    for key in a:
-        np.testing.assert_array_equal(a[key], b[key])
-
-
-def test_compiled_mode_aware_kf_equals_numpy_on_the_same_inputs():
-    # issue 15: same uniforms ⇒ the same statistics up to floating-point rounding (different order of
-    # operations). Relative 1e-9 on a full kernel call (all four filters, Example 2 and a singular-noise case).
-    pytest.importorskip("numba")
-    ex1 = ([[1.7240, -0.7788], [1, 0]], [[0.0286, 0.0264]], [[1, 0], [0, 0]], 0.04, [[0.2], [0.0]])  # Σ singular
-    for A, C, Q, R, S in ((EX2.A, EX2.C, EX2.Q, EX2.R, None), ex1):
-        md = AugmentedModel.build(A, C, Q, R, S)
-        ch = _ch()
-        x0, P0, K = np.zeros(2), np.zeros((2, 2)), 25
-        lin = {"lmmse": lmmse_filter(md, ch.T, ch.pi0, x0, P0, K), "naive_kf": naive_filter(md, x0, P0, K),
-               "lmi": lmi_design(md, ch.rho, x0, P0, K, design="closed_form").filter}
-        a = MarkovMSEKernel(md, ch, lin, x0, P0, K, 10, backend="numpy")(np.random.default_rng(8), 500)
-        b = MarkovMSEKernel(md, ch, lin, x0, P0, K, 10, backend="numba")(np.random.default_rng(8), 500)
-        assert sorted(a) == sorted(b)
-        for key in a:
-            np.testing.assert_allclose(b[key], a[key], rtol=1e-9, atol=1e-12, err_msg=key)
 
 
 def test_backend_auto_picks_numba_when_present_and_numpy_when_hidden(monkeypatch):
