@@ -21,6 +21,7 @@ def sample_channels(tmp: Path) -> dict[str, dict]:
         "bernoulli": {"kind": "bernoulli", "arrival": 0.8},
         "delay": {"kind": "delay", "delay": {"kind": "poisson", "mean": 1}, "buffer": 3},
         "gilbert_elliott": _block("smoothing/burstiness.yaml", "channel"),
+        "retransmission": _block("smoothing/retransmission.yaml", "channel"),
         "multi": _block("fusion/fig1.yaml", "channel"),
         "markov_modes": _block("markov/example1.yaml", "channel"),
         "fading": _block("fading/fig6.yaml", "channel"),
@@ -45,7 +46,7 @@ def sample_estimators() -> dict[str, dict]:
     from netkf_cli.scenario import kinds
     from netkf_cli.spec import EstimatorModel
 
-    from_configs = {"fusion": _block("fusion/fig1.yaml", "estimators"), "markov_lmi": _block("markov/example1.yaml", "estimators")}
+    from_configs = {"fusion": _block("fusion/fig1.yaml", "estimators"), "markov_lmi": _block("markov/example2_exact.yaml", "estimator")}
     special = {"buffered": {"kind": "buffered", "packet": "measurement"}, "smoother": {"kind": "smoother", "lag": 1},
                "receiver": {"kind": "receiver", "scenario": 2, "threshold": {"value": 2, "unit": "linear"}}}
     out = {}
