@@ -3,11 +3,12 @@
 ``CASES``: dicts ``{"estimator": "receiver1" | "receiver2" | "receiver3", "system": "scalar" | "3-state",
 "backend": "numpy" | "numba", "threads": None, "make": callable() -> (kernel, runs, horizon)}``.
 
-The kernel is the one the artefacts use (:class:`netkf_cli.estimators.fading_receivers.ReceiverMeanKernel`,
-one scenario, one threshold Υ_T = 10 at Υ_ave = 20 dB, i.i.d. channel): per run and step it draws
-the keep decision and the SNR of a kept packet, advances the path P[k] AND the burst-conditioned
-estimate U[k] (so a run-step is one kept update and two drop updates), and reduces E P[H], E U[H]
-to additive statistics. Receiver 2 is Rao–Blackwellized over σ_n² (no exponential draw).
+The kernel is the one ``netkf run`` builds for Fig. 6's generic config (``analysis.kind: time_average``):
+:class:`netkf_cli.engine.PairKernel` with one ``receiver`` estimator (:class:`ReceiverEstimator`, its
+mean-only form ``for_means``: the burst-conditioned estimate U[k] on the i.i.d. channel) and
+:class:`netkf_cli.engine.TimeAverageReducer` (per-run averages of tr U[k] over k in (50, 100]); one threshold
+Υ_T = 10 at Υ_ave = 20 dB. Per run and step it draws the keep decision (the channel's SNR trace) and advances
+U[k] (a kept update or a drop update); receiver 2 is Rao–Blackwellized over σ_n² (no noise draw).
 
 Systems: scalar — Fig. 7's A = 2, C = 1, q = 1e-3, R = 1e-8; 3-state — Fig. 5/6's A with C = 2 I,
 Q = 1e-3 I, R = 1e-8 I (the information-form receivers 1/3 invert two 3×3 matrices per run-step).
@@ -18,8 +19,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli.analysis import fading as fa
+from netkf_cli.channels.fading import FadingChannel
+from netkf_cli.engine import PairKernel, TimeAverageReducer
 from netkf_cli.estimators import fading_receivers as fr
+from netkf_cli.system import LinearSystem
 
 HORIZON = 100
 RUNS = {"numpy": 4_000, "numba": 20_000}
@@ -40,9 +43,12 @@ class _Make:
 
     def __call__(self):
         A, C, Q, R, P0 = systems()[self.system]
-        noise = fr.NoiseFn("ber", *fa.noise_params_from_bits(10, 40 / 2**10))
-        rm = fr.ReceiverModel(self.scenario, A, C, Q, R, noise)
-        kernel = fr.ReceiverMeanKernel({self.scenario: rm}, np.array([10.0]), 100.0, P0, HORIZON, backend=self.backend)
+        ch = FadingChannel.model_validate({"kind": "fading", "snr_avg": {"value": 20, "unit": "dB"},
+                                           "threshold": {"value": 10, "unit": "linear"},
+                                           "noise": {"model": "ber", "N_p": 10, "Delta": 40 / 2**10}})
+        est = fr.ReceiverEstimator(kind="receiver", scenario=self.scenario, backend=self.backend)
+        steps = list(range(HORIZON // 2 + 1, HORIZON + 1))
+        kernel = PairKernel(LinearSystem.create(A, C, Q, R, P0), ch, [est], HORIZON, steps, TimeAverageReducer(steps))
         return kernel, RUNS[self.backend], HORIZON
 
 

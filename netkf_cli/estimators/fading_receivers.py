@@ -628,43 +628,6 @@ def chunk_stats(X: np.ndarray, G: int, N: int) -> dict[str, np.ndarray]:
                 "tr": tr.sum(-1), "tr2": (tr**2).sum(-1), "inf": (~np.isfinite(tr)).sum(-1).astype(float)}
 
 
-class ReceiverMeanKernel:
-    """E P[H] of receiver scenarios on the i.i.d. fading channel for a grid of thresholds (Fig. 6, Sec. 4.2).
-
-    Per scenario ``s``: keys ``s{s}_path_<stat>`` (plain sample mean of P[H] along the simulated
-    paths — heavy-tailed) and ``s{s}_conditioned_<stat>`` (burst-conditioned U[H]; for scenario 2
-    with the ``ber`` noise also Rao–Blackwellized over σ_n², see :func:`burst_conditioned_paths`),
-    ``<stat>`` in :data:`STAT_KEYS`. One chunk of ``runs`` runs simulates runs × G columns.
-    """
-
-    def __init__(self, models: dict[int, ReceiverModel], thresholds, snr_avg: float, P0, horizon: int,
-                 backend: str = "numpy", rao_blackwell: bool = True, final_strata: int = 16):
-        self.models = dict(models)
-        self.final_strata = int(final_strata)
-        self.thresholds = np.asarray(thresholds, dtype=float)
-        self.snr_avg, self.P0, self.horizon = float(snr_avg), np.asarray(P0, dtype=float), int(horizon)
-        self.backend, self.rao_blackwell = backend, rao_blackwell
-
-    def __call__(self, rng: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
-        T = self.thresholds
-        G = len(T)
-        th = np.repeat(T, runs)
-        mu = fa.mu_ave(th, self.snr_avg)
-        out = {}
-        for sc, rm in self.models.items():
-            s2 = None
-            if sc == 1:
-                s2 = np.zeros_like(th)  # scenario 1 ignores σ_n² (eq. 7 with S₁ = 0): no SNR to draw
-            elif sc == 2 and self.rao_blackwell and isinstance(rm.noise, NoiseFn):
-                s2 = rm.noise.mean_given_kept(th, self.snr_avg)
-            P, U = burst_conditioned_paths(rm, rng, th, mu, self.snr_avg, self.P0, self.horizon, [self.horizon],
-                                           backend=self.backend, s2_given_kept=s2, final_strata=self.final_strata)
-            for lab, X in (("path", P[0]), ("conditioned", U[0])):
-                for k, v in chunk_stats(X, G, runs).items():
-                    out[f"s{sc}_{lab}_{k}"] = v
-        return out
-
-
 class CorrelatedPathKernel:
     """Plain sample mean of P[H] on a Jakes-correlated channel and on the i.i.d. one (Fig. 7 diagnostics).
 
@@ -710,40 +673,6 @@ class CorrelatedPathKernel:
                 out["pc"] = p.sum(1)
                 out["pc2"] = (p**2).sum(1)
         return out
-
-
-class FadingAveragesKernel:
-    """Fig. 4: drop counts and Σ σ_n², Σ σ_n⁴ of kept packets per threshold (one SNR sample per run)."""
-
-    def __init__(self, channel, thresholds):
-        self.channel, self.thresholds = channel, np.asarray(thresholds, dtype=float)
-
-    def __call__(self, rng: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
-        ch, T = self.channel, self.thresholds
-        Y = ch.sample_trace(rng, runs, 1).snr[0]
-        keep = Y[None, :] >= T[:, None]
-        s2 = np.where(keep, ch.noise.variance(Y)[None, :], 0.0)
-        return {"drop": (~keep).sum(1).astype(float), "s2": s2.sum(1), "s2sq": (s2**2).sum(1)}
-
-
-class Theorem4Kernel:
-    """Theorem 4 (eq. 51): Σ P[k], Σ P[k]² and Σ of the exact last-step conditional mean a²ϖβ Π(ϖβ/P[k−1]) (Lemma 7)."""
-
-    def __init__(self, a: float, beta: float, snr_avg: float, P0: float, k_max: int):
-        self.a, self.beta, self.snr_avg, self.P0, self.k_max = float(a), float(beta), float(snr_avg), float(P0), int(k_max)
-
-    def __call__(self, rng: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
-        a, beta, Ya, P0, K = self.a, self.beta, self.snr_avg, self.P0, self.k_max
-        w = 1.0 / Ya
-        P = np.full(runs, P0)
-        s, s2, r, r2 = (np.zeros(K + 1) for _ in range(4))
-        s[0], s2[0], r[0], r2[0] = P0 * runs, P0 * P0 * runs, P0 * runs, P0 * P0 * runs
-        for k in range(K):
-            cond = a * a * w * beta * fa.scaled_exp1(w * beta / P)  # E[P[k+1] | P[k]] (Lemma 7)
-            P = fa.theorem4_step(P, rng.exponential(Ya, runs), a, beta)
-            s[k + 1], s2[k + 1] = P.sum(), (P * P).sum()
-            r[k + 1], r2[k + 1] = cond.sum(), (cond * cond).sum()
-        return {"s": s, "s2": s2, "r": r, "r2": r2}
 
 
 # --------------------------------------------------------------------------- Fig. 7: drop bursts of a correlated channel
