@@ -4,12 +4,13 @@
 "3-state" | "vehicle", "backend": "numpy" | "numba", "threads": None, "make": callable() -> (kernel, runs,
 horizon)}``.
 
-The kernel is the one the artefacts use (:class:`netkf_cli.estimators.smoother.SmootherMCKernel`): per
-chunk it samples a Bernoulli(0.8) arrival trace of ``horizon`` steps, runs the filter over it and the
-lag-N smoother block for the target k = horizon − N − 1 (P_{k|k−1} and P_{k|k+N}), and reduces to
-additive statistics (count ≤ M, Σ tr P, Σ tr² P). A run-step is one step of the trace. Only the
-requested target is smoothed (one block for the last N steps), so lags cost little more than the
-filter; ``SmootherEstimator.covariances`` with every step requested runs N blocks per step.
+The kernel is the one ``netkf run`` builds for a ``distribution`` analysis of the smoothed covariance at the
+last step (the generic engine: :class:`netkf_cli.engine.PairKernel` → ``SmootherEstimator.covariances`` →
+:class:`netkf_cli.engine.DistributionReducer`): per chunk it samples a Bernoulli(0.8) arrival trace of
+``horizon`` steps, runs the filter over it and the lag-N smoother block for P_{H−N|H} (quantity ``smoothed``
+at step H), and counts P ≤ M (PSD order) and non-finite runs. A run-step is one step of the trace. Only the
+requested step is smoothed (one block for the last N steps), so lags cost little more than the filter;
+``SmootherEstimator.covariances`` with every step requested runs N blocks per step.
 
 The numpy and numba backends work on the same uniforms: bitwise-equal statistics for the scalar
 system, equal to round-off for vector systems (tests/smoothing/test_contract.py). Systems as in
@@ -21,7 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from netkf_cli.channels.bernoulli import BernoulliChannel
-from netkf_cli.estimators.smoother import PRED, SmootherMCKernel, numba_available
+from netkf_cli.engine import DistributionReducer, PairKernel
+from netkf_cli.estimators.smoother import SmootherEstimator, numba_available
 
 from benchmarks.estimators.shi2009 import systems
 
@@ -38,10 +40,10 @@ class _Make:
     def __call__(self):
         s = systems()[self.system][0]
         M = systems()[self.system][3]
-        Mm = float(np.median(M)) * np.eye(s.n)
+        Mm = np.array([float(np.median(M))])  # P ≤ Mm·I
         ch = BernoulliChannel(kind="bernoulli", arrival=0.8)
-        kernel = SmootherMCKernel(system=s, channel=ch, k=HORIZON - self.lag - 1, lags=(PRED, self.lag), M=Mm,
-                                  backend=self.backend)
+        est = SmootherEstimator(kind="smoother", lag=self.lag, backend=self.backend)
+        kernel = PairKernel(s, ch, [est], HORIZON, [HORIZON], DistributionReducer(Mm, [HORIZON]), quantity="smoothed")
         return kernel, RUNS[self.backend], HORIZON
 
 

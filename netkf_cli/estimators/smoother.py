@@ -36,9 +36,8 @@ predicted / lag-0 smoothed are kf's numbers by construction; the per-run compile
 it is measured faster (lag ≥ 1, batches of at most :data:`AUTO_NUMBA_MAX_RUNS` runs: long runs of
 few columns, the paper's-way run of Table I).
 
-Monte Carlo kernel kept here (picklable, additive statistics): :class:`SmootherMCKernel` (used by
-``benchmarks/``). The artefacts' Monte Carlo runs go through :func:`netkf_cli.engine.simulate` (the
-retransmission schemes of Sec. V are a channel, ``kind: retransmission``).
+Monte Carlo: the generic engine (:func:`netkf_cli.engine.simulate` on :meth:`SmootherEstimator.covariances`;
+the retransmission schemes of Sec. V are a channel, ``kind: retransmission``).
 """
 
 from __future__ import annotations
@@ -50,7 +49,6 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from netkf_cli import batched as bt
 from netkf_cli import kalman
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators.kf import channel_streams, filter_estimates
@@ -67,8 +65,6 @@ AUTO_NUMBA_MAX_RUNS = 256
 (measured, experiments/smoothing/README "Speed": it does 1–4e6 run-steps/s for n ≤ 2; the batched
 path overtakes it at a few hundred runs). Long runs of few columns — the paper's-way run of
 Table I — are where it wins (10–100× a numpy loop over the steps)."""
-PRED = -1
-"""Lag code of the one-step predictor P_{k|k−1} in column lists."""
 
 
 # =============================================================================================
@@ -585,79 +581,3 @@ def first_prediction(system: LinearSystem) -> np.ndarray:
 
 initial_prediction = first_prediction
 """The historical name (P_{0|−1} of :func:`fixed_lag_smoother` = P_{1|0} of the one time base)."""
-
-
-# =============================================================================================
-# Monte Carlo kernels (module-level, picklable; additive statistics with fixed keys)
-# =============================================================================================
-
-
-def lag_key(lag: int) -> str:
-    """Statistic-key fragment of a column: ``pred`` (P_{k|k−1}) or ``lagN`` (P_{k|k+N})."""
-    return "pred" if lag == PRED else f"lag{int(lag)}"
-
-
-def column_request(lag: int, k: int) -> tuple[str, int, int]:
-    """(quantity, step, smoother lag) of a Table I column at time k on the one time base:
-    P_{k|k−1} = ``predicted`` at step k − 1, P_{k|k} = ``filtered`` at k, P_{k|k+N} = ``smoothed`` (lag N) at k + N."""
-    if lag == PRED:
-        return "predicted", k - 1, 0
-    if lag == 0:
-        return "filtered", k, 0
-    return "smoothed", k + int(lag), int(lag)
-
-
-def covariance_stats(P: np.ndarray, M: np.ndarray | None, key: str) -> dict[str, float | int]:
-    """Additive statistics of a batch ``(n, n, runs)``: count ≤ M, Σ tr, Σ tr², non-finite runs."""
-    finite = np.isfinite(P).all(axis=(0, 1))
-    tr = np.where(finite, bt.trace(np.where(finite[None, None, :], P, 0.0)), 0.0)
-    with np.errstate(over="ignore"):  # a finite P with tr² > 1.8e308: the sum of squares is inf (heavy tail)
-        out = {f"sum_tr_{key}": float(tr.sum()), f"sumsq_tr_{key}": float((tr * tr).sum()),
-               f"overflow_{key}": int((~finite).sum())}
-    if M is not None:
-        out[f"leq_{key}"] = int(bt.psd_leq(P, M).sum())
-    return out
-
-
-def columns_at(system: LinearSystem, gamma: np.ndarray, k: int, lags: Sequence[int], backend: str = "auto") -> dict[int, np.ndarray]:
-    """{lag code: P} of the columns P_{k|k−1} (``PRED``), P_{k|k+N} (N ≥ 0) at time k, all from one
-    arrival array ``gamma`` ``(S, horizon, runs)`` (common random numbers)."""
-    out = {}
-    for lag in lags:
-        q, step, N = column_request(int(lag), k)
-        (_, P), = run(system, gamma, [step], (q,), N, backend=backend)
-        out[int(lag)] = P[q]
-    return out
-
-
-@dataclass(frozen=True)
-class SmootherMCKernel:
-    """One sample per run of P_{k|k−1} (lag −1) and P_{k|k+N} (lags N ≥ 0) at time ``k`` of the one time
-    base (P0 = P_{0|0}), all lags on the same channel trace of ``k + max(lag, 0)`` steps.
-
-    Statistics: ``n``; per lag key (``pred``, ``lag0`` …): ``leq_*`` (P ≤ M in the PSD order, if ``M``
-    is given), ``sum_tr_*``, ``sumsq_tr_*`` (finite runs), ``overflow_*`` (non-finite runs).
-    """
-
-    system: LinearSystem
-    channel: object
-    k: int
-    lags: tuple[int, ...]
-    M: np.ndarray | None = None
-    backend: str = "auto"
-
-    def horizon(self) -> int:
-        return self.k + max(max(self.lags), 0)
-
-    def __call__(self, rng: np.random.Generator, runs: int) -> dict:
-        tr = self.channel.sample_trace(rng, runs, self.horizon())
-        if tr.arrival is None:
-            raise ConfigError.at("channel.kind", f"needs arrival indicators, channel {getattr(self.channel, 'kind', '?')} gives none")
-        return self.stats(tr.arrival)
-
-    def stats(self, gamma: np.ndarray) -> dict:
-        """The statistics of one batch of arrivals ``(S, horizon, runs)``."""
-        stats: dict = {"n": gamma.shape[-1]}
-        for lag, P in columns_at(self.system, gamma, self.k, self.lags, self.backend).items():
-            stats.update(covariance_stats(P, self.M, lag_key(lag)))
-        return stats

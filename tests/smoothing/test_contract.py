@@ -1,19 +1,16 @@
 """The smoother and Gilbert–Elliott channel contracts (issue 12), the smoother on the Kalman core
 (issue 19: named quantities on the one time base, the forward pass is kf's, one rescue policy,
-any number of sensors), the compiled backend on kalman_numba's primitives, picklable kernels on
-worker processes, and overflow handling."""
+any number of sensors), the compiled backend on kalman_numba's primitives, and overflow handling (the
+Monte Carlo checks through the generic engine)."""
 
 from __future__ import annotations
 
-import os
-import pickle
 import sys
 
 import numpy as np
 import pytest
 
-from netkf_cli import kalman
-from netkf_cli import montecarlo as mc
+from netkf_cli import engine, kalman
 from netkf_cli import riccati
 from netkf_cli.analysis.smoothing import batch_posterior_covariance
 from netkf_cli.channels.bernoulli import BernoulliChannel
@@ -21,11 +18,7 @@ from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators import smoother as sm_est
 from netkf_cli.estimators.kf import KalmanFilterEstimator
-from netkf_cli.estimators.smoother import (
-    PRED,
-    SmootherEstimator,
-    SmootherMCKernel,
-)
+from netkf_cli.estimators.smoother import SmootherEstimator
 from netkf_cli.system import LinearSystem
 from netkf_cli.trace import Trace
 
@@ -337,19 +330,31 @@ def test_compiled_primitives_equal_the_numpy_core():
         np.testing.assert_allclose(out, np.linalg.inv(np.linalg.inv(Pf) + info), rtol=1e-10)
 
 
+QS3 = ("predicted", "filtered", "smoothed")
+
+
+def _simulate(s, ch, lag, backend, reducer, steps, runs, horizon, seed, quantities=QS3):
+    """The generic engine's statistics of one smoother (every listed quantity in one pass: column = quantity index)."""
+    return engine.simulate(s, ch, [est(lag, backend)], reducer, steps=steps, runs=runs, horizon=horizon, seed=seed,
+                           chunk=runs, quantity=quantities)
+
+
 @pytest.mark.skipif(numba_missing, reason="numba not installed")
-def test_kernel_statistics_identical_across_backends():
+def test_engine_statistics_identical_across_backends():
+    # Table I's columns at k = 30 on a Gilbert–Elliott channel through the generic engine: P_{k|k−1} (predicted
+    # at 29), P_{k|k} (filtered at 30), P_{k|k+2} (smoothed, lag 2, at 32); counts of P ≤ M and non-finite runs
+    # equal, moment sums equal to rounding (the compiled products are summed in another order)
     s = LinearSystem.create(1.3, 1, 0.5, 1, None)
     ch = GilbertElliottChannel(kind="gilbert_elliott", loss_rate=0.4, mean_burst=3)
-    stats = []
-    for be in ("numpy", "numba"):
-        k = SmootherMCKernel(system=s, channel=ch, k=30, lags=(PRED, 0, 2), M=np.array([[6.25]]), backend=be)
-        stats.append(k(np.random.default_rng(7), 5000))
-    assert stats[0].keys() == stats[1].keys()
-    for key in stats[0]:  # counts equal; sums to rounding (the compiled products are summed in another order)
-        assert stats[0][key] == pytest.approx(stats[1][key], rel=1e-12, abs=0), key
-        if key.startswith(("leq_", "overflow_", "n")):
-            assert stats[0][key] == stats[1][key], key
+    steps = [29, 30, 32]
+    for reducer, exact in ((engine.DistributionReducer(np.array([6.25]), steps), True), (engine.MomentReducer(steps), False)):
+        a, b = (_simulate(s, ch, 2, be, reducer, steps, 5000, 32, 7) for be in ("numpy", "numba"))
+        assert a.keys() == b.keys() and int(a["n"]) == 5000
+        for key in a:
+            if exact or key.startswith(("count_", "nonfinite_", "n")):
+                np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+            else:
+                np.testing.assert_allclose(b[key], a[key], rtol=1e-12, atol=0, err_msg=key)
 
 
 def test_auto_backend_picks_numba_when_importable(monkeypatch):
@@ -363,31 +368,8 @@ def test_auto_backend_picks_numba_when_importable(monkeypatch):
 
 
 # --------------------------------------------------------------------------- kernels on workers
-class _WhereKernel:
-    """A module-level wrapper: counts the chunks that ran outside the parent process."""
-
-    def __init__(self, inner, parent):
-        self.inner, self.parent = inner, parent
-
-    def __call__(self, rng, runs):
-        out = dict(self.inner(rng, runs))
-        out["not_parent"] = int(os.getpid() != self.parent)
-        return out
-
-
-def test_kernels_pickle_and_run_on_worker_processes_with_identical_sums():
-    s = LinearSystem.create(1.3, 1, 0.5, 1, None)
-    ker = SmootherMCKernel(system=s, channel=BernoulliChannel(kind="bernoulli", arrival=0.6), k=20, lags=(PRED, 0, 1),
-                           M=np.array([[6.25]]))
-    pickle.loads(pickle.dumps(ker))
-    wrapped = _WhereKernel(ker, os.getpid())
-    serial = mc.run_chunked(wrapped, 4000, 1000, 11, stream=3)
-    with mc.execution("process", jobs=2):
-        par = mc.run_chunked(wrapped, 4000, 1000, 11, stream=3)
-    assert int(serial["not_parent"]) == 0 and int(par["not_parent"]) == 4
-    for key in serial:
-        if key != "not_parent":
-            assert np.array_equal(serial[key], par[key]), key
+# The smoother's generic kernel pickles and runs on worker processes (process pool and Dask) with byte-identical
+# CSVs: tests/engine/test_executors.py::test_every_estimator_runs_on_workers_with_identical_csvs.
 
 
 # --------------------------------------------------------------------------- overflow (issue 14)
@@ -399,16 +381,17 @@ def test_huge_a_bernoulli_monte_carlo_matches_the_exact_probability():
     Tolerance: 5 binomial s.e."""
     s = LinearSystem.create(1e6, 1, 0.5, 1, None)
     runs, lam = 4000, 0.5
+    ch = BernoulliChannel(kind="bernoulli", arrival=lam)
+    steps = [199, 200, 201]  # k = 200: P_{k|k−1} = predicted at 199, P_{k|k} = filtered at 200, P_{k|k+1} = smoothed at 201
     for backend in ("numpy",) + (() if numba_missing else ("numba",)):
-        ker = SmootherMCKernel(system=s, channel=BernoulliChannel(kind="bernoulli", arrival=lam), k=200, lags=(PRED, 0, 1),
-                               M=np.array([[10.0]]), backend=backend)
         with np.errstate(all="raise"):
-            st = ker(np.random.default_rng(3), runs)
-        p = st["leq_lag0"] / st["n"]
+            st = _simulate(s, ch, 1, backend, engine.DistributionReducer(np.array([10.0]), steps), steps, runs, 201, 3)
+        assert int(st["n"]) == runs
+        p = st["count_1"][1, 0] / runs  # filtered, at step 200
         assert abs(p - lam) < 5 * np.sqrt(lam * (1 - lam) / runs)
-        assert st["overflow_pred"] == 0 and st["overflow_lag1"] == 0
+        assert st["nonfinite_0"][0] == 0 and st["nonfinite_2"][2] == 0
         # lag 1: ≤ M iff γ_k = 1 or γ_{k+1} = 1 (the next measurement pins x_k down): 1 − (1 − λ)²
-        p1 = st["leq_lag1"] / st["n"]
+        p1 = st["count_2"][2, 0] / runs
         q1 = 1 - (1 - lam) ** 2
         assert abs(p1 - q1) < 5 * np.sqrt(q1 * (1 - q1) / runs)
 
@@ -419,13 +402,14 @@ def test_huge_a_overflowed_runs_recover_at_their_next_arrival():
     r/Σ) ≤ 1 after any arrival and ≥ q·10¹² after a loss: Pr[P_{k|k} ≤ 10] = λ exactly. 5 binomial s.e."""
     s = LinearSystem.create(1e6, 1, 0.5, 1, None)
     runs, lam = 20_000, 0.05
+    ch = BernoulliChannel(kind="bernoulli", arrival=lam)
+    steps = [199, 200]  # k = 200: P_{k|k−1} = predicted at 199, P_{k|k} = filtered at 200
     for backend in ("numpy",) + (() if numba_missing else ("numba",)):
-        ker = SmootherMCKernel(system=s, channel=BernoulliChannel(kind="bernoulli", arrival=lam), k=200, lags=(PRED, 0),
-                               M=np.array([[10.0]]), backend=backend)
         with np.errstate(all="raise"):
-            st = ker(np.random.default_rng(3), runs)
-        assert abs(st["leq_lag0"] / st["n"] - lam) < 5 * np.sqrt(lam * (1 - lam) / runs)
-        assert st["overflow_pred"] > 0 and st["overflow_lag0"] > 0  # some runs were overflowed at k, and counted
+            st = _simulate(s, ch, 0, backend, engine.DistributionReducer(np.array([10.0]), steps), steps, runs, 200, 3,
+                           ("predicted", "filtered"))
+        assert abs(st["count_1"][1, 0] / runs - lam) < 5 * np.sqrt(lam * (1 - lam) / runs)
+        assert st["nonfinite_0"][0] > 0 and st["nonfinite_1"][1] > 0  # some runs were overflowed at k, and counted
 
 
 def test_future_information_recursion_equals_the_batch_form_and_survives_huge_a():
