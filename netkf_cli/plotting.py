@@ -109,11 +109,26 @@ def series_style(i: int) -> dict:
             "marker": MARKERS[i % len(MARKERS)]}
 
 
+_SUBSCRIPT = re.compile(r"_\{[^{}$]*\|[^{}$]*\}")
+
+
+def math_bars(text: str) -> str:
+    """A bare ``|`` in a mathtext subscript (``$P_{k|k}$``) as ``\\mid``: the STIX sans draw it like an l
+    ("Pklk"). Only inside ``$…$`` spans and ``_{…}`` groups; ``\\|`` and text outside math are kept."""
+    parts = text.split("$")
+    for i in range(1, len(parts), 2):  # the odd parts are math (an unpaired $ leaves the rest as text)
+        if i == len(parts) - 1:
+            break
+        parts[i] = _SUBSCRIPT.sub(lambda m: re.sub(r"(?<!\\)\|", r" \\mid ", m.group(0)), parts[i])
+    return "$".join(parts)
+
+
 def paper_title(topic: str | None, figure: str | int | None, what: str) -> str:
     """``"<paper> — <figure>: <what>"``; ``topic=None`` (a user's scenario) gives ``what`` alone.
 
     ``figure`` may be ``5`` (→ "Fig. 5"), a string such as ``"Table I"``, ``"Sec. 4.2"``, or None.
     """
+    what = math_bars(what)  # titles come from configs too
     if topic is None:
         return what
     if topic not in PAPERS:
@@ -182,11 +197,15 @@ def _fit_titles(fig: Figure) -> None:
     for t in texts:
         w = t.get_window_extent(r).width
         if w > W:
-            longest = max(len(line) for line in t.get_text().split("\n"))
-            t.set_text(_wrap(t.get_text().replace(" — ", " —\n", 1) if " — " in t.get_text() and w < 2 * W
-                             else t.get_text(), int(longest * W / w * 0.95)))
-            if t.get_window_extent(r).width > W:  # the first split was not enough: wrap everything
-                t.set_text(_wrap(t.get_text().replace("\n", " "), int(longest * W / w * 0.9)))
+            # characters as drawn: math_bars' "\\mid " draws one bar
+            longest = max(len(line.replace(r" \mid ", "|")) for line in t.get_text().split("\n"))
+            t.set_text(_wrap(t.get_text().replace(" — ", " —\n", 1), int(longest * W / w * 0.95)))
+            shrink = 0.9
+            while t.get_window_extent(r).width > W and shrink > 0.4:  # the first split was not enough: wrap
+                # everything, narrower each time (characters are not equally wide: a mathtext span's source,
+                # e.g. "\\mid ", is longer than what it draws)
+                t.set_text(_wrap(t.get_text().replace("\n", " "), int(longest * W / w * shrink)))
+                shrink -= 0.1
 
 
 def _layout(fig: Figure) -> None:
