@@ -20,7 +20,7 @@ import pandas as pd
 from pydantic import Field, model_validator
 
 from netkf_cli.errors import ConfigError, Problem
-from netkf_cli.plotting import footnote, new_figure
+from netkf_cli.plotting import MIN_FONT_PT, footnote, new_figure
 from netkf_cli.spec import StrictModel
 
 
@@ -248,7 +248,7 @@ def plot(tables, scenario):
     where = [f"{k} = {v}" for k, v in spec.plot.where.items()] + fixed
     ax.set_title(f"{scenario.name}: {series}" + (f" ({', '.join(where)})" if where else ""), fontsize=10)
     if line:
-        ax.legend(fontsize=7, ncol=2)
+        ax.legend(fontsize=MIN_FONT_PT, ncol=2)
     footnote(fig, f"sweep ({spec.mode}) over {', '.join(axes)}; {len(spec.points())} points"
              + (f"; {flagged_total} unreliable points drawn hollow, off the line" if flagged_total else ""))
     return fig

@@ -26,7 +26,7 @@ from netkf_cli.errors import ConfigError
 from netkf_cli.metrics import derived
 from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric,
                                       kf_tail_exponent, labels, math_text, PaperRef, Quantity)
-from netkf_cli.plotting import LINESTYLES, MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
+from netkf_cli.plotting import LINESTYLES, MARKERS, MIN_FONT_PT, PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.stats import heavy_tail_flag, mean_se, rare_event_flag
 
 TRACE, PROB = "E[tr P]", "Pr[P<=M]"
@@ -172,7 +172,7 @@ class TimeAverage(GenericMetric):
                 if self.log_x:
                     ax.set_xscale("log")
             if ax.get_legend_handles_labels()[0]:
-                legend_outside(ax, loc="right", fontsize=7)
+                legend_outside(ax, loc="right", fontsize=MIN_FONT_PT)
         what = self.title or ("stationary " + ("statistics against " + (self.x_label or x) if x else "statistics"))
         fig.suptitle(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None,
                                  what), fontsize=11)
@@ -236,7 +236,7 @@ class TimeAverage(GenericMetric):
         if x is None and keys:
             ax.set_xticks(range(len(keys)))
             ax.set_xticklabels([f"{lab}\n{_sym(q)}" + ("" if m < 0 else f"\nM = {m:g}")
-                                for lab, q, m in keys], fontsize=8)
+                                for lab, q, m in keys], fontsize=MIN_FONT_PT)
         return flagged
 
 
