@@ -137,16 +137,20 @@ class ReceiverEstimator(EstimatorModel):
     def model(self, system, noise) -> "ReceiverModel":
         return ReceiverModel(self.scenario, system.A, system.C, system.Q, system.R, noise)
 
-    def covariances(self, system, trace, steps, quantities=("filtered",)):
-        """Yield (k, {quantity: P}) for k in ``steps`` (1 ≤ k ≤ horizon); P (n, n, runs); overflow → inf."""
+    def _setup(self, system, trace, quantities):
+        """(quantities, receiver model, Υ_T): what covariances() and estimates() read from the trace, checked."""
         qs = kalman.check_quantities(quantities, self.quantities, "receiver")
         noise = trace.meta.get("noise")
         if noise is None or trace.snr is None:
             raise ConfigError.at("channel", "the receiver needs an SNR trace with its noise model (channel kind fading)")
-        rm = self.model(system, noise)
         T = self.threshold.linear if self.threshold is not None else trace.meta.get("threshold")
         if T is None:
             raise ConfigError.at("estimator.threshold", "give the drop threshold Υ_T (here or as the channel's `threshold`)")
+        return qs, self.model(system, noise), T
+
+    def covariances(self, system, trace, steps, quantities=("filtered",)):
+        """Yield (k, {quantity: P}) for k in ``steps`` (1 ≤ k ≤ horizon); P (n, n, runs); overflow → inf."""
+        qs, rm, T = self._setup(system, trace, quantities)
         cond = self.variance_reduction == "conditioned"
         B = trace.runs
         if cond:
@@ -190,12 +194,7 @@ class ReceiverEstimator(EstimatorModel):
         communication noise). Scenario 1's P assumes kept packets are noise-free (eq. 7, S₁ = 0): on a link
         with communication noise it is NOT the error covariance (a NEES check detects it); 2 and 3 report the
         true one."""
-        qs = kalman.check_quantities(quantities, self.quantities, "receiver")
-        noise = trace.meta.get("noise")
-        if noise is None or trace.snr is None:
-            raise ConfigError.at("channel", "the receiver needs an SNR trace with its noise model (channel kind fading)")
-        rm = self.model(system, noise)
-        T = self.threshold.linear if self.threshold is not None else trace.meta.get("threshold")
+        qs, rm, T = self._setup(system, trace, quantities)
         B, n, m = trace.runs, rm.n, rm.C.shape[0]
         state = predict(rm, initial_state(rm, initial_covariance(system), B))
         x = np.zeros((n, B))
