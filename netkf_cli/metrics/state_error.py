@@ -199,16 +199,17 @@ class StateError(GenericMetric):
         for ax, c in zip(axes, comps):
             d = traj[(traj.component == c) & (traj.run == 0)]
             tru = d[d.series == "true"]
-            ax.plot(tru.k, tru.value, color="black", lw=1.8, label="true state")
+            first = c == comps[0]  # one legend (on the first state's panel) for every state's panel: same styles
+            ax.plot(tru.k, tru.value, color="black", lw=1.8, label="true state" if first else "_nolegend_")
             for i, lab in enumerate(labs):
                 e = d[d.series == lab]
                 sty = series_style(i + 1)
-                ax.plot(e.k, e.value, color=sty["color"], ls=sty["linestyle"], lw=1.2, label=lab)
-            _mark_channel(ax, traj)
+                ax.plot(e.k, e.value, color=sty["color"], ls=sty["linestyle"], lw=1.2, label=lab if first else "_nolegend_")
+            _mark_channel(ax, traj, legend=first)
             ax.set_xlabel(r"time step $k$")
             ax.set_ylabel(rf"$x_{c}$, ${hat}$" if q == "filtered" else rf"$x_{c}(k)$, ${hat}$")
             ax.set_title(f"state {c}: true and estimated (one run)")
-            if c == comps[0]:
+            if first:
                 legend_outside(ax)
         ax = axes[len(comps)]
         for i, lab in enumerate(labs):
@@ -316,8 +317,9 @@ def _trajectory_table(tr: dict, labs: list[str], cols, steps: list[int]) -> pd.D
     return pd.DataFrame(rows, columns=["run", "k", "component", "series", "quantity", "value"])
 
 
-def _mark_channel(ax, traj: pd.DataFrame) -> None:
-    """Markers under the curve where the channel did not deliver an on-time measurement (run 0)."""
+def _mark_channel(ax, traj: pd.DataFrame, legend: bool = True) -> None:
+    """Markers under the curve where the channel did not deliver an on-time measurement (run 0);
+    ``legend=False``: unlabelled (a panel that shares another panel's legend)."""
     d = traj[(traj.run == 0) & (traj.component == 0)]
     if not len(d):
         return
@@ -328,9 +330,9 @@ def _mark_channel(ax, traj: pd.DataFrame) -> None:
         for qq, mk, name in ((2, "^", "delayed"), (3, "x", "missing"), (4, "s", "dropout")):
             kk = m.k[m.value == qq]
             if len(kk):
-                ax.plot(kk, np.full(len(kk), rug), mk, ms=4, color="0.35", ls="none", label=f"mode {qq} ({name}) at k")
+                ax.plot(kk, np.full(len(kk), rug), mk, ms=4, color="0.35", ls="none", label=f"mode {qq} ({name}) at k" if legend else "_nolegend_")
     else:
         a = d[d.series == "arrival"]
         kk = a.k[a.value < 0.5]
         if len(kk):
-            ax.plot(kk, np.full(len(kk), rug), "x", ms=4, color="0.35", ls="none", label="packet lost at k")
+            ax.plot(kk, np.full(len(kk), rug), "x", ms=4, color="0.35", ls="none", label="packet lost at k" if legend else "_nolegend_")

@@ -120,12 +120,13 @@ class MarkovExactAnalysis(AnalysisModel):
         colors = {"lmmse": PALETTE[0], "lmi": PALETTE[1], "naive_kf": PALETTE[2]}
         styles = {"lmmse": LINESTYLES[0], "lmi": LINESTYLES[1], "naive_kf": LINESTYLES[3]}
         for ax, e in zip(axes, ESTIMATES):
+            shown = ax is axes[-1]  # one legend (under the last panel) for both panels: same styles
             for f in FILTERS:
                 d = t[(t["filter"] == f) & (t["estimate"] == e) & (t["quantity"] == "exact")]
-                ax.plot(d["k"], d["value"], color=colors[f], ls=styles[f], lw=1.5, label=LABELS[f])
+                ax.plot(d["k"], d["value"], color=colors[f], ls=styles[f], lw=1.5, label=LABELS[f] if shown else "_nolegend_")
             d = t[(t["filter"] == "lmi") & (t["estimate"] == e) & (t["quantity"] == "design")]
             ax.plot(d["k"], d["value"], color=colors["lmi"], ls=(0, (1, 1)), lw=1.2,
-                    label=r"LMI design's bound $\Lambda_\zeta$ (Sec. III-C)")
+                    label=r"LMI design's bound $\Lambda_\zeta$ (Sec. III-C)" if shown else "_nolegend_")
             ax.set_ylim(bottom=0)
             ax.set_xlabel("time step k")
             hat = r"\hat{x}_{k\mid k-1}" if e == "predicted" else r"\hat{x}_{k\mid k}"
