@@ -51,10 +51,15 @@ import numpy as np
 import pandas as pd
 import yaml
 from pydantic import Field, ValidationError, model_validator
+from rich.table import Table
 
 from netkf_cli import golden as golden_mod
-from netkf_cli.errors import ConfigError, Problem
+from netkf_cli.errors import ConfigError, NetkfError, Problem
+from netkf_cli.loader import line_index, load_scenario, validation_problems
+from netkf_cli.report import write_report as _write
+from netkf_cli.runner import run_scenario
 from netkf_cli.spec import StrictModel
+from netkf_cli.workers import pool_kwargs  # pool workers ignore Ctrl-C and die with this process
 
 TOP_LEVEL_TOPIC = "shi2009"
 SIGMAS = 5.0
@@ -232,8 +237,6 @@ def topic_of(config: Path, configs_root: Path) -> str:
 
 def discover(root: Path, topics: list[str]) -> tuple[list[Artefact], dict[str, Published]]:
     """Every config (by topic) and every published.yaml; inconsistencies are errors."""
-    from netkf_cli.loader import load_scenario
-
     configs_root = root / "configs"
     if not configs_root.is_dir():
         raise ConfigError([Problem("", "no configs/ folder here: run netkf reproduce from the project's root", str(root))])
@@ -277,8 +280,6 @@ def discover(root: Path, topics: list[str]) -> tuple[list[Artefact], dict[str, P
         try:
             published[t] = Published.model_validate(yaml.safe_load(f.read_text(encoding="utf-8")) or {})
         except ValidationError as exc:
-            from netkf_cli.loader import line_index, validation_problems
-
             text = f.read_text(encoding="utf-8")
             problems.extend(validation_problems(exc, yaml.safe_load(text), line_index(text), str(f)))
             continue
@@ -407,9 +408,6 @@ def compare_golden(fresh: Path, golden: Path, name: str, rules=None) -> list[str
 def _run_one(args) -> tuple[str, str | None, float, str | None]:
     """Worker: run one config into its folder; returns (name, folder, wall time, error)."""
     config, folder, quick = args
-    from netkf_cli.errors import NetkfError
-    from netkf_cli.loader import load_scenario
-    from netkf_cli.runner import run_scenario
 
     t0 = time.perf_counter()
     try:
@@ -446,8 +444,6 @@ def run_all(arts: list[Artefact], out_root: Path, quick: bool, jobs: int, on_don
             if on_done:
                 on_done(a, results[a.name])
     else:
-        from netkf_cli.workers import pool_kwargs  # workers ignore Ctrl-C and die with this process
-
         order = sorted(arts, key=lambda a: -_expected_wall(a, out_root, golden_root))  # stable among equals
         with ProcessPoolExecutor(max_workers=min(jobs, len(arts)) or 1, **pool_kwargs()) as ex:
             futures = {ex.submit(_run_one, tasks[a.name]): a for a in order}
@@ -541,8 +537,6 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
         judge(o, folder)
         report_outcomes.append(o)
     if write_report:
-        from netkf_cli.report import write_report as _write
-
         path = _write(report_outcomes, published, out_root / "REPORT.md", root=root, quick=quick)
         if not quiet:
             console.print(f"report: {path}")
@@ -566,8 +560,6 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
 
 
 def summarize(outcomes: list[ArtefactOutcome], console, quick: bool) -> None:
-    from rich.table import Table
-
     t = Table(title=f"netkf reproduce ({'quick' if quick else 'full size'})")
     for col in ("artefact", "printed ✓", "claims ✓", "failed", "largest deviation", "golden", "wall time"):
         t.add_column(col)
