@@ -158,6 +158,9 @@ class TimeAverage(GenericMetric):
                     ax.set_xscale("log")
             if ax.get_legend_handles_labels()[0]:
                 legend_outside(ax, loc="right", fontsize=MIN_FONT_PT)
+        # a long legend (many closed forms, Fusion Fig. 3) needs a taller panel, or it runs into the footnote
+        rows = max((len(ax.get_legend_handles_labels()[0]) for ax in axes), default=0)
+        fig.set_size_inches(fig.get_size_inches()[0], len(panels) * max(4.4, 1.9 + 0.25 * rows))
         what = self.title or ("stationary " + ("statistics against " + (self.x_label or x) if x else "statistics"))
         fig.suptitle(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None,
                                  what), fontsize=11)
