@@ -188,6 +188,7 @@ class TimeAverage(GenericMetric):
             colour = PALETTE[i % len(PALETTE)]
             colour_of.setdefault(lab, colour)
             colour_of.setdefault((lab, q), colour)
+            colour_of[(lab, q, m)] = colour  # a Pr[P <= M] reference takes its M's colour
             name = f"{lab} · {_sym(q)}" + ("" if m < 0 else f", M = {m:g}")
             bad = g.heavy_tail.astype(bool).to_numpy() | g.rare_event.astype(bool).to_numpy() | ~np.isfinite(g.value.to_numpy())
             flagged += int(bad.sum())
@@ -207,7 +208,8 @@ class TimeAverage(GenericMetric):
         several_q = ref.quantity.nunique() > 1
         drawn: dict = {}  # references drawn per (estimator, quantity): each its own dash pattern
         for (lab, q, name), g in ref.groupby(["estimator", "quantity", "series"], sort=False):
-            colour = colour_of.get((lab, q), colour_of.get(lab, "black"))
+            m_ref = g.M.iloc[0] if g.M.nunique(dropna=False) == 1 and pd.notna(g.M.iloc[0]) else -1
+            colour = colour_of.get((lab, q, m_ref), colour_of.get((lab, q), colour_of.get(lab, "black")))
             j = drawn[(lab, q)] = drawn.get((lab, q), -1) + 1
             dash = LINESTYLES[1:][j % (len(LINESTYLES) - 1)]
             name = f"{name} · {_sym(q)}" if several_q else name
