@@ -158,6 +158,7 @@ class ReceiverEstimator(EstimatorModel):
                 raise ConfigError.at("estimator.variance_reduction", "conditioned needs an i.i.d. channel")
             Ya = float(trace.meta["snr_avg"])
             mu = np.full(B, float(fa.mu_ave(T, Ya)))
+            noise = trace.meta["noise"]  # (checked by _setup)
             rb = noise.mean_given_kept(T, Ya) if (self.scenario == 2 and isinstance(noise, NoiseFn)) else None
         P00 = initial_covariance(system)
         st = Stepper(rm, kalman.one(kalman.predict, P00, rm.A, rm.Q), B, self.backend, want_u=cond,
