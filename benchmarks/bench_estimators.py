@@ -96,18 +96,30 @@ montecarlo: {{runs: {runs}, horizon: 200, burn_in: 100, seed: 1}}
 }
 
 
+def _descendants(pid: int) -> list[int]:
+    """Every descendant of ``pid``, from /proc/<p>/stat's parent field (Linux; no extra dependency)."""
+    parent = {}
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit():
+            try:
+                parent[int(p.name)] = int((p / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                pass
+    out, todo = [], [pid]
+    while todo:
+        cur = todo.pop()
+        kids = [c for c, pp in parent.items() if pp == cur]
+        out += kids
+        todo += kids
+    return out
+
+
 def _tree_pss_mb(pid: int) -> float:
     """Proportional set size of a process and its descendants (forked workers share the parent's pages)."""
-    import psutil
-
     total = 0.0
-    try:
-        procs = [psutil.Process(pid)] + psutil.Process(pid).children(recursive=True)
-    except psutil.Error:
-        return 0.0
-    for pr in procs:
+    for p in [pid, *_descendants(pid)]:
         try:
-            for line in Path(f"/proc/{pr.pid}/smaps_rollup").read_text().splitlines():
+            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
                 if line.startswith("Pss:"):
                     total += int(line.split()[1]) / 1024
         except OSError:
