@@ -183,7 +183,32 @@ def block_steps(horizon: int, runs: int, sensors: int = 1) -> int:
     return max(1, min(horizon, RAW_BLOCK // max(runs * sensors, 1)))
 
 
-class SensorTrace(Trace):
+class _LazyArrival(Trace):
+    """A trace whose per-sensor ``arrival`` (N, horizon, runs) is drawn on first read (:meth:`_draw`)."""
+
+    _arrival = None
+
+    def _draw(self) -> np.ndarray:
+        raise NotImplementedError
+
+    @property
+    def arrival(self) -> np.ndarray:  # type: ignore[override]
+        if self._arrival is None:
+            self._arrival = self._draw()
+        return self._arrival
+
+    @arrival.setter
+    def arrival(self, value) -> None:
+        if value is not None:
+            self._arrival = value
+
+    @property
+    def materialized(self) -> bool:
+        """Whether the per-sensor pattern has been drawn (an estimator read ``arrival``)."""
+        return self._arrival is not None
+
+
+class SensorTrace(_LazyArrival):
     """The per-sensor multi-channel trace (``sampling: per_sensor``), drawn lazily and bit for bit what
     :func:`sample_multi_trace_arrivals` draws: the generator's state is kept and the parent stream
     advanced past the N·horizon·runs raw draws at sampling time; the draw of (sensor i, step t, run r) is
@@ -219,24 +244,12 @@ class SensorTrace(Trace):
             np.less(bg.random_raw((t1 - t0) * R).reshape(t1 - t0, R), self._thr[i], out=out[i])
         return out
 
-    @property
-    def arrival(self) -> np.ndarray:  # type: ignore[override]
-        if self._arrival is None:
-            out = np.empty((self._loss.size, self.horizon, self.runs), dtype=bool)
-            b = block_steps(self.horizon, self.runs, self._loss.size)
-            for t0 in range(0, self.horizon, b):
-                out[:, t0 : t0 + b] = self.steps(t0, min(self.horizon, t0 + b))
-            self._arrival = out
-        return self._arrival
-
-    @arrival.setter
-    def arrival(self, value) -> None:
-        if value is not None:
-            self._arrival = value
-
-    @property
-    def materialized(self) -> bool:
-        return self._arrival is not None
+    def _draw(self) -> np.ndarray:
+        out = np.empty((self._loss.size, self.horizon, self.runs), dtype=bool)
+        b = block_steps(self.horizon, self.runs, self._loss.size)
+        for t0 in range(0, self.horizon, b):
+            out[:, t0 : t0 + b] = self.steps(t0, min(self.horizon, t0 + b))
+        return out
 
     @property
     def counts(self) -> np.ndarray:
@@ -260,7 +273,7 @@ class SensorTrace(Trace):
         return int(self._loss.size)
 
 
-class CountTrace(Trace):
+class CountTrace(_LazyArrival):
     """A multi-channel trace sampled as counts (``sampling: counts``): ``counts`` (horizon, runs) is
     ℓ_t = Σ_i γ_t^i; ``arrival`` (N, horizon, runs) is drawn on first read, given the counts
     (:func:`arrivals_given_counts`, from a stream seeded at sampling time), so an estimator that needs
@@ -277,22 +290,9 @@ class CountTrace(Trace):
         if self.counts.shape != (self.horizon, self.runs):
             raise ValueError(f"counts must be ({self.horizon}, {self.runs}), got {self.counts.shape}")
 
-    @property
-    def arrival(self) -> np.ndarray:  # type: ignore[override]
-        if self._arrival is None:
-            rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(x) for x in self._seed])))
-            self._arrival = arrivals_given_counts(rng, self.counts, self._N)
-        return self._arrival
-
-    @arrival.setter
-    def arrival(self, value) -> None:
-        if value is not None:
-            self._arrival = value
-
-    @property
-    def materialized(self) -> bool:
-        """Whether the per-sensor pattern has been drawn (an estimator read ``arrival``)."""
-        return self._arrival is not None
+    def _draw(self) -> np.ndarray:
+        rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(x) for x in self._seed])))
+        return arrivals_given_counts(rng, self.counts, self._N)
 
     def steps(self, t0: int, t1: int) -> np.ndarray:
         """Arrivals of steps t0 … t1 − 1 (the pattern is drawn whole on first use)."""
