@@ -305,7 +305,10 @@ def test_concurrent_run_is_refused_and_first_stays_intact(tmp_path):
         r = invoke("run", cfg, "--out", out.parent / "mc2", "--runs", 20_000, "-j", 1)
         assert r.exit_code == 0, r.output
         now = set(cache_root.rglob("*.npz"))
-        if first.poll() is None:  # (looked at after the listing: the first had not finished when it was taken)
+        # looked at after the listing: a run removes its cache only after its result folder (with the manifest) is
+        # complete, so no manifest now means the first had not finished when the listing was taken (the process
+        # may still be alive after removing its cache: its exit status is no witness)
+        if not (out / "manifest.json").exists():
             assert chunks_before <= now  # nothing of the first's cache deleted
         assert first.wait(300) == 0, first.stderr.read()
     finally:
