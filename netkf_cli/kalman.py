@@ -389,26 +389,43 @@ class Filter:
                 kn.filter_advance(P, self.A, self.C, self.Q, self.R, gam_r, starts, lens, t0, t1, self.rescue.limit, flag)
                 return P.copy()
 
-        idx = np.zeros(0, dtype=np.int64)  # runs on the numpy core
-        Pn = P[:, :, :0]
+        redo = FlaggedRuns(P_init, lambda Pk, tt, ix: self.step(Pk, gamma[:, tt][:, ix])[1])
         t = 0
         for k in want:
-            out = advance(t, k)
-            new = np.setdiff1d(np.flatnonzero(flag), idx)
-            if idx.size:  # runs already on the numpy core: one step at a time
-                for tt in range(t, k):
-                    _, Pn = self.step(Pn, gamma[:, tt][:, idx])
-            if new.size:  # newly flagged: the numpy core from their P0 up to k
-                Pnew = P_init[:, :, new]
-                for tt in range(k):
-                    _, Pnew = self.step(Pnew, gamma[:, tt][:, new])
-                idx, Pn = np.concatenate([idx, new]), np.concatenate([Pn, Pnew], axis=2)
-                order = np.argsort(idx)
-                idx, Pn = idx[order], Pn[:, :, order]
+            out = redo.fill(advance(t, k), flag, k)
             t = k
-            if idx.size:
-                out[:, :, idx] = Pn
             yield k, report(out, qs, self.A, self.Q)
+
+
+class FlaggedRuns:
+    """The runs a compiled kernel flagged for :class:`Rescue`, carried on the numpy core instead.
+
+    ``step(P, t, idx)`` is the numpy step t → t + 1 of runs ``idx``. :meth:`fill` at step k: the runs
+    already on the numpy core advance from the last step, the newly flagged ones restart from their P0
+    (``P_init``) up to k, and their covariances replace the kernel's in ``out`` (n, n, runs)."""
+
+    def __init__(self, P_init: np.ndarray, step):
+        self.P_init, self.step = P_init, step
+        self.idx = np.zeros(0, dtype=np.int64)
+        self.Pn = P_init[:, :, :0]
+        self.t = 0
+
+    def fill(self, out: np.ndarray, flag: np.ndarray, k: int) -> np.ndarray:
+        new = np.setdiff1d(np.flatnonzero(flag), self.idx)
+        if self.idx.size:  # runs already on the numpy core: one step at a time
+            for tt in range(self.t, k):
+                self.Pn = self.step(self.Pn, tt, self.idx)
+        if new.size:  # newly flagged: the numpy core from their P0 up to k
+            Pnew = self.P_init[:, :, new]
+            for tt in range(k):
+                Pnew = self.step(Pnew, tt, new)
+            idx, Pn = np.concatenate([self.idx, new]), np.concatenate([self.Pn, Pnew], axis=2)
+            order = np.argsort(idx)
+            self.idx, self.Pn = idx[order], Pn[:, :, order]
+        self.t = k
+        if self.idx.size:
+            out[:, :, self.idx] = self.Pn
+        return out
 
 
 AUTO_MIN_RUN_STEPS = 2_000_000

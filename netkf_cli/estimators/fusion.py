@@ -288,31 +288,17 @@ def _mf_compiled(sens: Sensors, P: np.ndarray, counts: np.ndarray, want, qs):
     T = kc.pack(P)
     cnt = np.ascontiguousarray(counts)
     flag = np.zeros(P.shape[-1], dtype=np.bool_)
-    idx = np.zeros(0, dtype=np.int64)  # runs on the numpy core
-    Pn = P[:, :, :0]
 
-    def step(Pk, c):
+    def step(Pk, tt, ix):
         with np.errstate(over="ignore", invalid="ignore"):
-            return sens.correct_counts(kalman.predict(Pk, A, Q), c)
+            return sens.correct_counts(kalman.predict(Pk, A, Q), cnt[tt, ix])
 
+    redo = kalman.FlaggedRuns(P_init, step)  # runs flagged for the rescue: on the numpy core
     t = 0
     for k in want:
         adv(T, cnt, t, k, flag)
-        out = kc.unpack(T, n)
-        new = np.setdiff1d(np.flatnonzero(flag), idx)
-        if idx.size:
-            for tt in range(t, k):
-                Pn = step(Pn, cnt[tt, idx])
-        if new.size:
-            Pnew = P_init[:, :, new]
-            for tt in range(k):
-                Pnew = step(Pnew, cnt[tt, new])
-            idx, Pn = np.concatenate([idx, new]), np.concatenate([Pn, Pnew], axis=2)
-            order = np.argsort(idx)
-            idx, Pn = idx[order], Pn[:, :, order]
+        out = redo.fill(kc.unpack(T, n), flag, k)
         t = k
-        if idx.size:
-            out[:, :, idx] = Pn
         yield k, kalman.report(out, qs, A, Q)
 
 
