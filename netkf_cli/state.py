@@ -120,13 +120,53 @@ def nees(err: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     P⁺ is the pseudo-inverse (eigenvalues below ``ZERO_INNOVATION_RTOL``·λ_max count as zero): a
     direction the estimator knows exactly (P singular, e.g. x_0 known) has no error to normalize. If
     P is the error covariance of a Gaussian error, eᵀ P⁺ e ~ χ²(rank P): mean rank P, variance 2 rank P.
+    n ≤ 2 in closed form (:func:`_nees_small`: the same eigen-decomposition, equal to ``eigh`` to rounding),
+    larger n through ``np.linalg.eigh`` (:func:`nees_eigh`, the reference).
     """
+    if P.shape[0] <= 2:
+        return _nees_small(err, P)
+    return nees_eigh(err, P)
+
+
+def nees_eigh(err: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`nees` through ``np.linalg.eigh`` per run (any n; the reference of the closed forms)."""
     w, V = np.linalg.eigh(np.moveaxis(0.5 * (P + P.swapaxes(0, 1)), -1, 0))  # (runs, n), (runs, n, n)
     tol = ZERO_INNOVATION_RTOL * np.maximum(w[:, -1:], 0.0)
     ok = w > np.maximum(tol, 0.0)
     winv = np.where(ok, 1.0 / np.where(ok, w, 1.0), 0.0)
     u = np.einsum("rji,jr->ri", V, err)
     return (u * u * winv).sum(axis=1), ok.sum(axis=1).astype(float)
+
+
+def _nees_small(err: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`nees` for n = 1, 2, vectorized over runs: the eigenvalues of the symmetrized 2×2 P,
+    λ± = (a + c)/2 ± r, r = hypot((a − c)/2, b), the unit eigenvector of λ+ from whichever of
+    (r + h, b), (b, r − h) (h = (a − c)/2) is the better conditioned, the other one orthogonal."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if P.shape[0] == 1:
+            w = P[0, 0]
+            ok = w > 0.0
+            e = err[0]
+            return np.where(ok, e * e / np.where(ok, w, 1.0), 0.0), ok.astype(float)
+        a, c = P[0, 0], P[1, 1]
+        b = 0.5 * (P[0, 1] + P[1, 0])
+        h = 0.5 * (a - c)
+        r = np.hypot(h, b)
+        mid = 0.5 * (a + c)
+        lmax, lmin = mid + r, mid - r
+        pos = h >= 0.0
+        vx = np.where(pos, r + h, b)
+        vy = np.where(pos, b, r - h)
+        nv = np.hypot(vx, vy)
+        zero = ~(nv > 0.0)  # r = 0: P = a I, any basis
+        nv = np.where(zero, 1.0, nv)
+        vx, vy = np.where(zero, 1.0, vx / nv), np.where(zero, 0.0, vy / nv)
+        u1 = vx * err[0] + vy * err[1]
+        u2 = -vy * err[0] + vx * err[1]
+        tol = np.maximum(ZERO_INNOVATION_RTOL * np.maximum(lmax, 0.0), 0.0)
+        ok1, ok2 = lmax > tol, lmin > tol
+        q = np.where(ok1, u1 * u1 / np.where(ok1, lmax, 1.0), 0.0) + np.where(ok2, u2 * u2 / np.where(ok2, lmin, 1.0), 0.0)
+        return q, ok1.astype(float) + ok2.astype(float)
 
 
 def truth_index(k: int, quantity: str, lag: int = 0) -> int:
@@ -200,11 +240,15 @@ class StateErrorKernel:
                         continue
                     e = st.x[:, truth_index(k, q, lag)] - xh
                     ok = np.isfinite(e).all(axis=0) & np.isfinite(P).all(axis=(0, 1))
-                    e = np.where(ok, e, 0.0)
-                    Pf = np.where(ok, P, 0.0)
-                    e2, trP = (e * e).sum(axis=0), np.trace(Pf)
-                    qq, rank = nees(e, Pf + (~ok) * np.eye(n)[:, :, None])
-                    qq, rank = np.where(ok, qq, 0.0), np.where(ok, rank, 0.0)
+                    if ok.all():  # the usual case: no masking needed
+                        e2, trP = (e * e).sum(axis=0), np.trace(P)
+                        qq, rank = nees(e, P)
+                    else:
+                        e = np.where(ok, e, 0.0)
+                        Pf = np.where(ok, P, 0.0)
+                        e2, trP = (e * e).sum(axis=0), np.trace(Pf)
+                        qq, rank = nees(e, Pf + (~ok) * np.eye(n)[:, :, None])
+                        qq, rank = np.where(ok, qq, 0.0), np.where(ok, rank, 0.0)
                     if k in win:
                         a["wa"] += np.stack([e2, trP, qq, rank]) / len(self.window)
                         a["bad"] |= ~ok
