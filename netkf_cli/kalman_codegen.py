@@ -147,31 +147,73 @@ def source(A, C, Q, R, groups, limit: float) -> str:
     return "\n".join(L) + "\n"
 
 
-def _count_step(A, C1, Q, R1, ind: str, g: str) -> list[str]:
+def _lin_symbolic(terms: list[tuple[str, str]]) -> str:
+    """Σ coef·name with every term (symbolic coefficients); '0.0' when empty."""
+    return " + ".join(f"{c} * {v}" for c, v in terms) or "0.0"
+
+
+def _symbols(n: int, mg: int):
+    """(A, C1, Q, R1) as arrays of the local names :func:`_system_locals` defines."""
+    def sym(name, r, c, tri):
+        return np.array([[f"{name}{min(i, j)}_{max(i, j)}" if tri else f"{name}{i}_{j}" for j in range(c)]
+                         for i in range(r)], dtype=object)
+    return sym("sa", n, n, False), sym("sc", mg, n, False), sym("sq", n, n, True), sym("sr", mg, mg, True)
+
+
+def _system_locals(n: int, mg: int, ind: str = "    ") -> list[str]:
+    """Lines reading the system vector ``sv`` (:func:`system_vector`) into the locals of :func:`_symbols`
+    and ``limit``."""
+    L, k = [], 0
+    for name, r, c, tri in (("sa", n, n, False), ("sc", mg, n, False), ("sq", n, n, True), ("sr", mg, mg, True)):
+        for i in range(r):
+            for j in range(i if tri else 0, c):
+                L.append(f"{ind}{name}{i}_{j} = sv[{k}]")
+                k += 1
+    return L + [f"{ind}limit = sv[{k}]"]
+
+
+def system_vector(A, C1, Q, R1, limit: float) -> np.ndarray:
+    """The float64 vector ``sv`` a symbolic kernel reads (:func:`_system_locals`): A and C1 row by row, the
+    upper triangles of Q and R1, then the rescue limit."""
+    A, C1, Q, R1 = _as2(A, C1, Q, R1)
+    iq, ir = np.triu_indices(A.shape[0]), np.triu_indices(C1.shape[0])
+    return np.ascontiguousarray(np.concatenate([A.ravel(), C1.ravel(), Q[iq], R1[ir], [float(limit)]]))
+
+
+def _count_step(A, C1, Q, R1, ind: str, g: str, symbolic: bool = False) -> list[str]:
     """Straight-line lines of one predicted count update, from the locals ``p{i}_{j}`` (upper triangle of
     P_{k−1|k−1}) to ``q{i}_{j}`` (P_{k|k}), count ``g`` (a float expression); raises ``flag[r]`` when the
-    prior's trace exceeds ``limit`` or is non-finite, or the update gives a NaN."""
+    prior's trace exceeds ``limit`` or is non-finite, or the update gives a NaN. ``symbolic``: the system's
+    numbers are the locals of :func:`_system_locals` (``sa``/``sc``/``sq``/``sr``), every term kept (only
+    the shapes of A, C1 are read): the same operations in the same order, so for finite P the same bits as
+    the inlined form (a dropped term is an exact 0·x, a folded 1·x is exact)."""
     n, mg = A.shape[0], C1.shape[0]
     tri = [(i, j) for i in range(n) for j in range(i, n)]
 
     def p(name, i, j):
         return f"{name}{min(i, j)}_{max(i, j)}"
 
+    lin, num = _lin, _num
+    if symbolic:
+        lin = _lin_symbolic
+        num = str
+        A, C1, Q, R1 = _symbols(n, mg)
+
     L = []
     for i in range(n):
         for j in range(n):
-            L.append(f"x{i}_{j} = {_lin([(A[i, k], p('p', k, j)) for k in range(n)])}")
+            L.append(f"x{i}_{j} = {lin([(A[i, k], p('p', k, j)) for k in range(n)])}")
     for i, j in tri:
-        L.append(f"{p('m', i, j)} = {_lin([(A[j, k], f'x{i}_{k}') for k in range(n)])} + {_num(Q[i, j])}")
+        L.append(f"{p('m', i, j)} = {lin([(A[j, k], f'x{i}_{k}') for k in range(n)])} + {num(Q[i, j])}")
     L.append("tr = " + " + ".join(p("m", i, i) for i in range(n)))
     L.append("flag[r] = flag[r] or not (tr <= limit)")
     L.append(f"g = {g}")
     for i in range(n):
         for a in range(mg):
-            L.append(f"u{i}_{a} = {_lin([(C1[a, k], p('m', i, k)) for k in range(n)])}")
+            L.append(f"u{i}_{a} = {lin([(C1[a, k], p('m', i, k)) for k in range(n)])}")
     for a in range(mg):
         for b in range(a, mg):
-            L.append(f"s{a}_{b} = g * ({_lin([(C1[a, k], f'u{k}_{b}') for k in range(n)])}) + {_num(R1[a, b])}")
+            L.append(f"s{a}_{b} = g * ({lin([(C1[a, k], f'u{k}_{b}') for k in range(n)])}) + {num(R1[a, b])}")
     if mg >= 3:
         for j in range(mg):
             acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
@@ -207,17 +249,20 @@ def _count_step(A, C1, Q, R1, ind: str, g: str) -> list[str]:
     return [ind + x for x in L]
 
 
-def _header(fn: str, args: str, limit: float) -> list[str]:
-    return ["import numpy as np", "import numba as nb", "",
-            "@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')",
-            f"def {fn}({args}):", f"    limit = {_num(limit)}"]
+def _header(fn: str, args: str, limit: float | None, n: int = 0, mg: int = 0) -> list[str]:
+    """The kernel's first lines; ``limit`` None = symbolic (the system and limit read from ``sv``)."""
+    L = ["import numpy as np", "import numba as nb", "",
+         "@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')"]
+    if limit is None:
+        return L + [f"def {fn}({args}, sv):"] + _system_locals(n, mg)
+    return L + [f"def {fn}({args}):", f"    limit = {_num(limit)}"]
 
 
 def _as2(*xs):
     return (np.atleast_2d(np.asarray(x, dtype=float)) for x in xs)
 
 
-def source_counts(A, C1, Q, R1, limit: float) -> str:
+def source_counts(A, C1, Q, R1, limit: float | None) -> str:
     """The source of ``advance_counts(P, cnt, t0, t1, flag)``: the count update of N identical sensors
     (:func:`netkf_cli.kalman.update_counts`, Chiuso & Schenato eq. (14)) after the prediction, per run
 
@@ -225,19 +270,21 @@ def source_counts(A, C1, Q, R1, limit: float) -> str:
 
     (c = 0 leaves M; S⁻¹ in closed form for one or two rows, the unrolled Cholesky factor for three or
     four), the upper triangle of P as in :func:`source`, the same rescue flag (prior trace above
-    ``limit`` or non-finite, or a NaN after the update: the caller redoes the run on the numpy core)."""
+    ``limit`` or non-finite, or a NaN after the update: the caller redoes the run on the numpy core).
+    ``limit`` None: the symbolic kernel ``advance_counts(P, cnt, t0, t1, flag, sv)`` of every system of
+    these shapes (``sv`` = :func:`system_vector`; the same bits for finite P, one compile per shape)."""
     A, C1, Q, R1 = _as2(A, C1, Q, R1)
     n = A.shape[0]
     tri = [(i, j) for i in range(n) for j in range(i, n)]
-    L = _header("advance_counts", "P, cnt, t0, t1, flag", limit)
+    L = _header("advance_counts", "P, cnt, t0, t1, flag", limit, n, C1.shape[0])
     L += ["    runs = P.shape[1]", "    for t in range(t0, t1):", "        for r in range(runs):"]
     L += [f"            p{i}_{j} = P[{k}, r]" for k, (i, j) in enumerate(tri)]
-    L += _count_step(A, C1, Q, R1, " " * 12, "float(cnt[t, r])")
+    L += _count_step(A, C1, Q, R1, " " * 12, "float(cnt[t, r])", limit is None)
     L += [f"            P[{k}, r] = q{i}_{j}" for k, (i, j) in enumerate(tri)]
     return "\n".join(L) + "\n"
 
 
-def source_ibf(A, C1, Q, R1, limit: float) -> str:
+def source_ibf(A, C1, Q, R1, limit: float | None) -> str:
     """The source of ``ibf_eval(arrival, off, last, t0, t1, full, out, flag, cum)``: ``last`` (N, runs) int32
     (the last arrival, −1 = nothing yet) advanced over trace steps t0 … t1 − 1 of ``arrival`` (N, steps, runs)
     holding trace steps off, off + 1, …,
@@ -245,11 +292,12 @@ def source_ibf(A, C1, Q, R1, limit: float) -> str:
     (:class:`netkf_cli.estimators.fusion.IBF`): τ_i = t − last_i, K = max τ (≤ t + 1); from the full-information
     ``full[t + 1 − K]`` (packed upper triangle, (J, n(n+1)/2)), K count steps with ℓ_b = #{i : τ_i ≤ b},
     b = K − 1 … 0 (the count form of the sensors {i : τ_i ≤ b}); ``out`` (n(n+1)/2, runs); ``cum``
-    int64 scratch of ≥ t + 2 zeros (left zero); ``flag`` as in :func:`source_counts`."""
+    int64 scratch of ≥ t + 2 zeros (left zero); ``flag`` as in :func:`source_counts`; ``limit`` None: symbolic,
+    as :func:`source_counts` (argument ``sv`` last)."""
     A, C1, Q, R1 = _as2(A, C1, Q, R1)
     n = A.shape[0]
     tri = [(i, j) for i in range(n) for j in range(i, n)]
-    L = _header("ibf_eval", "arrival, off, last, t0, t1, full, out, flag, cum", limit)
+    L = _header("ibf_eval", "arrival, off, last, t0, t1, full, out, flag, cum", limit, n, C1.shape[0])
     L += _advance_last()
     L += ["    t = t1 - 1",
           "    for r in range(runs):",
@@ -264,7 +312,7 @@ def source_ibf(A, C1, Q, R1, limit: float) -> str:
           "        j0 = t + 1 - K"]
     L += [f"        p{i}_{j} = full[j0, {k}]" for k, (i, j) in enumerate(tri)]
     L += ["        for b in range(K - 1, -1, -1):"]
-    L += _count_step(A, C1, Q, R1, " " * 12, "float(cum[b])")
+    L += _count_step(A, C1, Q, R1, " " * 12, "float(cum[b])", limit is None)
     L += [f"            p{i}_{j} = q{i}_{j}" for i, j in tri]
     L += [f"        out[{k}, r] = p{i}_{j}" for k, (i, j) in enumerate(tri)]
     L += ["        for b in range(K + 1):", "            cum[b] = 0"]
@@ -365,13 +413,15 @@ def kernel(A, C, Q, R, groups, limit: float):
     return _load(source(A, C, Q, R, groups, limit), "netkf_kf", "advance")
 
 
-def kernel_counts(A, C1, Q, R1, limit: float):
-    """The compiled ``advance_counts`` (:func:`source_counts`) for N identical sensors (C1, R1)."""
+def kernel_counts(A, C1, Q, R1, limit: float | None):
+    """The compiled ``advance_counts`` (:func:`source_counts`) for N identical sensors (C1, R1); ``limit``
+    None: the symbolic kernel of these shapes (pass :func:`system_vector` as ``sv``)."""
     return _load(source_counts(A, C1, Q, R1, limit), "netkf_mf", "advance_counts")
 
 
-def kernel_ibf(A, C1, Q, R1, limit: float):
-    """The compiled ``ibf_eval`` (:func:`source_ibf`) for N identical sensors (C1, R1)."""
+def kernel_ibf(A, C1, Q, R1, limit: float | None):
+    """The compiled ``ibf_eval`` (:func:`source_ibf`) for N identical sensors (C1, R1); ``limit`` None:
+    symbolic, as :func:`kernel_counts`."""
     return _load(source_ibf(A, C1, Q, R1, limit), "netkf_ibf", "ibf_eval")
 
 

@@ -98,6 +98,11 @@ def sample_multi_trace_arrivals(rng: np.random.Generator, runs: int, horizon: in
 RAW_BLOCK = 1 << 20
 """Raw 64-bit draws held at once by :func:`sample_multi_trace_arrivals` (8 MB)."""
 
+MATERIALIZE_MAX = 1 << 24
+"""A lazy :class:`SensorTrace` of at most this many arrivals (16 MB of bools: a 1000-run chunk of 25
+sensors × 200 steps is 5 MB) is drawn whole on its first read and kept, so the estimators of one chunk
+share one draw; a larger one is drawn block by block for each reader (memory O(RAW_BLOCK))."""
+
 
 # ----------------------------------------------------------------------------------------
 # The count sampler (``sampling: counts``): one raw draw per run-step
@@ -229,9 +234,16 @@ class SensorTrace(_LazyArrival):
         pass
 
     def steps(self, t0: int, t1: int) -> np.ndarray:
-        """Arrivals of steps t0 … t1 − 1, (N, t1 − t0, runs) bool (a view once materialised)."""
+        """Arrivals of steps t0 … t1 − 1, (N, t1 − t0, runs) bool (a view once materialised). A trace of at
+        most :data:`MATERIALIZE_MAX` arrivals is materialised on its first read (the same bits, drawn once
+        for every estimator of the chunk instead of once per estimator)."""
+        if self._arrival is None and self._loss.size * self.horizon * self.runs <= MATERIALIZE_MAX:
+            self._arrival = self._draw()
         if self._arrival is not None:
             return self._arrival[:, t0:t1]
+        return self._draw_steps(t0, t1)
+
+    def _draw_steps(self, t0: int, t1: int) -> np.ndarray:
         N, T, R = self._loss.size, self.horizon, self.runs
         out = np.empty((N, t1 - t0, R), dtype=bool)
         bg = np.random.PCG64()
@@ -248,7 +260,7 @@ class SensorTrace(_LazyArrival):
         out = np.empty((self._loss.size, self.horizon, self.runs), dtype=bool)
         b = block_steps(self.horizon, self.runs, self._loss.size)
         for t0 in range(0, self.horizon, b):
-            out[:, t0 : t0 + b] = self.steps(t0, min(self.horizon, t0 + b))
+            out[:, t0 : t0 + b] = self._draw_steps(t0, min(self.horizon, t0 + b))
         return out
 
     @property

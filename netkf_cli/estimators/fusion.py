@@ -143,7 +143,8 @@ class FusionEstimator(EstimatorModel):
         "auto", description="numpy (the reference) | numba (kernels generated for the system by kalman_codegen: MF's "
                             "count update, IBF's count steps from the full-information P, OLPEF's τ-histogram form, "
                             "equal to rounding; identical sensors, or MF = kf's compiled filter) | auto = numba for "
-                            "chunks of ≥ 2e6 run-steps when numba is importable")
+                            "chunks of ≥ 1e5 run-steps when numba is importable (identical sensors: the kernels read "
+                            "the system from a vector, one compile per shape; else kf's rule, ≥ 2e6)")
 
     def check(self, system, channel) -> None:
         """The channel's streams must be the system's sensors; OLPEF needs identical sensors and a stable A."""
@@ -235,8 +236,21 @@ class FusionEstimator(EstimatorModel):
             yield k, out
 
 
+AUTO_MIN_RUN_STEPS = 100_000
+"""``backend: auto`` runs the fusion kernels (identical sensors) on chunks of at least this many run-steps.
+They read the system from a vector (``kalman_codegen`` symbolic kernels), so a grid over Q or the loss
+shares one compile per shape and machine; what a process pays is numba's start (~0.3–0.8 s, once), which
+the compiled IBF/OLPEF (3–6× numpy) repay within one 1000-run × 200-step chunk of the paper's figures.
+(``kalman.AUTO_MIN_RUN_STEPS``, 2e6, is for kf's per-system kernels.)"""
+
+
 def _mf_backend(backend: str, sens: Sensors, run_steps: int) -> str:
     """kalman.choose_backend for the count update; numba only where a kernel can be generated."""
+    if backend == "auto":
+        ok = run_steps >= AUTO_MIN_RUN_STEPS and kalman.numba_available() and sens.filt.sequential
+        backend = "numba" if ok else "numpy"
+        if ok and not kc.supported(sens.filt.A.shape[0], [tuple(range(sens.C1.shape[0]))]):
+            return "numpy"
     b = kalman.choose_backend(backend, sens.filt, run_steps)
     if b == "numba" and not kc.supported(sens.filt.A.shape[0], [tuple(range(sens.C1.shape[0]))]):
         if backend == "numba":
@@ -283,7 +297,8 @@ def _mf_run(sens: Sensors, P0: np.ndarray, trace, want, qs, backend: str = "nump
 def _mf_compiled(sens: Sensors, P: np.ndarray, counts: np.ndarray, want, qs):
     A, Q = sens.filt.A, sens.filt.Q
     n = A.shape[0]
-    adv = kc.kernel_counts(A, sens.C1, Q, sens.R1, sens.filt.rescue.limit)
+    adv = kc.kernel_counts(A, sens.C1, Q, sens.R1, None)  # symbolic: one kernel per shape, the system in sv
+    sv = kc.system_vector(A, sens.C1, Q, sens.R1, sens.filt.rescue.limit)
     P_init = P.copy()
     T = kc.pack(P)
     cnt = np.ascontiguousarray(counts)
@@ -296,7 +311,7 @@ def _mf_compiled(sens: Sensors, P: np.ndarray, counts: np.ndarray, want, qs):
     redo = kalman.FlaggedRuns(P_init, step)  # runs flagged for the rescue: on the numpy core
     t = 0
     for k in want:
-        adv(T, cnt, t, k, flag)
+        adv(T, cnt, t, k, flag, sv)
         out = redo.fill(kc.unpack(T, n), flag, k)
         t = k
         yield k, kalman.report(out, qs, A, Q)
@@ -313,7 +328,8 @@ def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
     last = np.full((N, runs), -1, dtype=np.int32)
     out = np.empty((n * (n + 1) // 2, runs))
     if strat == "ibf":
-        kern = kc.kernel_ibf(A, sens.C1, Q, sens.R1, sens.filt.rescue.limit)
+        kern = kc.kernel_ibf(A, sens.C1, Q, sens.R1, None)  # symbolic, as _mf_compiled
+        sv = kc.system_vector(A, sens.C1, Q, sens.R1, sens.filt.rescue.limit)
         full = np.ascontiguousarray(np.stack([kc.pack(model._full(j))[:, 0] for j in range(trace.horizon + 1)]))
         cum = np.zeros(trace.horizon + 2, dtype=np.int64)
         flag = np.zeros(runs, dtype=np.bool_)
@@ -337,7 +353,7 @@ def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
         for blk, off, s0, s1 in blocks.segments(t, k):  # the last segment's evaluation is the one kept
             if strat == "ibf":
                 flag[:] = False
-                kern(blk, off, last, s0, s1, full, out, flag, cum)
+                kern(blk, off, last, s0, s1, full, out, flag, cum, sv)
             else:
                 worst = kern(blk, off, last, s0, s1, *tab, out, vals, cnts)
         if strat == "ibf":

@@ -9,7 +9,7 @@ import scipy.linalg
 import yaml
 from typer.testing import CliRunner
 
-from netkf_cli import engine, kalman
+from netkf_cli import engine, kalman, kalman_codegen
 from netkf_cli.channels.multi import (MultiChannel, _raw_threshold, sample_multi_trace_arrivals, times_since_arrival,
                                       times_since_arrival_tr)
 from netkf_cli.errors import ConfigError
@@ -496,6 +496,7 @@ def test_lazy_per_sensor_trace_is_the_eager_sampler_bit_for_bit(monkeypatch):
     from netkf_cli.channels.multi import SensorTrace
 
     monkeypatch.setattr(multi, "RAW_BLOCK", 3 * 301 + 5)
+    monkeypatch.setattr(multi, "MATERIALIZE_MAX", 0)  # lazy at every size
     loss = np.array([0.0, 0.3, 0.7, 1.0, 0.5])
     ch = MultiChannel(kind="multi", sensors=5, loss=loss.tolist())
     rng = np.random.default_rng(np.random.SeedSequence(4, spawn_key=(0, 2)))
@@ -523,6 +524,7 @@ def test_blocked_reading_of_a_lazy_trace_equals_the_whole_trace(monkeypatch, str
 
     N, runs, T = 6, 250, 30
     monkeypatch.setattr(multi, "RAW_BLOCK", 4 * runs * N)  # blocks of 4 steps
+    monkeypatch.setattr(multi, "MATERIALIZE_MAX", 0)  # lazy at every size
     assert multi.block_steps(T, runs, N) == 4
     system = identical_sensors(A2, C2, Q2, R2, N)
     steps = [1, 2, 3, 5, 6, 7, 8, 9, 19, 30]
@@ -535,6 +537,65 @@ def test_blocked_reading_of_a_lazy_trace_equals_the_whole_trace(monkeypatch, str
     for k in steps:
         for q in BOTH:
             np.testing.assert_array_equal(got[k][q], ref[k][q])
+
+
+def test_a_small_lazy_trace_is_drawn_once_on_first_read_with_the_same_bits(monkeypatch):
+    """A SensorTrace of ≤ MATERIALIZE_MAX arrivals is materialised by its first block read (the estimators of
+    a chunk share one draw); its bits are the eager sampler's and a larger trace stays lazy."""
+    from netkf_cli.channels import multi
+
+    loss = np.array([0.0, 0.3, 0.7, 1.0, 0.5])
+    ch = MultiChannel(kind="multi", sensors=5, loss=loss.tolist())
+    ref = sample_multi_trace_arrivals(np.random.default_rng(11), 301, 23, loss)
+    monkeypatch.setattr(multi, "MATERIALIZE_MAX", 5 * 23 * 301)
+    tr = ch.sample_trace(np.random.default_rng(11), 301, 23)
+    np.testing.assert_array_equal(tr.steps(4, 11), ref[:, 4:11])
+    assert tr.materialized
+    np.testing.assert_array_equal(tr.arrival, ref)
+    np.testing.assert_array_equal(tr.counts, ref.sum(axis=0))
+    monkeypatch.setattr(multi, "MATERIALIZE_MAX", 5 * 23 * 301 - 1)
+    tr = ch.sample_trace(np.random.default_rng(11), 301, 23)
+    np.testing.assert_array_equal(tr.steps(4, 11), ref[:, 4:11])
+    assert not tr.materialized
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["scalar", "vehicle", "3-rows"])
+def test_symbolic_kernels_give_the_bits_of_the_inlined_ones(name):
+    """The fusion kernels read the system from a vector (kalman_codegen ``limit=None``: one compile per shape,
+    not per system of an ``over`` grid): on finite P the same bits as the kernels with the numbers inlined
+    (a dropped term is an exact 0·x, a folded one an exact 1·x), MF's count update and IBF's evaluation."""
+    Av = [[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1.0]]
+    cases = {"scalar": (0.9, 1.0, 1e-3, 10.0),
+             "vehicle": (Av, np.hstack([np.eye(2), np.zeros((2, 2))]), 0.01 * np.eye(4), 0.001 * np.eye(2)),
+             "3-rows": ([[0.9, 0.2, 0], [0, 0.7, 0.1], [0, 0, 0.5]], np.eye(3), 0.1 * np.eye(3),
+                        [[1.0, 0.2, 0], [0.2, 1.0, 0.1], [0, 0.1, 1.0]])}
+    A, C, Q, R = (np.atleast_2d(np.asarray(x, dtype=float)) for x in cases[name])
+    n, N, runs, T, lim = A.shape[0], 6, 300, 30, 1e12
+    sv = kalman_codegen.system_vector(A, C, Q, R, lim)
+    rng = np.random.default_rng(5)
+    cnt = rng.integers(0, N + 1, size=(T, runs)).astype(np.uint8)
+    P0 = kalman_codegen.pack(np.repeat(np.eye(n)[:, :, None], runs, axis=2))
+    outs = []
+    for k, extra in ((kalman_codegen.kernel_counts(A, C, Q, R, lim), ()), (kalman_codegen.kernel_counts(A, C, Q, R, None), (sv,))):
+        P, flag = P0.copy(), np.zeros(runs, dtype=bool)
+        k(P, cnt, 0, T, flag, *extra)
+        outs.append((P, flag))
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
+    np.testing.assert_array_equal(outs[0][1], outs[1][1])
+    arr = rng.random((N, T, runs)) < 0.4
+    full = np.ascontiguousarray(np.repeat(P0[:, :1].T, T + 1, axis=0))
+    outs = []
+    for k, extra in ((kalman_codegen.kernel_ibf(A, C, Q, R, lim), ()), (kalman_codegen.kernel_ibf(A, C, Q, R, None), (sv,))):
+        last, out, flag = np.full((N, runs), -1, dtype=np.int32), np.empty_like(P0), np.zeros(runs, dtype=bool)
+        got = []
+        for t0, t1 in ((0, 9), (9, 10), (10, T)):
+            k(arr, 0, last, t0, t1, full, out, flag, np.zeros(T + 2, dtype=np.int64), *extra)
+            got.append(out.copy())
+        outs.append((np.array(got), flag))
+    assert np.isfinite(outs[0][0]).all()
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
+    np.testing.assert_array_equal(outs[0][1], outs[1][1])
 
 
 @needs_numba
