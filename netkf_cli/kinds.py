@@ -11,7 +11,8 @@ from netkf_cli.kalman import MEANING
 from netkf_cli.scenario import kinds
 from netkf_cli.spec import AnalysisModel, ChannelModel, EstimatorModel
 
-GENERIC_METRICS = ("distribution", "mean_vs_time", "compare", "tail", "time_average", "state_error", "updates")
+GENERIC_METRICS = ("distribution", "mean_vs_time", "compare", "tail", "time_average", "state_error", "updates",
+                   "burst_mean", "autocorrelation")
 
 
 def _type_name(ann: Any) -> str:
@@ -72,7 +73,8 @@ def describe(compat: dict | None = None) -> dict[str, dict[str, dict]]:
             else:
                 entry["generic"] = k in GENERIC_METRICS
                 if k in GENERIC_METRICS:
-                    entry["works_with"] = "any channel with any estimator it is compatible with (see the estimators)"
+                    entry["works_with"] = getattr(cls, "works_with", None) or \
+                        "any channel with any estimator it is compatible with (see the estimators)"
             fam[k] = entry
         out[family] = fam
     return out

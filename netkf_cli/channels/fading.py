@@ -212,6 +212,21 @@ def sample_gain(rng: np.random.Generator, runs: int, horizon: int, corr) -> np.n
     return np.einsum("ij,jk->ik", L, z.real) + 1j * np.einsum("ij,jk->ik", L, z.imag)
 
 
+@dataclass(frozen=True)
+class GaussianDropLaw:
+    """A drop process made by thresholding a complex-Gaussian gain: drop_t iff Υ_ave |h_t|² < Υ_T, h = L z.
+
+    ``factor`` L (horizon, horizon) lower triangular (None: independent gains), ``noise`` σ_n²(Υ) of a kept
+    packet. Given the past, h_t is N(Σ_{u<t} L_tu z_u, L_tt²) per real component: each step's drop probability
+    and its conditional law are closed forms (non-central χ²₂), which a sequential Monte Carlo of the drop
+    bursts moves through (:class:`netkf_cli.estimators.fading_receivers.BurstSMCKernel`)."""
+
+    factor: np.ndarray | None
+    snr_avg: float
+    threshold: float
+    noise: NoiseFn
+
+
 class FadingChannel(ChannelModel):
     """``kind: fading`` — Rayleigh fading SNR Υ (exponential, mean ``snr_avg``), i.i.d. or Jakes-correlated."""
 
@@ -248,6 +263,29 @@ class FadingChannel(ChannelModel):
                      meta={"noise": NoiseFn.of(self.noise), "snr_avg": self.mean_snr,
                            "correlation": self.correlation.model,
                            "threshold": None if self.threshold is None else self.threshold.linear})
+
+    def drop_law(self, threshold: float, horizon: int) -> "GaussianDropLaw":
+        """The contract of a drop-burst sequential Monte Carlo (``kind: burst_mean``): a packet is dropped iff
+        Υ_t = Υ_ave |h_t|² < Υ_T with h a stationary unit-power complex Gaussian sequence, h = L z (z ~ CN(0, I);
+        L :func:`jakes_factor` for Jakes, ``None`` for i.i.d. gains), and a kept packet carries σ_n²(Υ_t)."""
+        factor = None if self.correlation.model == "iid" else jakes_factor(horizon, self.correlation)
+        return GaussianDropLaw(factor, self.mean_snr, float(threshold), NoiseFn.of(self.noise))
+
+    def sample_gain(self, rng: np.random.Generator, runs: int, horizon: int) -> np.ndarray:
+        """The unit-power complex gains h, shape (horizon, runs) — the same random numbers as :meth:`sample`
+        (Υ = Υ_ave |h|²); the contract of ``kind: autocorrelation``."""
+        return sample_gain(rng, runs, horizon, self.correlation)
+
+    def gain_autocorr(self, lags) -> np.ndarray:
+        """The model's E h_t h*_{t−k} at ``lags``: J₀(2π f_D k T) (eq. 65) for Jakes, δ_k0 for i.i.d. gains."""
+        lags = np.asarray(lags)
+        if self.correlation.model == "iid":
+            return (lags == 0).astype(float)
+        return np.asarray(self.correlation.autocorr(lags), dtype=float)
+
+    def independent(self) -> "FadingChannel":
+        """The same channel with independent gains from one transmission to the next (same marginal law of Υ)."""
+        return self.model_copy(update={"correlation": IidCorrelation(model="iid")})
 
     def snr_law(self) -> dict:
         """What closed forms may use: Υ is exponential with mean Υ_ave (Rayleigh, eq. 3); i.i.d. or Jakes (eq. 65).

@@ -134,6 +134,35 @@ class ReceiverEstimator(EstimatorModel):
             out["variance_reduction"] = "auto (burst-conditioned for means on an i.i.d. channel, else none)"
         return out
 
+    def threshold_of(self, channel) -> float | None:
+        """Υ_T (linear): the receiver's own ``threshold``, else the channel's (None if neither gives one)."""
+        T = self.threshold if self.threshold is not None else getattr(channel, "threshold", None)
+        return None if T is None else T.linear
+
+    def renewal_refusal(self, system, quantity: str) -> str | None:
+        """Why P_k of this receiver does NOT renew at a received packet (None: it does) — the contract of
+        ``kind: burst_mean``: P at the last step is a function of the last received packet's σ_n² and of the
+        number of drops since (:meth:`renewal_coefficients`)."""
+        if self.scenario != 2:
+            return (f"receiver scenario {self.scenario} carries its covariance across a received packet (its gain "
+                    "depends on the prior): only scenario 2 with an invertible C renews there")
+        rm = ReceiverModel(2, system.A, system.C, system.Q, system.R, None)
+        if not rm.square_C:
+            return "receiver scenario 2 renews at a received packet only with an invertible C (eq. 10: K = C⁻¹)"
+        if quantity != "predicted":
+            return f"the renewal form is written for the predicted P_{{k+1|k}} (the paper's P[k+1]), got {quantity}"
+        return None
+
+    def renewal_coefficients(self, system, horizon: int, quantity: str = "predicted"):
+        """(M1 (k, n, n), M2 (k, n, n), D (n, n)) with k = ``horizon``: P_{k+1|k} = σ² M1[L] + M2[L] when the last
+        received packet (noise σ² = σ_n²(Υ) of that packet) is followed by L = 0 … k−1 drops, D when every packet
+        was dropped (:func:`memoryless_coefficients` from P_{1|0} = A P0 Aᵀ + Q, P0 = P_{0|0})."""
+        why = self.renewal_refusal(system, quantity)
+        if why is not None:
+            raise ConfigError.at("estimator.scenario", why)
+        P10 = kalman.one(kalman.predict, initial_covariance(system), np.atleast_2d(system.A), np.atleast_2d(system.Q))
+        return memoryless_coefficients(system.A, system.C, system.Q, system.R, P10, int(horizon))
+
     def model(self, system, noise) -> "ReceiverModel":
         return ReceiverModel(self.scenario, system.A, system.C, system.Q, system.R, noise)
 

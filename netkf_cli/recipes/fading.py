@@ -1,9 +1,9 @@
-"""Artefacts of Mostofi & Murray 2009 (fading channels) that are paper arithmetic: Figs 3, 4, 5 (closed forms),
-and Fig. 7 (correlated channel; its sequential Monte Carlo of the drop bursts has no generic metric yet).
+"""Artefacts of Mostofi & Murray 2009 (fading channels) that are paper arithmetic: Figs 3, 4, 5 (closed forms).
 
-Fig. 6, Sec. 4.2 and Theorem 4 are configurations of the generic metrics (configs/fading/fig6.yaml, sec42.yaml:
-time_average over the threshold; thm4.yaml: mean_vs_time) with the closed forms as ``references`` providers in
-``analysis/fading.py``.
+Fig. 6, Sec. 4.2, Theorem 4 and Fig. 7 are configurations of the generic metrics (configs/fading/fig6.yaml,
+sec42.yaml: time_average over the threshold; thm4.yaml: mean_vs_time; fig7.yaml: burst_mean, the sequential
+Monte Carlo of the drop bursts; fig7_channel.yaml: autocorrelation of the generated gain) with the closed
+forms as ``references`` providers in ``analysis/fading.py``.
 
 Thresholds Υ_T and SNRs always carry an explicit unit in the YAML; tables hold both the linear
 value (``threshold``) and dB (``threshold_db``). The paper's Υ_T axis (optimum "14" at 20 dB)
@@ -20,26 +20,11 @@ import pandas as pd
 from pydantic import Field, model_validator
 
 from netkf_cli.analysis import fading as fa
-from netkf_cli.channels.fading import Snr, jakes_factor
+from netkf_cli.channels.fading import Snr
 from netkf_cli.errors import ConfigError
-from netkf_cli.estimators import fading_receivers as fr
-from netkf_cli.montecarlo import run_chunked
 from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.spec import AnalysisModel, FiniteFloat, PositiveInt, StrictModel
-
-RELIABLE_REL_SE = 0.05  # a Monte Carlo mean is flagged unreliable above 5 % relative standard error, …
-# … when the estimator has infinite variance (naive mean with drop-continuation probability
-# μ_c and μ_c ρ_max⁴ ≥ 1: a burst of L drops scales P by ~ρ^{2L}, so E P² = Σ μ_c^L ρ^{4L} diverges;
-# then the sample standard error is meaningless however small it looks), or when a run overflowed.
-# ``ess_frac`` = (Σ tr P)²/(N Σ (tr P)²) is reported as a further diagnostic only.
-
-
-PAPER_QUANTITY = ("predicted P_{k+1|k} at k = horizon: the paper's P[k] (eqs 6, 12, 28), which its figures plot; "
-                  "start P[0] = P0 = the prior of y_1 (the paper's convention; the generic receiver estimator "
-                  "starts from P_{0|0} = P0 instead)")
-"""What the fading figures' ‖E P[k]‖ is, in netkf's quantities (manifest ``quantity``, figure footnote)."""
-
 
 class Grid(StrictModel):
     """A grid of SNR values with its unit: ``{unit: linear, values: [...]}`` or ``{unit, start, stop, num}``."""
@@ -90,54 +75,6 @@ def _ber_params(ch, path="channel.noise.model"):
     if ch.noise.model != "ber":
         raise ConfigError.at(path, f"this analysis needs the noise model `ber` (α + δ Ω(√Υ)), got {ch.noise.model}")
     return ch.noise.params
-
-
-def _P0(s):
-    if s.P0 is None:
-        raise ConfigError.at("system.P0", "the fading receivers need an explicit initial covariance P0")
-    return s.P0
-
-
-def _receiver_model(scenario, sc: int, s=None) -> fr.ReceiverModel:
-    s = s or scenario.linear_system()
-    ch = scenario.channel
-    if sc == 2 and s.m > s.n:
-        raise ConfigError.at("system.C", "scenario 2 needs at most as many outputs as states")
-    return fr.ReceiverModel(sc, s.A, s.C, s.Q, s.R, ch.noise.variance)
-
-
-def _norm_and_se(sumX, sumXX, N):
-    """‖mean‖₂ of symmetric matrices and its delta-method standard error.
-
-    sumX (n, n, G), sumXX (n², n², G) = Σ vec(X)vec(X)ᵀ. ∂‖M‖/∂M = u uᵀ for the top eigenvector u.
-    """
-    n = sumX.shape[0]
-    G = sumX.shape[2]
-    val, se = np.full(G, np.nan), np.full(G, np.nan)
-    for g in range(G):
-        M = sumX[:, :, g] / N
-        if not np.all(np.isfinite(M)):
-            val[g] = np.inf
-            continue
-        w, V = np.linalg.eigh((M + M.T) / 2)
-        j = int(np.argmax(np.abs(w)))
-        u = V[:, j]
-        grad = np.outer(u, u).ravel()
-        cov = (sumXX[:, :, g] / N - np.outer(M.ravel(), M.ravel())) * N / max(N - 1, 1)
-        val[g] = abs(w[j])
-        se[g] = math.sqrt(max(float(grad @ cov @ grad), 0.0) / N)
-    return val, se
-
-
-def _summ(tot, N, label, finite_var):
-    val, se = _norm_and_se(tot["sum"], tot["sumsq"], N)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ess = tot["tr"] ** 2 / tot["tr2"] / N
-        rel = se / val
-    reliable = (rel < RELIABLE_REL_SE) & np.asarray(finite_var, dtype=bool) & (tot["inf"] == 0)
-    return pd.DataFrame({"series": label, "value": val, "stderr": se, "n": N, "ess_frac": ess,
-                         "finite_variance": np.asarray(finite_var, dtype=int),
-                         "reliable": reliable.astype(int), "overflowed": tot["inf"]})
 
 
 def _thr_cols(T):
@@ -328,197 +265,4 @@ class FadingScenario2Steady(AnalysisModel):
         legend_outside(ax)
         footnote(fig, "eq. (20) by a discrete Lyapunov solve; the curves start at the smallest positive grid "
                       "threshold; Theorem 1 assumes a symmetric A (not the case here)")
-        return fig
-
-
-# --------------------------------------------------------------------------- Fig. 7
-
-
-class FadingCorrelation(AnalysisModel):
-    """``kind: fading_correlation`` — Fig. 7: correlated (Jakes) vs i.i.d. channel, ‖E P[k]‖ at k = horizon vs Υ_T.
-
-    Scenario 2 with an invertible C forgets everything at a kept packet, so E P[k] is a sum over the
-    length of the final drop burst; the burst probabilities of the correlated channel are estimated
-    by sequential Monte Carlo (:class:`~netkf_cli.estimators.fading_receivers.BurstSMCKernel`,
-    unbiased, finite variance), the same estimator on the i.i.d. channel is checked against the
-    exact eq. (14). Main table: ``jakes_smc``, ``iid_smc``, ``iid_exact``; ``bursts``: Pr[kept, then
-    L drops] per channel; ``path_mean``: the plain sample means (diagnostic only: heavy-tailed, never
-    plotted); ``autocorr``: the generated gain against J₀ (eq. 65).
-    """
-
-    kind: Literal["fading_correlation"]
-    thresholds: Grid = Field(description="the drop thresholds Υ_T (eq. 5) with their unit")
-    receiver: Literal[2, 3] = Field(2, description="receiver scenario (2: no cross-layer path, 3: cross-layer path)")
-    max_lag: PositiveInt = Field(8, description="largest lag of the autocorrelation check against J₀ (eq. 65)")
-    smc_runs: PositiveInt = Field(12, description="independent particle clouds per threshold (the Monte Carlo runs of the SMC)")
-    particles: PositiveInt = Field(32, description="particles K per cloud (sequential Monte Carlo of the drop bursts)")
-    smc_chunk: PositiveInt = Field(4, description="clouds per Monte Carlo chunk")
-    burst_panel: list[FiniteFloat] = Field([12.0, 20.0], description="Υ_T values (same unit as thresholds) "
-                                                                      "whose burst probabilities are drawn")
-    backend: fr.BackendKind = Field("auto", description="backend of the path-mean diagnostic: numpy | numba | auto")
-
-    def compute(self, scenario, ctx: RunContext) -> Artefact:
-        ch = _fading(scenario)
-        if ch.correlation.model != "jakes":
-            raise ConfigError.at("channel.correlation.model", "this analysis compares a Jakes channel with the i.i.d. one: use model: jakes")
-        s = scenario.linear_system()
-        P0 = _P0(s)
-        Ya = ch.mean_snr
-        T = self.thresholds.linear
-        G = len(T)
-        H = scenario.montecarlo.horizon
-        N = ctx.mc_runs(scenario)
-        rm = _receiver_model(scenario, self.receiver, s)
-        rm = fr.ReceiverModel(rm.scenario, rm.A, rm.C, rm.Q, rm.R, fr.NoiseFn.of(ch.noise))
-        lags = np.arange(self.max_lag + 1)
-        rho = fa.rho_max(s.A)
-        backend = fr.resolve_backend(self.backend, s.n)
-        # ---- plain sample means (diagnostic), burst statistics, autocorrelation: stream 0
-        tot = run_chunked(fr.CorrelatedPathKernel(ch, rm, T, P0, H, self.max_lag, backend=backend), N,
-                          scenario.montecarlo.chunk, scenario.montecarlo.seed, stream=0, progress=ctx.progress,
-                          label="fading_correlation_paths")
-        paths = []
-        for lab in ("jakes", "iid"):
-            with np.errstate(invalid="ignore", divide="ignore"):
-                p1 = tot[f"{lab}_d1"] / tot[f"{lab}_d0"]          # Pr[drop | 1 drop before]
-                p2 = tot[f"{lab}_d2"] / tot[f"{lab}_d1"]          # Pr[drop | 2 drops before]
-            pc = np.fmax(np.nan_to_num(p1), np.nan_to_num(p2))
-            df = _summ({k: tot[f"{lab}_{k}"] for k in fr.STAT_KEYS}, N, f"{lab}_path_mean", pc * rho**4 < 1)
-            df.insert(0, "drop_continuation", pc)
-            for k, v in _thr_cols(T).items():
-                df.insert(0, k, v)
-            df.insert(0, "channel", lab)
-            paths.append(df)
-        frames, bursts = [], []
-        smc_ok = self.receiver == 2 and s.m == s.n and abs(np.linalg.det(s.C)) > 1e-12 and ch.noise.model == "ber"
-        meta_smc = "not applicable (needs receiver 2, an invertible C and the ber noise model)"
-        if smc_ok:
-            coeffs = fr.memoryless_coefficients(s.A, s.C, s.Q, s.R, P0, H)
-            L = jakes_factor(H, ch.correlation)
-            # --quick keeps the number of independent clouds (the degrees of freedom of the standard
-            # error the golden comparison relies on) and uses fewer particles per cloud (still unbiased)
-            R = self.smc_runs
-            K = self.particles if not ctx.quick else max(8, self.particles // 4)
-            for stream, lab, factor in ((1, "jakes", L), (2, "iid", None)):
-                kern = fr.BurstSMCKernel(factor, T, Ya, rm.noise, coeffs, H, particles=K)
-                st = run_chunked(kern, R, self.smc_chunk, scenario.montecarlo.seed, stream=stream,
-                                 progress=None, label=f"fading_correlation_smc_{lab}")
-                df = _summ({k: st[k] for k in fr.STAT_KEYS}, R, f"{lab}_smc", np.ones(G, bool))
-                df.insert(0, "min_ess_frac", st["ess"] / R / K)
-                for k, v in _thr_cols(T).items():
-                    df.insert(0, k, v)
-                df.insert(0, "channel", lab)
-                frames.append(df)
-                for j, Lb in enumerate(kern.burst_lags):
-                    m_ = st["w"][:, j] / R
-                    se_ = np.sqrt(np.maximum(st["w2"][:, j] / R - m_**2, 0) / max(R - 1, 1))
-                    with np.errstate(invalid="ignore", divide="ignore"):
-                        rel = (se_ / m_ < RELIABLE_REL_SE) & (m_ > 0)
-                    bursts.append(pd.DataFrame({"channel": lab, **_thr_cols(T), "L": Lb, "series": f"{lab}_smc",
-                                                "value": m_, "stderr": se_, "n": R, "reliable": rel.astype(int)}))
-                    if lab == "iid":
-                        mu = fa.mu_ave(T, Ya)
-                        bursts.append(pd.DataFrame({"channel": "iid", **_thr_cols(T), "L": Lb, "series": "iid_exact",
-                                                    "value": (1 - mu) * mu**Lb, "stderr": 0.0, "n": np.nan, "reliable": 1}))
-            meta_smc = (f"sequential Monte Carlo of the drop bursts: {R} independent clouds x "
-                        f"{K} particles per threshold, resampling at ESS < K/2")
-        if ch.noise.model == "ber" and s.m == s.n and self.receiver == 2:
-            a, d = ch.noise.params
-            v = [fa.spectral_norm(fa.ep_recursion(s.A, s.C, s.Q, float(fa.mu_ave(t_, Ya)), float(fa.sigma2_n_ave(t_, Ya, a, d)), P0, H, s.R)[-1]) for t_ in T]
-            frames.append(pd.DataFrame({"channel": "iid", **_thr_cols(T), "min_ess_frac": np.nan, "series": "iid_exact",
-                                        "value": v, "stderr": 0.0, "n": np.nan, "ess_frac": np.nan, "finite_variance": 1,
-                                        "reliable": 1, "overflowed": 0.0}))
-        table = pd.concat(frames, ignore_index=True) if frames else paths[0].iloc[:0]
-        opt = []
-        for lab in table.series.unique() if len(table) else []:
-            g = table[(table.series == lab) & (table.reliable == 1)].reset_index(drop=True)
-            if not len(g):
-                continue
-            i = int(np.nanargmin(g.value.to_numpy()))
-            near = g[(g.value - g.value[i]) <= 2 * np.hypot(g.stderr, g.stderr[i])]
-            last_rel = bool(i == len(g) - 1 and len(g) < int((table.series == lab).sum()))
-            opt.append({"series": lab, "threshold": g.threshold[i], "value": g.value[i], "stderr": g.stderr[i],
-                        "threshold_low": near.threshold.min(), "threshold_high": near.threshold.max(),
-                        "at_edge_of_reliable_range": int(last_rel)})
-        ac = tot["ac"] / N
-        ac_se = np.sqrt(np.maximum(tot["ac2"] / N - ac**2, 0) / (N - 1))
-        pcm = tot["pc"] / N / Ya**2 - 1.0  # corr of |h|²: E[Υ_t Υ_{t−k}]/Υ_ave² − 1 = J0²
-        pc_se = np.sqrt(np.maximum(tot["pc2"] / N - (tot["pc"] / N) ** 2, 0) / (N - 1)) / Ya**2
-        J = ch.correlation.autocorr(lags)
-        actab = pd.DataFrame({"lag": lags, "lag_s": lags * ch.correlation.interval_s, "J0": J, "gain_autocorr": ac,
-                              "gain_autocorr_stderr": ac_se, "power_autocorr": pcm, "power_autocorr_stderr": pc_se,
-                              "J0_squared": J**2})
-        extra = {"autocorr": actab, "path_mean": pd.concat(paths, ignore_index=True), "optima": pd.DataFrame(opt)}
-        if bursts:
-            extra["bursts"] = pd.concat(bursts, ignore_index=True)
-        return Artefact(table, extra_tables=extra,
-                        meta={"doppler_hz": ch.correlation.doppler, "horizon": H, "runs_path_mean": N,
-                              "quantity": PAPER_QUANTITY,
-                              "smc": meta_smc, "nugget": ch.correlation.nugget,
-                              "stability_limit_iid_eq19": fa.max_stable_threshold(Ya, rho),
-                              "first_zero_of_J0_s": 2.404825557695773 / (2 * np.pi * ch.correlation.doppler),
-                              "reliable_rule": f"stderr/value < {RELIABLE_REL_SE}, no overflow",
-                              "path_mean": "plain sample means: diagnostic only (heavy-tailed), never plotted"})
-
-    def plot(self, tables, scenario):
-        t, ac = tables["main"], tables["autocorr"]
-        bursts = tables.get("bursts")
-        fig, axs = new_figure(ncols=3, width=4.6, height=4.4)
-        ax, axb, ax2 = axs
-        H = scenario.montecarlo.horizon
-        omitted = 0
-        styles = {"iid_exact": (PALETTE[0], "-", None, r"uncorrelated, exact (eq. 14)"),
-                  "iid_smc": (PALETTE[0], "none", "s", r"uncorrelated, SMC $\pm$2 s.e."),
-                  "jakes_smc": (PALETTE[1], "--", "o", r"correlated (Jakes), SMC $\pm$2 s.e.")}
-        for lab in ("iid_exact", "iid_smc", "jakes_smc"):
-            g = t[t.series == lab]
-            if not len(g):
-                continue
-            c, ls, mk, name = styles[lab]
-            omitted += int((g.reliable == 0).sum())
-            if lab == "iid_exact":
-                ax.plot(g.threshold, g.value, color=c, ls=ls, label=name)
-            else:  # unreliable points are not drawn (NaN breaks the line there)
-                y = g.value.where(g.reliable == 1)
-                ax.errorbar(g.threshold, y, yerr=2 * g.stderr.where(g.reliable == 1), color=c, ls=ls, marker=mk, ms=5,
-                            mfc="none" if lab == "iid_smc" else c, label=name)
-        ax.set_yscale("log")
-        ax.set_xlabel(r"drop threshold $\Upsilon_T$ (linear power ratio)")
-        ax.set_ylabel(rf"$\|E\,P[{H}]\|$")
-        ax.set_title(r"(a) performance vs $\Upsilon_T$")
-        ax.legend(loc="upper right")
-        if bursts is not None:
-            axb.axhline(1.0, color=PALETTE[0], ls="-", label="uncorrelated (exact ratio 1)")
-            for i, T0 in enumerate(self.burst_panel):
-                T0l = float(fa.db_to_linear(T0)) if self.thresholds.unit == "dB" else float(T0)
-                ex = bursts[(bursts.series == "iid_exact") & np.isclose(bursts.threshold, T0l)].set_index("L")
-                g = bursts[(bursts.series == "jakes_smc") & np.isclose(bursts.threshold, T0l) & (bursts.reliable == 1)]
-                if not len(g) or not len(ex):
-                    continue
-                base = ex.value.reindex(g.L).to_numpy()
-                st = series_style(i + 1)
-                axb.errorbar(g.L, g.value / base, yerr=2 * g.stderr / base, color=st["color"], ls=st["linestyle"],
-                             marker=st["marker"], ms=4, label=rf"Jakes / uncorrelated, $\Upsilon_T$ = {T0:g}, $\pm$2 s.e.")
-            axb.set_xlabel(r"burst length $L$ (transmissions)")
-            axb.set_ylabel(r"Pr[kept, then $L$ drops]: Jakes / i.i.d.")
-            axb.set_title("(b) drop bursts: correlated / uncorrelated")
-            axb.legend(loc="upper left", fontsize=9)
-        ax2.errorbar(ac.lag, ac.gain_autocorr, yerr=5 * ac.gain_autocorr_stderr, fmt="o", color=PALETTE[1],
-                     label=r"sample $E\,h_t h^*_{t-k}$ $\pm$5 s.e.")
-        ax2.plot(ac.lag, ac.J0, color="k", ls="-", label=r"$J_0(2\pi f_D k T)$ (eq. 65)")
-        ax2.errorbar(ac.lag, ac.power_autocorr, yerr=5 * ac.power_autocorr_stderr, fmt="s", color=PALETTE[0],
-                     mfc="none", label=r"sample corr. of $\Upsilon$ $\pm$5 s.e.")
-        ax2.plot(ac.lag, ac.J0_squared, color="k", ls=":", label=r"$J_0^2$")
-        ax2.set_xlabel(r"lag $k$ (transmissions, $T$ = 10 ms)")
-        ax2.set_ylabel("autocorrelation")
-        ax2.set_title("(c) generated channel vs eq. (65)")
-        ax2.legend(loc="upper right", fontsize=9)
-        ch = scenario.channel
-        fig.suptitle(paper_title("fading", 7, rf"correlated vs uncorrelated channel, scenario {self.receiver}, "
-                                              rf"$\Upsilon_{{ave}}$ = {ch.snr_avg.value:g} {ch.snr_avg.unit}"))
-        note = ("SMC: sequential Monte Carlo of the drop bursts (unbiased); plain sample means are heavy-tailed and not drawn; "
-                f"P[{scenario.montecarlo.horizon}] = predicted $P_{{k+1 \\mid k}}$, from P[0] = P0 (paper's start)")
-        if omitted:
-            note += f"; {omitted} SMC point(s) with relative s.e. ≥ {RELIABLE_REL_SE:.0%} not drawn"
-        footnote(fig, note)
         return fig

@@ -128,7 +128,7 @@ def test_kernels_pickle_and_process_pool_equals_serial(make):
                                                  # numpy: what is tested is the executor, not compiled code
                                                  "estimators": [{"kind": "receiver", "scenario": s, "backend": "numpy"}
                                                                 for s in (2, 3)]}),
-                                        ("fig7", {"analysis": {"smc_chunk": 2, "smc_runs": 4}})])
+                                        ("fig7", {"analysis": {"over": {"channel.threshold.value": [2, 14]}}})])
 def test_jobs2_csv_equals_serial_byte_for_byte(tmp_path, stem, extra):
     """Worker processes give the same bytes as the parent (no BLAS product whose rounding depends on the
     thread count: the Jakes generator and the SMC's conditional means use einsum)."""

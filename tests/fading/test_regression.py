@@ -10,13 +10,14 @@ from netkf_cli.runner import run_scenario_file
 
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN = Path(__file__).parent / "golden"
-RUNS = {"fig3": 10, "fig4": 10, "fig5": 10, "fig6": 40, "sec42": 40, "fig7": 100, "thm4": 2000}
+RUNS = {"fig3": 10, "fig4": 10, "fig5": 10, "fig6": 40, "sec42": 40, "fig7": 12, "fig7_channel": 100, "thm4": 2000}
 # small horizons keep the suite fast; the override is part of what the golden files record. fig6, sec42 and
 # thm4 are generic metrics (time_average, mean_vs_time) on the numpy backend here: no compile time.
 _NUMPY_PAIR = [{"kind": "receiver", "scenario": s, "backend": "numpy"} for s in (2, 3)]
 OVERRIDES = {"fig6": {"montecarlo": {"horizon": 60, "burn_in": 30}, "estimators": _NUMPY_PAIR},
              "sec42": {"montecarlo": {"horizon": 60, "burn_in": 30}, "estimators": _NUMPY_PAIR},
              "fig7": {"montecarlo": {"horizon": 60}},
+             "fig7_channel": {"montecarlo": {"horizon": 60}},
              "thm4": {"montecarlo": {"horizon": 10}, "estimator": {"backend": "numpy"}}}
 
 

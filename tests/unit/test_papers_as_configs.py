@@ -43,10 +43,7 @@ def _recipe_files() -> list[Path]:
     return sorted(p for p in RECIPES.glob("*.py"))
 
 
-KNOWN_MONTE_CARLO = {
-    "fading.py": "Mostofi Fig. 7: the burst sequential Monte Carlo (an importance sampler on the correlated "
-                 "channel) and its path kernel have no generic metric yet; plain means there are heavy-tailed",
-}
+KNOWN_MONTE_CARLO: dict[str, str] = {}
 """The recipes that still run Monte Carlo, each with the reason (issue 21 stays open for them). A recipe
 leaves this list when it is converted: the test fails if a listed recipe no longer needs its entry."""
 
