@@ -197,9 +197,9 @@ class FusionEstimator(EstimatorModel):
         if strat == "olpef":
             if not sens.identical:
                 raise ConfigError.at("estimator.strategies", "olpef needs identical sensors (system.sensors: N)")
-            tables = OLPEFTables(A, sens.C1, Q, sens.R1, sens.N)
+            tables = _cached("olpef", sens, P0, lambda: OLPEFTables(A, sens.C1, Q, sens.R1, sens.N))
         else:
-            ibf = IBF(sens, P0)
+            ibf = _cached("ibf", sens, P0, lambda: IBF(sens, P0)) if sens.identical else IBF(sens, P0)
         if sens.identical and _mf_backend(self.backend, sens, trace.runs * trace.horizon) == "numba":
             yield from _history_compiled(strat, sens, ibf if strat == "ibf" else tables, trace, want, qs)
             return
@@ -312,9 +312,30 @@ def _mf_compiled(sens: Sensors, P: np.ndarray, counts: np.ndarray, want, qs):
     t = 0
     for k in want:
         adv(T, cnt, t, k, flag, sv)
-        out = redo.fill(kc.unpack(T, n), flag, k)
+        out = redo.fill(_unpack(T, n), flag, k)
         t = k
         yield k, kalman.report(out, qs, A, Q)
+
+
+_MODELS: dict = {}
+"""IBF / OLPEFTables per strategy and system (identical sensors), kept across the chunks a process runs: their
+tables (IBF's full-information P_{j|j}, OLPEF's lagged covariances) depend on the system only."""
+
+
+def _cached(strategy: str, sens: Sensors, P0, make):
+    f = sens.filt
+    key = (strategy, sens.N, float(f.rescue.limit)) + tuple((x.shape, x.tobytes()) for x in
+                                                           map(np.asarray, (f.A, f.Q, sens.C1, sens.R1, P0)))
+    if key not in _MODELS:
+        if len(_MODELS) >= 64:
+            _MODELS.clear()
+        _MODELS[key] = make()
+    return _MODELS[key]
+
+
+def _unpack(T: np.ndarray, n: int) -> np.ndarray:
+    """kalman_codegen.unpack, with a copy-reshape for n = 1."""
+    return T[:, None, :].copy() if n == 1 else kc.unpack(T, n)
 
 
 def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
@@ -330,7 +351,7 @@ def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
     if strat == "ibf":
         kern = kc.kernel_ibf(A, sens.C1, Q, sens.R1, None)  # symbolic, as _mf_compiled
         sv = kc.system_vector(A, sens.C1, Q, sens.R1, sens.filt.rescue.limit)
-        full = np.ascontiguousarray(np.stack([kc.pack(model._full(j))[:, 0] for j in range(trace.horizon + 1)]))
+        full = model.packed_full(trace.horizon)
         cum = np.zeros(trace.horizon + 2, dtype=np.int64)
         flag = np.zeros(runs, dtype=np.bool_)
     else:
@@ -357,7 +378,7 @@ def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
             else:
                 worst = kern(blk, off, last, s0, s1, *tab, out, vals, cnts)
         if strat == "ibf":
-            P = kc.unpack(out, n)
+            P = _unpack(out, n)
             idx = np.flatnonzero(flag)
             if idx.size:
                 P[:, :, idx] = model.at(tt - last[:, idx], tt)
@@ -366,7 +387,7 @@ def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
                 model._extend(int(worst))
                 tab = tabs()
                 kern(blk, off, last, k, k, *tab, out, vals, cnts)
-            P = kc.unpack(out, n)
+            P = _unpack(out, n)
         t = k
         yield k, kalman.report(P, qs, A, Q)
 
@@ -423,6 +444,14 @@ class IBF:
     def __init__(self, sens: Sensors, P0: np.ndarray):
         self.sens = sens
         self.full = [np.asarray(P0, dtype=float)[:, :, None]]  # full-information P_{j|j}, j = 0, 1, …
+        self._packed = None
+
+    def packed_full(self, J: int) -> np.ndarray:
+        """P_{j|j}, j = 0 … J, packed upper triangles (J + 1, n(n+1)/2), C-contiguous (the compiled kernel's
+        table; kept, so the chunks of a run compute it once)."""
+        if self._packed is None or self._packed.shape[0] <= J:
+            self._packed = np.ascontiguousarray(np.stack([kc.pack(self._full(j))[:, 0] for j in range(J + 1)]))
+        return self._packed[: J + 1]
 
     def _full(self, j: int) -> np.ndarray:
         """P_{j|j} with every sensor at every step (one run)."""
