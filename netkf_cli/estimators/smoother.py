@@ -26,15 +26,21 @@ is inf in every quantity, never NaN.
 Sensors: a channel with one arrival stream carries all of y_k; S streams carry the S sensors of
 ``system.sensors`` (:func:`netkf_cli.kalman.stream_rows`).
 
-Backends: ``numpy`` (the reference: the forward pass :meth:`kalman.Filter.run` on the numpy core,
-the backward pass batched RTS) and ``numba`` (one compiled kernel per run built from
-:mod:`netkf_cli.kalman_numba`'s inlined primitives — predict, update, the rescue's information
-update, gain, the RTS step ``smooth``; one arrival stream or one sensor; equal to rounding, a
-test). ``auto``: the forward pass is kf's own call (``Filter.run`` with the backend kf chooses,
-:func:`kalman.choose_backend`: the generated compiled kernel for large batches), so filtered /
-predicted / lag-0 smoothed are kf's numbers by construction; the per-run compiled kernel only where
-it is measured faster (lag ≥ 1, batches of at most :data:`AUTO_NUMBA_MAX_RUNS` runs: long runs of
-few columns, the paper's-way run of Table I).
+Backends. The batched pass (:func:`_run_shared`): the forward pass is kf's own call (``Filter.run``
+with the backend kf chooses, :func:`kalman.choose_backend`: the generated compiled kernel for large
+batches), so filtered / predicted / lag-0 smoothed are kf's numbers by construction; the RTS step splits
+into J_t, C_t = P_{t|t, x_{t+1}} (functions of P_{t|t} only: computed once per trace step, batched over
+the steps) and the affine map P_{t|k} = C_t + J_t P_{t+1|k} J_tᵀ, applied N times per requested step,
+batched over the steps. ``numpy``: the core's operations (bit for bit the per-step reference
+:func:`_run_core`); with kf's compiled forward pass, the generated kernels of
+:mod:`netkf_cli.estimators._smoother_codegen` (A, Q inlined; equal to rounding, bit for bit for a scalar
+system). The pass of one trace is kept for the next call on the same arrivals and system, so the engine's
+smoothers that differ only in lag share the forward pass, the RTS pieces and the chain (P_{k−4|k}
+continues from P_{k−2|k}): the same numbers as separate passes (a test). ``numba``: the batched pass with
+the compiled forward and backward passes; for at most :data:`AUTO_NUMBA_MAX_RUNS` runs and one arrival
+stream, the per-run kernel built from :mod:`netkf_cli.kalman_numba`'s inlined primitives (predict,
+update, the rescue's information update, gain, the RTS step ``smooth``; equal to rounding, a test), which
+``auto`` also takes for lag ≥ 1 there (long runs of few columns, the paper's-way run of Table I).
 
 Monte Carlo: the generic engine (:func:`netkf_cli.engine.simulate` on :meth:`SmootherEstimator.covariances`;
 the retransmission schemes of Sec. V are a channel, ``kind: retransmission``).
@@ -42,6 +48,9 @@ the retransmission schemes of Sec. V are a channel, ``kind: retransmission``).
 
 from __future__ import annotations
 
+import hashlib
+import threading
+import weakref
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import ClassVar, Literal
@@ -49,7 +58,9 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from netkf_cli import kalman
+from netkf_cli import batched, kalman
+from netkf_cli import kalman_codegen as kc
+from netkf_cli.estimators import _smoother_codegen as sc
 from netkf_cli.errors import ConfigError
 from netkf_cli.estimators.kf import channel_streams, filter_estimates
 from netkf_cli.riccati import initial_covariance
@@ -86,10 +97,11 @@ class SmootherEstimator(EstimatorModel):
     lag: NonNegInt = Field(1, le=MAX_LAG, description=f"smoothing lag N: smoothed = P_{{k−N|k}}, the estimate of x_{{k−N}} "
                            f"from y_1 … y_k (0 = the filter P_{{k|k}}; at most {MAX_LAG})")
     backend: Literal["auto", "numpy", "numba"] = Field(
-        "auto", description="covariance recursion: numpy (reference, batched over runs), numba (a per-run kernel on "
-        "the core's compiled primitives, equal to rounding; one arrival stream or one sensor), auto = the forward pass "
-        f"exactly as kf runs it (its compiled kernel for large batches) and the per-run kernel only for lag ≥ 1 and at "
-        f"most {AUTO_NUMBA_MAX_RUNS} runs (where it is measured faster)")
+        "auto", description="covariance recursion: numpy (reference, batched over runs and steps), numba (kf's "
+        "compiled forward pass and generated RTS kernels, equal to rounding; a per-run kernel for at most "
+        f"{AUTO_NUMBA_MAX_RUNS} runs of one arrival stream), auto = the forward pass exactly as kf runs it (its "
+        "compiled kernel for large batches, then the compiled RTS kernels too) and the per-run kernel for lag ≥ 1 "
+        f"and at most {AUTO_NUMBA_MAX_RUNS} runs (where it is measured faster)")
 
     @property
     def label(self) -> str:
@@ -212,17 +224,32 @@ def run(system: LinearSystem, gamma: np.ndarray, steps, quantities=("smoothed",)
     if not steps:
         return
     N = int(lag) if "smoothed" in qs else 0
-    be = resolve_backend(backend)
     runs = gamma.shape[-1]
-    if be == "numba" and len(f.groups) == 1 and (backend == "numba" or (N > 0 and runs <= AUTO_NUMBA_MAX_RUNS)):
-        yield from _run_numba(f, system, gamma, steps, qs, N, prior)  # the per-run compiled kernel
-    elif prior is not None:
-        yield from _run_numpy(f, system, gamma, steps, qs, N, prior)
+    one_stream = len(f.groups) == 1
+    if prior is not None:
+        be = resolve_backend(backend)
+        if be == "numba" and one_stream and (backend == "numba" or (N > 0 and runs <= AUTO_NUMBA_MAX_RUNS)):
+            yield from _run_numba(f, system, gamma, steps, qs, N, prior)  # the per-run compiled kernel
+        else:
+            yield from _run_numpy(f, system, gamma, steps, qs, N, prior)
+        return
+    few = one_stream and runs <= AUTO_NUMBA_MAX_RUNS and (backend == "numba" or N > 0)
+    if backend != "numpy" and few and resolve_backend(backend) == "numba":
+        yield from _run_numba(f, system, gamma, steps, qs, N, prior)  # few long runs: the per-run kernel
+        return
+    # the forward pass is kf's own call (Filter.run, the backend kf would choose: its generated compiled
+    # kernel for large batches; numba: always), the backward pass the RTS pieces of every step computed
+    # once and shared by every step and lag (compiled with the forward pass). A small auto batch never
+    # imports numba (kalman.choose_backend).
+    if backend == "numba":
+        resolve_backend("numba")  # a ConfigError without numba
+        fwd = "numba" if f.sequential else "numpy"
     else:
-        # the forward pass is kf's own call (Filter.run, the backend kf would choose: its generated
-        # compiled kernel for large batches), the backward pass the batched numpy RTS
+        if backend not in BACKENDS:
+            resolve_backend(backend)  # the ConfigError naming the backends
         fwd = kalman.choose_backend("auto" if backend == "auto" else "numpy", f, runs * horizon)
-        yield from _run_core(f, system, gamma, steps, qs, N, fwd)
+    rts = "compiled" if (fwd == "numba" and sc.supported(f.A.shape[0])) else "numpy"
+    yield from _run_shared(f, system, gamma, steps, qs, N, fwd, rts)
 
 
 def _run_core(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str):
@@ -260,6 +287,249 @@ def _run_core(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str):
                 out["smoothed"] = Ps
         for old in [u for u in store if u < k + 1 - N]:
             del store[old]
+        yield k, {q: out[q] for q in qs}
+
+
+# ---------------------------------------------------------------------------------------------
+# the shared pass: kf's forward pass once per trace, the RTS pieces once per trace step
+# ---------------------------------------------------------------------------------------------
+
+SHARE_MARGIN = 4
+"""Forward rows kept below each requested step beyond the estimator's own lag, so that the smoothers of
+larger lag (up to this) of the same run find the trace's forward pass already done (:func:`_run_shared`)."""
+BLOCK_BYTES = 256 * 2**20
+"""Memory of one block of the shared pass (stored P_{t|t}, J_t, C_t and a smoothed chain): a request
+that fits is one block and is kept for the next estimator on the same trace; a larger one is cut into
+blocks of steps (nothing kept)."""
+
+_TLS = threading.local()
+"""Per thread, the last trace's :class:`_Pass` (an executor's threads never share a trace)."""
+
+
+def _rts_prepare_numpy(back: kalman.SmoothStep, Pf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(J, C) of :class:`kalman.SmoothStep` for P_{t|t} = ``Pf`` (n, n, runs): the gain J and
+    C = P_{t|t, x_{t+1}} (the update of Pf by x_{t+1}, through the rescue) — exactly the operations of
+    ``SmoothStep.__call__`` before it touches P_{t+1|k}."""
+    n = Pf.shape[0]
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        J = kalman.gain(Pf, back.A, back.Q)
+        P = kalman.update(Pf, back.A, back.Q)
+        if back.rescue is not None:
+            flagged = back.rescue.flag(Pf)
+            if flagged.any():
+                P = back.rescue.apply(P, Pf, flagged, np.ones((n, Pf.shape[-1]), dtype=bool))
+    return J, P
+
+
+def _rts_apply_numpy(J: np.ndarray, C: np.ndarray, Ps: np.ndarray) -> np.ndarray:
+    """P_{t|k} = sym(C + J P_{t+1|k} Jᵀ), non-finite ⇒ ∞: the rest of ``SmoothStep.__call__``, so
+    ``_rts_apply_numpy(*_rts_prepare_numpy(back, Pf), Ps)`` is ``back(Ps, Pf)`` bit for bit (a test)."""
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        out = batched.sym(C + batched.matmul(batched.matmul(J, Ps), J.swapaxes(0, 1)))
+    bad = ~np.isfinite(out).all(axis=(0, 1))
+    if bad.any():
+        out[:, :, bad] = np.inf
+    return out
+
+
+def _flat(X: np.ndarray) -> np.ndarray:
+    """(R, n, n, runs) → (n, n, R·runs), the core's layout for one batched call over R trace steps."""
+    R, n, _, runs = X.shape
+    return np.moveaxis(X, 0, 2).reshape(n, n, R * runs)
+
+
+def _unflat(Y: np.ndarray, R: int) -> np.ndarray:
+    n, _, m = Y.shape
+    return np.ascontiguousarray(np.moveaxis(Y.reshape(n, n, R, m // R), 2, 0))
+
+
+class _Pass:
+    """One trace's forward pass P_{t|t} at ``rows`` (``H`` (R, n, n, runs)), the RTS pieces J_t, C_t of
+    the rows prepared so far, and the deepest smoothed chain computed for ``steps``."""
+
+    def __init__(self, f, rows: list[int], H: np.ndarray, rts: str, steps: tuple[int, ...], margin: int):
+        self.f, self.rows, self.H, self.rts, self.steps, self.margin = f, rows, H, rts, steps, margin
+        self.pos = {t: i for i, t in enumerate(rows)}
+        self.back = kalman.SmoothStep.of(f.A, f.Q)
+        self.J = self.C = None
+        self.ready = np.zeros(len(rows), dtype=bool)
+        self.chain: tuple[int, np.ndarray] | None = None  # (lag d, P_{k−d|k} (K, n, n, runs), NaN for k < d)
+
+    def prepare(self, ts) -> None:
+        """J_t, C_t for the trace steps ``ts`` (each once per pass)."""
+        idx = np.array(sorted({self.pos[t] for t in ts}), dtype=np.int64)
+        idx = idx[~self.ready[idx]]
+        if idx.size == 0:
+            return
+        if self.J is None:
+            self.J, self.C = np.empty_like(self.H), np.empty_like(self.H)
+        if self.rts == "compiled":
+            lim = float(self.back.rescue.limit) if self.back.rescue is not None else np.inf
+            flag = np.zeros(self.H.shape[::3], dtype=np.bool_)
+            sc.kernel_prepare(self.f.A, self.f.Q, lim)(self.H, idx, self.J, self.C, flag)
+            ti, ri = np.nonzero(flag)
+            if ti.size:  # the rescue's entries (and anything non-finite): the numpy core, exactly
+                J, C = _rts_prepare_numpy(self.back, np.ascontiguousarray(np.moveaxis(self.H[ti, :, :, ri], 0, -1)))
+                self.J[ti, :, :, ri] = np.moveaxis(J, -1, 0)
+                self.C[ti, :, :, ri] = np.moveaxis(C, -1, 0)
+        else:
+            J, C = _rts_prepare_numpy(self.back, _flat(self.H[idx]))
+            self.J[idx], self.C[idx] = _unflat(J, idx.size), _unflat(C, idx.size)
+        self.ready[idx] = True
+
+    def smoothed(self, N: int) -> np.ndarray:
+        """P_{k−N|k} for k in ``steps`` (K, n, n, runs), NaN where k < N; from the deepest chain kept when
+        its lag d ≤ N (its N − d further steps are the same operations: the same numbers)."""
+        K = len(self.steps)
+        if self.chain is not None and self.chain[0] == N:
+            return self.chain[1]
+        d, S0 = (self.chain if self.chain is not None and self.chain[0] < N else (0, None))
+        ok = [i for i, k in enumerate(self.steps) if k >= N]
+        out = np.full((K,) + self.H.shape[1:], np.nan)
+        if ok:
+            ks = [self.steps[i] for i in ok]
+            self.prepare([k - u for k in ks for u in range(d + 1, N + 1)])
+            tix = np.array([[self.pos[k - u] for u in range(d + 1, N + 1)] for k in ks], dtype=np.int64)
+            sidx = np.array(ok if S0 is not None else [self.pos[k] for k in ks], dtype=np.int64)
+            src = S0 if S0 is not None else self.H
+            if self.rts == "compiled":
+                res = np.empty((len(ok),) + self.H.shape[1:])
+                sc.kernel_chain(self.H.shape[1])(src, sidx, self.J, self.C, tix, res)
+            else:
+                m = len(ok)
+                Ps = _flat(src[sidx])
+                for u in range(tix.shape[1]):
+                    Ps = _rts_apply_numpy(_flat(self.J[tix[:, u]]), _flat(self.C[tix[:, u]]), Ps)
+                res = _unflat(Ps, m)
+            out[ok] = res
+        if self.chain is None or N > self.chain[0]:
+            self.chain = (N, out)
+        return out
+
+
+def _fingerprint(gamma: np.ndarray) -> bytes:
+    g = np.ascontiguousarray(gamma)
+    data = np.packbits(g).tobytes() if g.dtype == np.bool_ else g.tobytes()
+    return hashlib.blake2b(data, digest_size=16).digest() + repr((g.shape, g.dtype.str)).encode()
+
+
+def _blocks(steps: list[int], L: int, row_bytes: int) -> list[list[int]]:
+    """``steps`` cut into consecutive groups whose rows ∪ [k − L, k] fit :data:`BLOCK_BYTES`."""
+    most = max(L + 2, BLOCK_BYTES // max(row_bytes, 1))
+    out, cur, lo = [], [], None
+    for k in steps:
+        if cur and (k - lo + 1) > most:
+            out.append(cur)
+            cur = []
+        if not cur:
+            lo = max(0, k - L)
+        cur.append(k)
+    if cur:
+        out.append(cur)
+    return out
+
+
+def _keep(gamma: np.ndarray, key, ps: _Pass) -> None:
+    """Keep ``ps`` for the next call on these arrivals, and drop it when the arrival array is freed."""
+    _TLS.last = (key, ps)
+    try:
+        weakref.finalize(gamma, _forget, key)
+    except TypeError:  # not weak-referenceable: kept until the next pass replaces it
+        pass
+
+
+def _forget(key) -> None:
+    got = getattr(_TLS, "last", None)
+    if got is not None and got[0] == key:
+        _TLS.last = None
+
+
+def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: str):
+    """Forward: :meth:`kalman.Filter.run` with backend ``fwd`` (exactly kf's numbers) at every trace step a
+    requested step's backward pass reads; backward: J_t, C_t once per trace step (:class:`_Pass`, ``rts``
+    numpy = the core's operations batched over trace steps, bit for bit :func:`_run_core`; compiled =
+    :mod:`netkf_cli.estimators._smoother_codegen`, equal to rounding), then for every requested step the N
+    affine RTS maps batched over the steps. A request that fits one block is kept (per thread) for the next
+    call on the same arrivals and system — the engine's other estimators on the same trace — so smoothers
+    that differ only in lag share the forward pass, the RTS pieces and the chain (the same numbers as
+    separate calls, a test)."""
+    runs, n = gamma.shape[-1], f.A.shape[0]
+    smooth = "smoothed" in qs and N > 0
+    L = max(N, SHARE_MARGIN)
+    row_bytes = 4 * n * n * runs * 8
+    blocks = _blocks(steps, L, row_bytes)
+    P0 = initial_covariance(system)
+    key = None
+    if len(blocks) == 1:
+        key = (_fingerprint(gamma), f.A.tobytes(), f.C.tobytes(), f.Q.tobytes(), f.R.tobytes(), f.groups,
+               P0.tobytes(), fwd, rts, tuple(steps))
+        got = getattr(_TLS, "last", None)
+        if got is not None and got[0] == key and got[1].margin >= N:
+            yield from _emit(got[1], qs, N)
+            return
+    want = [t for t in sorted({t for k in steps for t in range(max(0, k - L), k + 1)}) if t >= 1]
+    if len(blocks) == 1 and fwd == "numba" and f.sequential and kc.supported(n, f.groups):
+        forward = iter(_forward_compiled(f, P0, gamma, want).items())
+    else:
+        forward = f.run(P0, gamma, want, ("filtered",), backend=fwd)
+    have: dict[int, np.ndarray] = {0: np.repeat(P0[:, :, None], runs, axis=2)}
+    last = 0
+    for block in blocks:
+        rows = sorted({t for k in block for t in range(max(0, k - L), k + 1)})
+        while last < rows[-1]:
+            last, d = next(forward)
+            have[last] = d["filtered"]
+        H = np.stack([have[t] for t in rows])
+        for t in [u for u in have if u < rows[-1] + 1 - L]:
+            del have[t]
+        ps = _Pass(f, rows, H, rts, tuple(block), L)
+        if key is not None:
+            _keep(gamma, key, ps)
+        yield from _emit(ps, qs, N if smooth else 0)
+
+
+def _forward_compiled(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, want: list[int]) -> dict[int, dict]:
+    """``dict(f.run(P0, gamma, want, ("filtered",), backend="numba"))`` — the same numbers, bit for bit (a
+    test) — in two passes: kf's generated kernel (:func:`kalman_codegen.kernel`) over every step of
+    ``want``, noting the step at which each run is first flagged for the rescue; then every flagged run
+    once on the numpy core from P0 (:meth:`kalman.Filter.step`), its covariances from that step on replacing
+    the kernel's — what :class:`kalman.FlaggedRuns` does at each step, without restarting the newly flagged
+    runs from P0 at every step (under bursty loss many runs are flagged at different steps: the restarts
+    cost O(flagged runs × steps²))."""
+    n, runs = f.A.shape[0], gamma.shape[-1]
+    P = np.array(np.repeat(np.asarray(P0, dtype=float)[:, :, None], runs, axis=2), dtype=float, order="C")
+    P_init = P.copy()
+    flag = np.zeros(runs, dtype=np.bool_)
+    first = np.full(runs, -1, dtype=np.int64)
+    adv = kc.kernel(f.A, f.C, f.Q, f.R, f.groups, f.rescue.limit)
+    T, gam = kc.pack(P), np.ascontiguousarray(gamma)
+    out: dict[int, dict] = {}
+    t = 0
+    for k in want:
+        adv(T, gam, t, k, flag)
+        t = k
+        first[flag & (first < 0)] = k
+        out[k] = {"filtered": kc.unpack(T, n)}
+    idx = np.flatnonzero(first >= 0)
+    if idx.size:
+        Pn, t, k0 = P_init[:, :, idx], 0, first[idx]
+        for k in want:
+            while t < k:
+                Pn = f.step(Pn, gamma[:, t][:, idx])[1]
+                t += 1
+            sel = k0 <= k
+            if sel.any():
+                out[k]["filtered"][:, :, idx[sel]] = Pn[:, :, sel]
+    return out
+
+
+def _emit(ps: _Pass, qs, N: int):
+    S = ps.smoothed(N) if ("smoothed" in qs and N > 0) else None
+    for i, k in enumerate(ps.steps):
+        P = ps.H[ps.pos[k]]
+        out = kalman.report(P, tuple(q for q in qs if q != "smoothed"), ps.f.A, ps.f.Q)
+        if "smoothed" in qs:
+            out["smoothed"] = P if N == 0 else S[i]
         yield k, {q: out[q] for q in qs}
 
 

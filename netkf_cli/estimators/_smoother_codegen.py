@@ -1,0 +1,175 @@
+"""The smoother's backward pass compiled per system: generated numba kernels of the Rauch–Tung–Striebel step.
+
+The RTS step of :class:`netkf_cli.kalman.SmoothStep` splits into a part that depends only on the filtered
+P_{t|t} and an affine map applied to P_{t+1|k}:
+
+    prepare  U = P_{t|t} Aᵀ,  S = A U + Q,  X = S⁻¹ Uᵀ,  J_t = Xᵀ,  C_t = sym(P_{t|t} − U X)
+    apply    P_{t|k} = sym(C_t + J_t P_{t+1|k} J_tᵀ)            (non-finite ⇒ ∞ everywhere)
+
+so J_t and C_t are computed once per trace step t and shared by every step k and every lag that passes
+through t (:mod:`netkf_cli.estimators.smoother`). Both kernels are written out as scalar expressions with
+the system's numbers A, Q as constants (zeros skipped, ones dropped: :func:`kalman_codegen._lin`), in the
+core's order of operations (S⁻¹ in closed form for n ≤ 2 — bit for bit the numpy core —, an unrolled
+Cholesky factor for 3 ≤ n ≤ :data:`kalman_codegen.MAX_N`, equal to rounding). Arrays are
+``(rows, n, n, runs)``, run axis innermost. ``rts_prepare`` flags an entry (t, r) whose P_{t|t} has
+tr ≥ the rescue limit of ``Rescue.of(A, Q)`` or is non-finite, or whose result is non-finite: the caller
+redoes those entries on the numpy core (the rescue policy stays the core's). Kernels are generated,
+written and cached by :mod:`netkf_cli.kalman_codegen`'s loader (one file per source hash, numba's disk
+cache), depend only on (A, Q, limit) and are compiled once per machine.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from netkf_cli import kalman_codegen as kc
+
+MAX_N = kc.MAX_N
+"""Largest state dimension a kernel is generated for."""
+
+
+def supported(n: int) -> bool:
+    return 1 <= n <= MAX_N
+
+
+def _header(fn: str, args: str) -> list[str]:
+    return ["import numpy as np", "import numba as nb", "",
+            "@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')", f"def {fn}({args}):"]
+
+
+def _sym(i: int, j: int) -> tuple[int, int]:
+    return (i, j) if i <= j else (j, i)
+
+
+def source_prepare(A, Q, limit: float) -> str:
+    """The source of ``rts_prepare(H, rows, J, C, flag)``: for t in ``rows`` and every run r, J[t] and C[t]
+    from H[t] = P_{t|t} (all ``(T, n, n, runs)``); ``flag`` (T, runs) bool set where the numpy core must
+    redo the entry (tr P_{t|t} ≥ ``limit``, or anything non-finite)."""
+    A, Q = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (A, Q))
+    n = A.shape[0]
+    rng = range(n)
+    L = _header("rts_prepare", "H, rows, J, C, flag")
+    L += [f"    limit = {kc._num(limit)}", "    runs = H.shape[3]", "    for q in range(rows.shape[0]):",
+          "        t = rows[q]", "        for r in range(runs):"]
+    ind = " " * 12
+    for i in rng:
+        for j in range(i, n):
+            L.append(f"{ind}p{i}_{j} = H[t, {i}, {j}, r]")
+
+    def p(i, j):
+        a, b = _sym(i, j)
+        return f"p{a}_{b}"
+
+    # U = P Aᵀ: U[i, a] = Σ_j A[a, j] P[i, j]   (batched.right(P, Aᵀ) = left(A, Pᵀ)ᵀ, j ascending)
+    for i in rng:
+        for a in rng:
+            L.append(f"{ind}u{i}_{a} = {kc._lin([(A[a, j], p(i, j)) for j in rng])}")
+    # S = A U + Q (full: the core does not symmetrize it)
+    for a in rng:
+        for b in rng:
+            L.append(f"{ind}s{a}_{b} = {kc._lin([(A[a, k], f'u{k}_{b}') for k in rng])} + {kc._num(Q[a, b])}")
+    # X = S⁻¹ Uᵀ: X[a, c] = (S⁻¹ U[c, :]ᵀ)[a]
+    if n == 1:
+        L.append(f"{ind}i0_0 = 1.0 / s0_0")
+        for c in rng:
+            L.append(f"{ind}x0_{c} = i0_0 * u{c}_0")
+    elif n == 2:  # batched.inv_small, then batched.matmul(inv, Uᵀ)
+        L += [f"{ind}det = s0_0 * s1_1 - s0_1 * s1_0", f"{ind}i0_0 = s1_1 / det", f"{ind}i0_1 = -s0_1 / det",
+              f"{ind}i1_0 = -s1_0 / det", f"{ind}i1_1 = s0_0 / det"]
+        for a in rng:
+            for c in rng:
+                L.append(f"{ind}x{a}_{c} = i{a}_0 * u{c}_0 + i{a}_1 * u{c}_1")
+    else:  # Cholesky S = L Lᵀ (upper triangle of S), then forward / back substitution per column
+        for j in rng:
+            acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
+            L.append(f"{ind}l{j}_{j} = np.sqrt({acc})")
+            for i in range(j + 1, n):
+                acc = " - ".join([f"s{j}_{i}"] + [f"l{i}_{k} * l{j}_{k}" for k in range(j)])
+                L.append(f"{ind}l{i}_{j} = ({acc}) / l{j}_{j}")
+        for c in rng:
+            for a in rng:
+                acc = " - ".join([f"u{c}_{a}"] + [f"l{a}_{k} * y{k}_{c}" for k in range(a)])
+                L.append(f"{ind}y{a}_{c} = ({acc}) / l{a}_{a}")
+            for a in reversed(rng):
+                acc = " - ".join([f"y{a}_{c}"] + [f"l{k}_{a} * x{k}_{c}" for k in range(a + 1, n)])
+                L.append(f"{ind}x{a}_{c} = ({acc}) / l{a}_{a}")
+    # corr = U X (batched.matmul: a ascending); C = sym(P − corr)
+    for i in rng:
+        for j in rng:
+            L.append(f"{ind}k{i}_{j} = " + " + ".join(f"u{i}_{a} * x{a}_{j}" for a in rng))
+    chk = []
+    for i in rng:
+        for j in range(i, n):
+            L.append(f"{ind}c{i}_{j} = 0.5 * (({p(i, j)} - k{i}_{j}) + ({p(j, i)} - k{j}_{i}))")
+            chk.append(f"c{i}_{j}")
+    for i in rng:
+        for a in rng:
+            L.append(f"{ind}J[t, {i}, {a}, r] = x{a}_{i}")
+            chk.append(f"x{a}_{i}")
+    for i in rng:
+        for j in rng:
+            a, b = _sym(i, j)
+            L.append(f"{ind}C[t, {i}, {j}, r] = c{a}_{b}")
+    L.append(f"{ind}tr = " + " + ".join(f"p{i}_{i}" for i in rng))
+    L.append(f"{ind}flag[t, r] = not (tr < limit and " + " and ".join(f"{e} - {e} == 0.0" for e in chk) + ")")
+    return "\n".join(L) + "\n"
+
+
+def source_chain(n: int) -> str:
+    """The source of ``rts_chain(S0, sidx, J, C, tix, out)``: per output i and run r, start from
+    S0[sidx[i]] and apply the RTS map of rows tix[i, 0], tix[i, 1], … (C + J P Jᵀ, symmetrized; a
+    non-finite result is ∞ in every entry, as :class:`kalman.SmoothStep`), into out[i]. Independent of the
+    system's numbers (J and C carry them)."""
+    rng = range(n)
+    L = _header("rts_chain", "S0, sidx, J, C, tix, out")
+    L += ["    K = tix.shape[0]", "    D = tix.shape[1]", "    runs = S0.shape[3]", "    for i in range(K):",
+          "        s = sidx[i]", "        for r in range(runs):"]
+    ind = " " * 12
+    for a in rng:
+        for b in range(a, n):
+            L.append(f"{ind}p{a}_{b} = S0[s, {a}, {b}, r]")
+
+    def p(i, j):
+        a, b = _sym(i, j)
+        return f"p{a}_{b}"
+
+    L.append(f"{ind}for u in range(D):")
+    ind2 = ind + "    "
+    L.append(f"{ind2}t = tix[i, u]")
+    for a in rng:
+        for b in rng:
+            L.append(f"{ind2}j{a}_{b} = J[t, {a}, {b}, r]")
+    # Y = J P (batched.matmul, inner index ascending), Z = Y Jᵀ, new = sym(C + Z)
+    for a in rng:
+        for b in rng:
+            L.append(f"{ind2}y{a}_{b} = " + " + ".join(f"j{a}_{k} * {p(k, b)}" for k in rng))
+    for a in rng:
+        for b in rng:
+            L.append(f"{ind2}z{a}_{b} = " + " + ".join(f"y{a}_{k} * j{b}_{k}" for k in rng))
+    new = []
+    for a in rng:
+        for b in range(a, n):
+            L.append(f"{ind2}e{a}_{b} = 0.5 * ((C[t, {a}, {b}, r] + z{a}_{b}) + (C[t, {b}, {a}, r] + z{b}_{a}))")
+            new.append(f"e{a}_{b}")
+    L.append(f"{ind2}if " + " and ".join(f"{e} - {e} == 0.0" for e in new) + ":")
+    for a in rng:
+        for b in range(a, n):
+            L.append(f"{ind2}    p{a}_{b} = e{a}_{b}")
+    L.append(f"{ind2}else:")
+    for a in rng:
+        for b in range(a, n):
+            L.append(f"{ind2}    p{a}_{b} = np.inf")
+    for a in rng:
+        for b in rng:
+            L.append(f"{ind}out[i, {a}, {b}, r] = {p(a, b)}")
+    return "\n".join(L) + "\n"
+
+
+def kernel_prepare(A, Q, limit: float):
+    """The compiled ``rts_prepare`` (:func:`source_prepare`) for this (A, Q, limit)."""
+    return kc._load(source_prepare(A, Q, limit), "netkf_rtsp", "rts_prepare")
+
+
+def kernel_chain(n: int):
+    """The compiled ``rts_chain`` (:func:`source_chain`) for n states."""
+    return kc._load(source_chain(n), "netkf_rtsc", "rts_chain")

@@ -1,0 +1,144 @@
+"""The smoother's shared pass (issue 20): kf's forward pass once per trace, the RTS pieces J_t, C_t once per
+trace step, the backward maps batched over the steps, the generated compiled kernels — the same numbers as
+the per-step reference :func:`smoother._run_core` (numpy: bit for bit; compiled: to rounding, bit for bit
+for a scalar system), and smoothers that differ only in lag sharing one pass with exactly the numbers of
+separate passes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from netkf_cli import engine, kalman
+from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
+from netkf_cli.estimators import smoother as sm
+from netkf_cli.estimators.smoother import SmootherEstimator
+from netkf_cli.system import LinearSystem
+
+numba_missing = not sm.numba_available()
+QS = ("filtered", "predicted", "smoothed")
+
+SYSTEMS = {
+    "scalar": LinearSystem.create(1.3, 1, 0.5, 1, None),  # the configs' system
+    "2-state": LinearSystem.create([[1.2, 0.4], [0.0, 0.8]], [[1.0, 0.5]], np.eye(2) * 0.3, [[0.5]], None),
+    "3-state": LinearSystem.create([[1.1, 0.3, 0.0], [0.0, 0.9, 0.2], [0.1, 0.0, 1.05]], [[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]],
+                                   np.diag([0.3, 0.2, 0.4]) + 0.05, np.diag([0.5, 0.8]), None),
+    "huge": LinearSystem.create(np.diag([1e6, 0.5]), np.eye(2), np.eye(2) * 0.3, np.eye(2) * 0.5, None),  # the rescues
+}
+
+
+def _bursty(runs, horizon, seed, burst=8.0):
+    """Gilbert–Elliott arrivals with long bursts: the forward pass's rescue flags runs at many steps."""
+    ch = GilbertElliottChannel(kind="gilbert_elliott", loss_rate=0.45, mean_burst=burst)
+    return ch.sample_trace(np.random.default_rng(seed), runs, horizon).arrival
+
+
+def _equal(a, b, steps, exact, rtol=1e-11):
+    for k in steps:
+        for q in a[k]:
+            x, y = a[k][q], b[k][q]
+            if exact:
+                assert np.array_equal(x, y, equal_nan=True), (k, q)
+            else:
+                np.testing.assert_allclose(y, x, rtol=rtol, atol=1e-13 * np.nanmax(np.abs(np.where(np.isfinite(x), x, 0))),
+                                           err_msg=f"{k} {q}")
+
+
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_numpy_shared_pass_is_the_per_step_reference_bit_for_bit(name):
+    s = SYSTEMS[name]
+    g = _bursty(120, 48, 1)
+    f = kalman.Filter.of(s, 1)
+    steps = [0, 1, 2, 3, 9, 10, 11, 30, 47, 48]
+    for lag in (0, 1, 3):
+        sm._TLS.last = None
+        a = dict(sm._run_core(f, s, g, steps, QS, lag, "numpy"))
+        b = dict(sm._run_shared(f, s, g, steps, QS, lag, "numpy", "numpy"))
+        _equal(a, b, steps, exact=True)
+
+
+def test_rts_pieces_compose_to_the_core_smooth_step():
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3):
+        A, L1, L2, L3 = (rng.normal(size=(n, n)) for _ in range(4))
+        Q = L1 @ L1.T + 0.1 * np.eye(n)
+        Pf = np.moveaxis(np.stack([L2 @ L2.T * 10.0 ** e + 0.1 * np.eye(n) for e in (0, 3, 9)]), 0, -1)  # 1e9: rescued
+        Ps = np.repeat((L3 @ L3.T)[:, :, None], 3, axis=2)
+        back = kalman.SmoothStep.of(A, Q)
+        assert np.array_equal(sm._rts_apply_numpy(*sm._rts_prepare_numpy(back, Pf), Ps), back(Ps, Pf))
+
+
+def test_blocks_give_the_numbers_of_one_block(monkeypatch):
+    s = SYSTEMS["2-state"]
+    g = _bursty(50, 40, 2)
+    f = kalman.Filter.of(s, 1)
+    steps = list(range(1, 41))
+    one = dict(sm._run_shared(f, s, g, steps, QS, 3, "numpy", "numpy"))
+    monkeypatch.setattr(sm, "BLOCK_BYTES", 4 * 4 * 50 * 8 * 9)  # blocks of 9 rows
+    assert len(sm._blocks(steps, 4, 4 * 4 * 50 * 8)) > 3
+    sm._TLS.last = None
+    _equal(one, dict(sm._run_shared(f, s, g, steps, QS, 3, "numpy", "numpy")), steps, exact=True)
+
+
+@pytest.mark.parametrize("backend", ["numpy"] + ([] if numba_missing else ["numba"]))
+def test_lags_on_one_trace_share_one_pass_with_the_numbers_of_separate_passes(backend, monkeypatch):
+    """The engine's way (every estimator on the same trace, one after another): lags 0, 1, 2, 4 share one
+    forward pass and the chain; the statistics are those of separate passes (nothing kept), exactly."""
+    s = SYSTEMS["scalar"]
+    ch = GilbertElliottChannel(kind="gilbert_elliott", loss_rate=0.4, mean_burst=4)
+    ests = [SmootherEstimator(kind="smoother", lag=lag, backend=backend) for lag in (0, 1, 2, 4)]
+    steps = list(range(11, 81))
+    calls = []
+    run, fwd = kalman.Filter.run, sm._forward_compiled
+    monkeypatch.setattr(kalman.Filter, "run", lambda *a, **k: (calls.append(1), run(*a, **k))[1])
+    monkeypatch.setattr(sm, "_forward_compiled", lambda *a: (calls.append(1), fwd(*a))[1])
+    monkeypatch.setattr(sm, "AUTO_NUMBA_MAX_RUNS", 0)  # the batched path even for this small batch
+
+    def sim(es):
+        return engine.simulate(s, ch, es, engine.StationaryReducer(steps, np.array([2.0, 6.25])), steps=steps,
+                               runs=300, horizon=80, seed=4, chunk=300, quantity="smoothed")
+
+    sm._TLS.last = None
+    shared = sim(ests)
+    assert len(calls) == 1  # one forward pass for the four smoothers
+    monkeypatch.setattr(sm, "_keep", lambda *a: None)  # nothing kept: every smoother its own pass
+    for j, e in enumerate(ests):
+        alone = sim([e])
+        for key, val in alone.items():
+            if key.endswith("_0"):
+                np.testing.assert_array_equal(shared[key[:-1] + str(j)], val, err_msg=f"{j} {key}")
+    assert len(calls) == 1 + len(ests)
+
+
+@pytest.mark.skipif(numba_missing, reason="numba not installed")
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_compiled_backward_pass_equals_numpy(name):
+    """The generated prepare/chain kernels on kf's compiled forward pass against the numpy reference on the
+    same trace, every lag and quantity: to rounding (the scalar system: bit for bit)."""
+    s = SYSTEMS[name]
+    g = _bursty(200, 60, 5)
+    f = kalman.Filter.of(s, 1)
+    steps = [1, 2, 5, 17, 30, 31, 59, 60]
+    for lag in (0, 1, 4):
+        sm._TLS.last = None
+        a = dict(sm._run_core(f, s, g, steps, QS, lag, "numba"))
+        b = dict(sm._run_shared(f, s, g, steps, QS, lag, "numba", "compiled"))
+        _equal(a, b, steps, exact=False, rtol=1e-9 if name == "huge" else 1e-11)
+        if name == "scalar":
+            _equal(dict(sm._run_core(f, s, g, steps, QS, lag, "numpy")), b, steps, exact=True)
+
+
+@pytest.mark.skipif(numba_missing, reason="numba not installed")
+@pytest.mark.parametrize("name", ["scalar", "2-state"])
+def test_two_pass_forward_is_kfs_compiled_run_bit_for_bit(name):
+    """_forward_compiled = Filter.run(backend numba) (kf's kernel and the rescue's numpy redo of flagged runs),
+    on bursty loss where runs are flagged at many different steps."""
+    s = SYSTEMS[name]
+    g = _bursty(300, 120, 6, burst=12.0)
+    f = kalman.Filter.of(s, 1)
+    P0 = sm.initial_covariance(s)
+    for want in (list(range(1, 121)), [3, 40, 41, 42, 120]):
+        a = dict(f.run(P0, g, want, ("filtered",), backend="numba"))
+        b = sm._forward_compiled(f, P0, g, want)
+        for k in want:
+            assert np.array_equal(a[k]["filtered"], b[k]["filtered"]), k
