@@ -191,8 +191,7 @@ def _fit_titles(fig: Figure) -> None:
     texts = [t for t in texts if t is not None and t.get_visible() and t.get_text().strip()]
     if not texts:
         return
-    fig.canvas.draw()
-    r = fig.canvas.get_renderer()
+    r = fig.canvas.get_renderer()  # a text's extent is laid out on demand (wrapping included): no full draw needed
     W = fig.bbox.width * 0.96
     for t in texts:
         w = t.get_window_extent(r).width
@@ -214,7 +213,6 @@ def _layout(fig: Figure) -> None:
     notes = getattr(fig, "_netkf_footnotes", [])
     bottom = 0.0
     if notes:
-        fig.canvas.draw()
         r = fig.canvas.get_renderer()
         h = fig.bbox.height
         y = 0.005 * h
