@@ -17,6 +17,10 @@ the contract's ``arrival``, which is drawn given ℓ only when read (:class:`Cou
 :func:`arrivals_given_counts`: a uniform subset of size ℓ, the same joint law as N independent links) —
 another stream with the same statistics (tested within 5 s.e.). MF with identical sensors reads only
 ``counts``; IBF, OLPEF, kf and the metrics read ``arrival``, consistent with the counts.
+``sampling: bytes``: the per-sensor pattern from one byte of a raw draw per sensor (8 per draw) against
+⌊256 p⌋, ties resolved exactly by fresh draws (:class:`ByteTrace`: the same law, exact; another stream,
+tested within 5 s.e.) — what IBF/OLPEF need at ⅛ of per_sensor's draws. per_sensor stays the default (the
+committed results are on it).
 
 What a stream carries (the one sensor model, :func:`netkf_cli.kalman.stream_rows`): stream i is
 sensor i's WHOLE measurement y_k^i = C_i x_k + v_k^i, sensor i of ``system.sensors`` — so the
@@ -285,6 +289,63 @@ class SensorTrace(_LazyArrival):
         return int(self._loss.size)
 
 
+class ByteTrace(SensorTrace):
+    """The per-sensor trace of ``sampling: bytes``: the same law as ``per_sensor`` from ⅛ of the raw draws.
+
+    Cell (t, i, r) — step, sensor, run — reads byte (t·N + i)·R + r of a run of raw 64-bit draws (little-endian
+    bytes, so a block of steps is a contiguous range of draws: seekable, lazy as :class:`SensorTrace`). With
+    p_i = 1 − loss_i, t_i = ⌊256 p_i⌋ and f_i = 256 p_i − t_i (both exact in floating point): the packet arrives
+    iff byte < t_i, or byte = t_i (probability 1/256) and a fresh raw draw u < ⌊f_i·2⁶⁴⌋; so
+    P(arrive) = t_i/256 + f_i/256 = p_i, exact as :func:`_raw_threshold` (2⁻⁵³ relative). The fresh draws of
+    step t come from a second range of the parent stream, at t·N·R + j for the j-th ambiguous cell of step t in
+    (sensor, run) order: the bits do not depend on how the trace is read in blocks. Another stream than
+    ``per_sensor`` (tested within 5 s.e. on the statistics); monotone in the loss (common random numbers)."""
+
+    def __init__(self, runs: int, horizon: int, state: dict, state_fix: dict, loss: np.ndarray,
+                 meta: dict | None = None):
+        super().__init__(runs, horizon, state, loss, meta)
+        p256 = np.ldexp(1.0 - self._loss, 8)
+        t = np.floor(p256)
+        self._all = t >= 256  # p = 1: every packet arrives (set exactly, no byte read)
+        self._t8u = np.minimum(t, 255).astype(np.uint8)
+        self._fix = _raw_threshold(p256 - t)
+        self._state_fix = state_fix
+
+    @staticmethod
+    def raw_draws(sensors: int, horizon: int, runs: int) -> int:
+        """Raw draws of the byte range (the parent stream is advanced past them, then past N·T·R more for
+        the fresh draws)."""
+        return -(-sensors * horizon * runs // 8)
+
+    def _draw_steps(self, t0: int, t1: int) -> np.ndarray:
+        N, R, s = self._loss.size, self.runs, t1 - t0
+        b0, b1 = t0 * N * R, t1 * N * R
+        bg = np.random.PCG64()
+        bg.state = self._state
+        bg.advance(b0 // 8)
+        raw = bg.random_raw(-(-b1 // 8) - b0 // 8).astype("<u8", copy=False)
+        byt = raw.view(np.uint8)[b0 % 8 : b0 % 8 + (b1 - b0)].reshape(s, N, R)
+        out = np.empty((N, s, R), dtype=bool)
+        t8 = self._t8u[None, :, None]
+        np.less(byt, t8, out=out.transpose(1, 0, 2))
+        amb = np.flatnonzero(byt == t8)  # in (step, sensor, run) order
+        if amb.size:
+            step, rest = np.divmod(amb, N * R)
+            ii, rr = np.divmod(rest, R)
+            u = np.empty(amb.size, dtype=np.uint64)
+            bg.state = self._state_fix
+            pos, lo = 0, 0  # the fix stream's position; ambiguous cells of step j start at t·N·R, t = t0 + j
+            for j, c in zip(*np.unique(step, return_counts=True)):
+                start = (t0 + int(j)) * N * R
+                bg.advance(start - pos)
+                u[lo : lo + c] = bg.random_raw(int(c))
+                pos, lo = start + int(c), lo + int(c)
+            out[ii, step, rr] = u < self._fix[ii]
+        if self._all.any():
+            out[self._all] = True  # loss 0: exactly, as the eager sampler
+        return out
+
+
 class CountTrace(_LazyArrival):
     """A multi-channel trace sampled as counts (``sampling: counts``): ``counts`` (horizon, runs) is
     ℓ_t = Σ_i γ_t^i; ``arrival`` (N, horizon, runs) is drawn on first read, given the counts
@@ -366,11 +427,14 @@ class MultiChannel(ChannelModel):
     loss: Probability | list[Probability] = Field(
         description="packet LOSS probability (the paper's λ): one value for all sensors or a list of N"
     )
-    sampling: Literal["per_sensor", "counts"] = Field(
+    sampling: Literal["per_sensor", "counts", "bytes"] = Field(
         "per_sensor", description="per_sensor: one raw draw per sensor, step and run (the reference stream) | counts: "
                                   "the number of sensors that arrived, ℓ ~ Binomial(N, 1 − loss), from one draw per "
                                   "run-step, the per-sensor pattern drawn given ℓ only if an estimator reads it (the "
-                                  "same law, another stream; MF with identical sensors needs only ℓ); one common loss only")
+                                  "same law, another stream; MF with identical sensors needs only ℓ); one common loss only "
+                                  "| bytes: each sensor's arrival from one BYTE of a raw draw (8 per draw) against ⌊256 p⌋, "
+                                  "a byte equal to it resolved exactly by a fresh draw (the same law, exact; another "
+                                  "stream): the per-sensor pattern IBF/OLPEF need at ⅛ of per_sensor's draws")
 
     @field_validator("loss")
     @classmethod
@@ -421,6 +485,14 @@ class MultiChannel(ChannelModel):
             counts = sample_counts(rng, runs, horizon, self.sensors, float(self.loss_array[0]))
             seed = rng.bit_generator.random_raw(2)
             return CountTrace(runs, horizon, counts, self.sensors, seed, meta)
+        if self.sampling == "bytes":
+            if not isinstance(rng.bit_generator, np.random.PCG64):
+                raise ValueError("sampling: bytes needs a PCG64 stream (netkf's)")
+            state = rng.bit_generator.state
+            rng.bit_generator.advance(ByteTrace.raw_draws(self.sensors, horizon, runs))
+            state_fix = rng.bit_generator.state
+            rng.bit_generator.advance(self.sensors * horizon * runs)
+            return ByteTrace(runs, horizon, state, state_fix, self.loss_array, meta)
         if isinstance(rng.bit_generator, np.random.PCG64):  # lazy, the same bits (see SensorTrace)
             state = rng.bit_generator.state
             rng.bit_generator.advance(self.sensors * horizon * runs)

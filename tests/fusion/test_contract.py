@@ -407,6 +407,55 @@ def _time_avg(system, ch, strategy, runs, T, burn, seed, backend="numpy"):
 
 
 @pytest.mark.parametrize("strategy", ["mf", "ibf", "olpef"])
+def test_byte_sampler_agrees_with_the_per_sensor_sampler(strategy):
+    """sampling: bytes (another stream, the same law): time-averaged tr P within 5 combined s.e., at a loss
+    whose 256·p is not an integer (the byte ties resolved by fresh draws matter)."""
+    N, runs, T, burn = 10, 3000, 40, 20
+    system = identical_sensors(A2, C2, Q2, R2, N)
+    x = _time_avg(system, MultiChannel(kind="multi", sensors=N, loss=0.6037), strategy, runs, T, burn, 11)
+    y = _time_avg(system, MultiChannel(kind="multi", sensors=N, loss=0.6037, sampling="bytes"), strategy, runs, T, burn, 12)
+    se = np.sqrt(x.var(ddof=1) / runs + y.var(ddof=1) / runs)
+    assert abs(x.mean() - y.mean()) < 5 * se, (x.mean(), y.mean(), se)
+
+
+def test_byte_sampler_has_the_exact_law_and_reads_the_same_bits_in_any_blocks(monkeypatch):
+    """sampling: bytes: each sensor's arrival frequency within 5 s.e. of 1 − loss (p = 1 and p = 0 exactly,
+    non-dyadic p through the tie draws), no correlation between neighbouring sensors or steps beyond 5 s.e.;
+    blocks of any size give the bits of the whole trace, and the parent stream continues past both ranges."""
+    from netkf_cli.channels import multi
+    from netkf_cli.channels.multi import ByteTrace
+
+    loss = [0.0, 1.0, 0.5, 0.3, 0.123456789, 0.999, 0.6037]
+    N, R, T = len(loss), 4000, 60
+    ch = MultiChannel(kind="multi", sensors=N, loss=loss, sampling="bytes")
+    rng = np.random.default_rng(21)
+    tr = ch.sample_trace(rng, R, T)
+    after = rng.bit_generator.random_raw(2)
+    ref = np.random.default_rng(21).bit_generator
+    ref.advance(ByteTrace.raw_draws(N, T, R) + N * T * R)
+    np.testing.assert_array_equal(after, ref.random_raw(2))
+    a = tr.arrival
+    p = 1 - np.asarray(loss)
+    freq = a.mean(axis=(1, 2))
+    se = np.sqrt(p * (1 - p) / (T * R))
+    assert freq[0] == 1.0 and freq[1] == 0.0
+    assert np.all(np.abs(freq - p)[2:] < 5 * se[2:]), (freq, p, se)
+    x = a[2:].astype(float)  # neighbouring sensors and steps: centred products have mean 0
+    c = x - p[2:, None, None]
+    for prod in ((c[1:] * c[:-1]).ravel(), (c[:, 1:] * c[:, :-1]).ravel()):
+        assert abs(prod.mean()) < 5 * prod.std() / np.sqrt(prod.size)
+    monkeypatch.setattr(multi, "MATERIALIZE_MAX", 0)
+    lazy = ch.sample_trace(np.random.default_rng(21), R, T)
+    for t0, t1 in ((0, 1), (1, 7), (7, 60), (13, 41)):
+        np.testing.assert_array_equal(lazy.steps(t0, t1), a[:, t0:t1])
+    assert not lazy.materialized
+    odd = MultiChannel(kind="multi", sensors=3, loss=0.37, sampling="bytes")  # N·R not a multiple of 8
+    whole = odd.sample_trace(np.random.default_rng(2), 333, 11).arrival
+    part = odd.sample_trace(np.random.default_rng(2), 333, 11)
+    np.testing.assert_array_equal(np.concatenate([part.steps(0, 3), part.steps(3, 4), part.steps(4, 11)], axis=1), whole)
+
+
+@pytest.mark.parametrize("strategy", ["mf", "ibf", "olpef"])
 def test_count_sampler_agrees_with_the_per_sensor_sampler(strategy):
     """The changed sampler (another stream, the same law): time-averaged tr P within 5 combined s.e."""
     N, runs, T, burn = 10, 3000, 40, 20
