@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli import batched
+from netkf_cli import batched, kalman
+from netkf_cli import kalman_codegen as kc
+from netkf_cli import reduce_codegen as rc
 from netkf_cli.errors import ConfigError
 from netkf_cli.montecarlo import run_chunked
 from netkf_cli.stats import MeanSummary, central4, heavy_tail_flag, mean_se, rare_event_flag  # noqa: F401 (re-exported)
@@ -47,16 +49,80 @@ def _check_pair(channel, estimator) -> None:
                                                f"provides {'/'.join(sorted(tk)) or 'no trace'}")
 
 
+REDUCE_MIN_RUNS = 2048
+"""A reducer's ``backend: auto`` reduces a batch of at least this many runs with the compiled reductions
+(:mod:`netkf_cli._reduce_numba`, when numba is importable): one pass instead of ~10 numpy passes and a
+batched eigvalsh; smaller batches (tests, quick runs) stay on numpy."""
+
+
+def _rn():
+    from netkf_cli import _reduce_numba as rn  # optional dependency (numba): the compiled reductions
+
+    return rn
+
+
+def _compiled(backend: str, P: np.ndarray, w) -> bool:
+    """Whether a reducer with ``backend`` (numpy | numba | auto) reduces the batch P compiled (never for
+    weighted statistics: the compiled reductions have no weights)."""
+    if backend == "numpy" or w is not None:
+        return False
+    if backend == "numba":
+        return True
+    return P.shape[-1] >= REDUCE_MIN_RUNS and kalman.numba_available()
+
+
+def _tri(P: np.ndarray) -> np.ndarray:
+    """The packed upper triangle (kalman_codegen layout) of sym(P), the matrix every reduction reads."""
+    return kc.pack(batched.sym(P))
+
+
+def _ambiguous(T: np.ndarray, n: int, amb: np.ndarray, M: np.ndarray):
+    """(runs, ok (nM, k)) for the runs a compiled PSD-order kernel left undecided (a threshold within the
+    1e-11 margin of their λ_max): decided here exactly as the numpy reducers do (eigvalsh)."""
+    idx = np.flatnonzero(amb)
+    lm = batched.lambda_max(kc.unpack(T[:, idx], n))
+    return idx, lm[None, :] <= (M + batched.PSD_TOL * np.maximum(1.0, M))[:, None]
+
+
+def _thresholds(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ascending M + PSD_TOL·max(1, M), the index of each in M): P ≤ M·I ⇔ λ_max(P) ≤ this (the numpy
+    reducers' comparison), sorted for the compiled binary search."""
+    M = np.atleast_1d(np.asarray(M, dtype=float))
+    thr = M + batched.PSD_TOL * np.maximum(1.0, M)
+    order = np.argsort(thr, kind="stable")
+    return np.ascontiguousarray(thr[order]), order.astype(np.int64)
+
+
 class DistributionReducer:
-    """Counts of P_k ≤ M (PSD order; scalar M means M·Iₙ) per estimator, step and M."""
+    """Counts of P_k ≤ M (PSD order; scalar M means M·Iₙ) per estimator, step and M.
+
+    ``backend`` (numpy | numba | auto, :func:`_compiled`): the numpy statistics below, or the same ones
+    from :meth:`update_tri` (compiled, equal counts: tests/engine/test_reduce_numba.py)."""
 
     means_only = False  # Pr[P_k <= M] needs each run's own covariance
+    backend = "auto"
 
     def __init__(self, M: np.ndarray, steps: list[int]):
         self.M = np.asarray(M, dtype=float)
         self.steps = list(steps)
 
+    def update_tri(self, stats: dict, j: int, k: int, T: np.ndarray, n: int) -> None:
+        """:meth:`update` for packed covariances T (n(n+1)/2, runs), compiled."""
+        i = self.steps.index(k)
+        cnt = stats.setdefault(f"count_{j}", np.zeros((len(self.steps), len(self.M))))
+        bad = stats.setdefault(f"nonfinite_{j}", np.zeros(len(self.steps)))
+        row = np.zeros(len(self.M))
+        thr, order = _thresholds(self.M)
+        amb = np.zeros(T.shape[-1], dtype=np.bool_)
+        bad[i] += rc.kernel_dist(n)(T, thr, order, row, amb)
+        if amb.any():
+            row += _ambiguous(T, n, amb, self.M)[1].sum(axis=1)
+        cnt[i] += row
+        stats["n"] = T.shape[-1]
+
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
+        if _compiled(self.backend, P, w):
+            return self.update_tri(stats, j, k, _tri(P), P.shape[0])
         i = self.steps.index(k)
         cnt = stats.setdefault(f"count_{j}", np.zeros((len(self.steps), len(self.M))))
         bad = stats.setdefault(f"nonfinite_{j}", np.zeros(len(self.steps)))
@@ -74,18 +140,44 @@ class DistributionReducer:
 
 
 class MomentReducer:
-    """Sums of tr P, λ_max(P), P entries (and squares, 4th powers of tr P) per estimator and step."""
+    """Sums of tr P, λ_max(P) (``lmax``: only if asked, it costs an eigenvalue per run and step), P entries
+    (and squares, 4th powers of tr P) per estimator and step. ``backend`` as :class:`DistributionReducer`."""
 
     means_only = True  # only means of P: a variance-reduced estimator may serve them (Estimator.for_means)
+    backend = "auto"
 
-    def __init__(self, steps: list[int]):
+    def __init__(self, steps: list[int], lmax: bool = True):
         self.steps = list(steps)
+        self.lmax = bool(lmax)
+
+    def update_tri(self, stats: dict, j: int, k: int, T: np.ndarray, n: int) -> None:
+        """:meth:`update` for packed covariances T (n(n+1)/2, runs), compiled (sums in run order)."""
+        i, K = self.steps.index(k), len(self.steps)
+        out, sP, sP2 = np.zeros(8), np.zeros((n, n)), np.zeros((n, n))
+        _rn().moment_sums(T, n, np.zeros(T.shape[-1], dtype=np.bool_), self.lmax, out, sP, sP2)
+
+        def acc(key, shape, value):
+            stats.setdefault(f"{key}_{j}", np.zeros(shape))[i] += value
+
+        for key, v in zip(("sum_tr", "sumsq_tr", "sum3_tr", "sum4_tr"), out[:4]):
+            acc(key, K, v)
+        if self.lmax:
+            acc("sum_lmax", K, out[4])
+            acc("sumsq_lmax", K, out[5])
+        acc("sum_P", (K, n, n), sP)
+        acc("sumsq_P", (K, n, n), sP2)
+        acc("nonfinite", K, out[6])
+        m = stats.setdefault(f"max_tr_{j}", np.zeros(K))
+        m[i] = max(m[i], float(out[7]))
+        stats["n"] = T.shape[-1]
 
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
+        if _compiled(self.backend, P, w):
+            return self.update_tri(stats, j, k, _tri(P), P.shape[0])
         i, K, n = self.steps.index(k), len(self.steps), P.shape[0]
         tr = batched.trace(P)
         finite = np.isfinite(P).all(axis=(0, 1))
-        lm = batched.lambda_max(P)
+        lm = batched.lambda_max(P) if self.lmax else tr
         trf, lmf, Pf = np.where(finite, tr, 0.0), np.where(finite, lm, 0.0), np.where(finite, P, 0.0)
         if w is not None:  # a variance-reduced estimator: statistics of w·x (E[w] = 1)
             trf, lmf, Pf = trf * w, lmf * w, Pf * w[None, None, :]
@@ -98,8 +190,9 @@ class MomentReducer:
             acc("sumsq_tr", K, (trf * trf).sum())
             acc("sum3_tr", K, (trf**3).sum())
             acc("sum4_tr", K, (trf**4).sum())
-            acc("sum_lmax", K, lmf.sum())
-            acc("sumsq_lmax", K, (lmf * lmf).sum())
+            if self.lmax:
+                acc("sum_lmax", K, lmf.sum())
+                acc("sumsq_lmax", K, (lmf * lmf).sum())
             acc("sum_P", (K, n, n), Pf.sum(axis=-1))
             acc("sumsq_P", (K, n, n), (Pf * Pf).sum(axis=-1))
             acc("nonfinite", K, (~finite).sum())
@@ -144,8 +237,78 @@ class PairKernel:
         self.system, self.channel, self.estimators = system, channel, list(estimators)
         self.horizon, self.steps, self.reducer = int(horizon), sorted(int(k) for k in steps), reducer
         self.quantity = quantity
+        self._fused_cache: dict = {}
+
+    def __getstate__(self):  # the fused kernels (numba dispatchers) are rebuilt in each process
+        return {**self.__dict__, "_fused_cache": {}}
+
+    def fused(self, runs: int) -> list | None:
+        """Per estimator, its fused kernel (``estimator.fused``: :mod:`netkf_cli.kf_fused`) for chunks of
+        ``runs`` runs, when every estimator has one and one quantity (filtered | predicted) is reduced;
+        else None (the trace → covariances → reducer path)."""
+        if runs not in self._fused_cache:
+            out = None
+            if isinstance(self.quantity, str) and self.quantity in ("filtered", "predicted") and self.steps:
+                means_only = bool(getattr(self.reducer, "means_only", False))
+                out = []
+                for est in self.estimators:
+                    est = est.for_means(self.channel) if means_only else est
+                    fz = getattr(est, "fused", None)
+                    fz = fz(self.system, self.channel, runs * self.horizon) if fz is not None else None
+                    if fz is None:
+                        out = None
+                        break
+                    out.append(fz)
+            self._fused_cache[runs] = out
+        return self._fused_cache[runs]
+
+    def _run_fused(self, fzs: list, rng: np.random.Generator, runs: int) -> dict:
+        """The chunk in fused kernels: the channel's uniforms (its own draw: the same numbers as
+        ``sample_trace``) → per estimator, arrivals and filter steps compiled up to each reported step →
+        the reducer's compiled ``update_tri`` on the packed state (or, for a reducer without one, its
+        ``update`` on the unpacked P). Rescue-flagged runs are carried on the numpy core
+        (:class:`kalman.FlaggedRuns`, as the compiled filter does) and written over their packed columns."""
+        u = self.channel.uniforms(rng, runs, self.horizon)
+        q, red = self.quantity, self.reducer
+        tri = hasattr(red, "update_tri")
+        stats: dict = {}
+        gam = None
+        for j, fz in enumerate(fzs):
+            f, n = fz.f, fz.f.A.shape[0]
+            T, gprev, flag = fz.start(runs)
+            X = T if q == "filtered" else np.empty_like(T)
+            redo = buf = None
+            t = 0
+            for k in self.steps:
+                fz.advance(T, u, gprev, flag, t, k)
+                t = k
+                if q != "filtered":
+                    fz.predicted(T, X)
+                if flag.any():
+                    if redo is None:
+                        if gam is None:
+                            gam = self.channel.arrivals_from_uniforms(u)[None]
+                        P0 = np.broadcast_to(fz.P0[:, :, None], fz.P0.shape + (runs,))
+                        redo = kalman.FlaggedRuns(P0, lambda Pk, tt, ix, f=f: f.step(Pk, gam[:, tt][:, ix])[1])
+                        buf = np.empty((n, n, runs))
+                    redo.fill(buf, flag, k)
+                    Pq = kalman.report(buf[:, :, redo.idx], (q,), f.A, f.Q)[q]
+                    X[:, redo.idx] = kc.pack(Pq)
+                if tri:
+                    red.update_tri(stats, j, k, X, n)
+                else:
+                    red.update(stats, j, k, kc.unpack(X, n), None)
+        finish = getattr(red, "finish", None)
+        if finish is not None:
+            finish(stats)
+        stats.pop("_ref", None)
+        stats["n"] = np.asarray(runs)
+        return stats
 
     def __call__(self, rng: np.random.Generator, runs: int) -> dict:
+        fzs = self.fused(runs)
+        if fzs is not None:
+            return self._run_fused(fzs, rng, runs)
         trace = self.channel.sample_trace(rng, runs, self.horizon)
         stats: dict = {}
         means_only = bool(getattr(self.reducer, "means_only", False))
@@ -234,6 +397,8 @@ class StationaryReducer:
     of the trace mean, counted as not ≤ M) and ``max_nsteps_j``. A column may cover fewer steps than
     ``steps`` (a smoother's lag): the average is over the steps it reported."""
 
+    backend = "auto"
+
     def __init__(self, steps: list[int], M=None, shift: dict | None = None):
         self.steps = list(steps)
         self.M = None if M is None else np.atleast_1d(np.asarray(M, dtype=float))
@@ -243,15 +408,35 @@ class StationaryReducer:
         same for every chunk, near the mean, so the 4th central moment keeps its digits when the runs
         differ by 1e-5 relative (raw Σa⁴ would cancel every digit). ``max_avg`` stays raw."""
 
-    def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
-        if k not in self.steps:
-            return
+    def _acc(self, stats: dict, j: int, runs: int) -> dict:
         acc = stats.setdefault("_acc", {})
-        runs = P.shape[-1]
         a = acc.get(j)
         if a is None:
             a = acc[j] = {"tr": np.zeros(runs), "bad": np.zeros(runs, dtype=bool), "steps": 0,
                           "ind": None if self.M is None else np.zeros((len(self.M), runs))}
+        return a
+
+    def update_tri(self, stats: dict, j: int, k: int, T: np.ndarray, n: int) -> None:
+        """:meth:`update` for packed covariances T (n(n+1)/2, runs), compiled."""
+        if k not in self.steps:
+            return
+        runs = T.shape[-1]
+        a = self._acc(stats, j, runs)
+        thr, order = (np.zeros(0), np.zeros(0, dtype=np.int64)) if self.M is None else _thresholds(self.M)
+        ind = np.zeros((0, runs)) if a["ind"] is None else a["ind"]
+        amb = np.zeros(runs, dtype=np.bool_)
+        rc.kernel_stationary(n)(T, thr, order, a["tr"], a["bad"], ind, amb)
+        if amb.any():
+            idx, ok = _ambiguous(T, n, amb, self.M)
+            ind[:, idx] += ok
+        a["steps"] += 1
+
+    def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
+        if k not in self.steps:
+            return
+        if _compiled(self.backend, P, w):
+            return self.update_tri(stats, j, k, _tri(P), P.shape[0])
+        a = self._acc(stats, j, P.shape[-1])
         tr = batched.trace(P)
         finite = np.isfinite(P).all(axis=(0, 1))
         a["bad"] |= ~finite
@@ -286,24 +471,40 @@ class TimeAverageReducer:
     """Per run, the average of tr P_k over ``steps``; sums of it, its square and 4th power."""
 
     means_only = True  # only means of P: a variance-reduced estimator may serve them (Estimator.for_means)
+    backend = "auto"
 
     def __init__(self, steps: list[int]):
         self.steps = list(steps)
 
+    def update_tri(self, stats: dict, j: int, k: int, T: np.ndarray, n: int) -> None:
+        """:meth:`update` for packed covariances T (n(n+1)/2, runs), compiled."""
+        acc = stats.get("_acc")
+        if acc is None or k == self.steps[0]:
+            acc = stats["_acc"] = np.zeros(T.shape[-1])
+        _rn().trace_acc(T, n, float(len(self.steps)), acc)
+        if k == self.steps[-1]:
+            self._close(stats, acc)
+
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
+        if _compiled(self.backend, P, w):
+            return self.update_tri(stats, j, k, _tri(P), P.shape[0])
         acc = stats.get("_acc")
         if acc is None or k == self.steps[0]:
             acc = stats["_acc"] = np.zeros(P.shape[-1])
         with np.errstate(over="ignore", invalid="ignore"):
             acc += (batched.trace(P) if w is None else batched.trace(P) * w) / len(self.steps)
         if k == self.steps[-1]:
-            ok = np.isfinite(acc)
-            a = np.where(ok, acc, 0.0)
-            with np.errstate(over="ignore"):
-                stats["sum_avg"] = stats.get("sum_avg", 0.0) + a.sum()
-                stats["sumsq_avg"] = stats.get("sumsq_avg", 0.0) + (a * a).sum()
-                stats["sum3_avg"] = stats.get("sum3_avg", 0.0) + (a**3).sum()
-                stats["sum4_avg"] = stats.get("sum4_avg", 0.0) + (a**4).sum()
-                stats["max_avg"] = max(stats.get("max_avg", 0.0), float(a.max()) if a.size else 0.0)
-            stats["nonfinite_avg"] = stats.get("nonfinite_avg", 0) + int((~ok).sum())
-            del stats["_acc"]
+            self._close(stats, acc)
+
+    def _close(self, stats: dict, acc: np.ndarray) -> None:
+        """The per-run averages ``acc`` of the chunk into its additive statistics."""
+        ok = np.isfinite(acc)
+        a = np.where(ok, acc, 0.0)
+        with np.errstate(over="ignore"):
+            stats["sum_avg"] = stats.get("sum_avg", 0.0) + a.sum()
+            stats["sumsq_avg"] = stats.get("sumsq_avg", 0.0) + (a * a).sum()
+            stats["sum3_avg"] = stats.get("sum3_avg", 0.0) + (a**3).sum()
+            stats["sum4_avg"] = stats.get("sum4_avg", 0.0) + (a**4).sum()
+            stats["max_avg"] = max(stats.get("max_avg", 0.0), float(a.max()) if a.size else 0.0)
+        stats["nonfinite_avg"] = stats.get("nonfinite_avg", 0) + int((~ok).sum())
+        del stats["_acc"]

@@ -48,9 +48,22 @@ class BernoulliChannel(ChannelModel):
             out[0] = self.arrival
         return out
 
+    def uniforms(self, rng: np.random.Generator, runs: int, horizon: int) -> np.ndarray:
+        """The one uniform per step and run the trace is a function of: ``rng.random((horizon, runs))``."""
+        return rng.random((horizon, runs))
+
+    def arrival_law(self) -> tuple[str, tuple[float, ...]]:
+        """("bernoulli", (γ,)): γ_t = u_t < γ (:meth:`arrivals_from_uniforms`; a compiled kernel that forms
+        the arrivals from :meth:`uniforms` itself, :mod:`netkf_cli.kf_fused`, makes the same comparison)."""
+        return "bernoulli", (float(self.arrival),)
+
+    def arrivals_from_uniforms(self, u: np.ndarray) -> np.ndarray:
+        """γ (horizon, runs) bool from the uniforms ``u`` (horizon, runs)."""
+        return u < self.arrival
+
     def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
         """``Trace.arrival`` (1, horizon, runs) i.i.d. Bernoulli(γ) (see the class docstring)."""
-        arr = rng.random((horizon, runs)) < self.arrival
+        arr = self.arrivals_from_uniforms(self.uniforms(rng, runs, horizon))
         return Trace(runs=runs, horizon=horizon, arrival=arr[None],
                      meta={"channel": "bernoulli", "arrival": float(self.arrival)})
 

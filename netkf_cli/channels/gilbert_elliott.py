@@ -45,12 +45,24 @@ def sample_gilbert_elliott_tm(
     """
     if runs < 0 or horizon < 0:
         raise ValueError(f"runs and horizon must be ≥ 0, got {runs}, {horizon}")
+    if horizon == 0:
+        return np.empty((horizon, runs), dtype=bool)
+    return gilbert_elliott_from_uniforms(rng.random((horizon, runs)), p_gb, p_bg)
+
+
+def pi_good_of(p_gb: float, p_bg: float) -> float:
+    """The stationary arrival probability p_bg / (p_gb + p_bg) the chain starts from (1 if it never moves)."""
+    return p_bg / (p_gb + p_bg) if (p_gb + p_bg) > 0 else 1.0
+
+
+def gilbert_elliott_from_uniforms(u: np.ndarray, p_gb: float, p_bg: float) -> np.ndarray:
+    """γ (horizon, runs) bool of the stationary Gilbert chain from the uniforms ``u`` (horizon, runs):
+    γ_0 = u_0 < π_good, γ_k = (u_k ≥ p_gb if γ_{k−1} else u_k < p_bg)."""
+    horizon, runs = u.shape
     out = np.empty((horizon, runs), dtype=bool)
     if horizon == 0:
         return out
-    u = rng.random((horizon, runs))
-    pi_good = p_bg / (p_gb + p_bg) if (p_gb + p_bg) > 0 else 1.0
-    np.less(u[0], pi_good, out=out[0])
+    np.less(u[0], pi_good_of(p_gb, p_bg), out=out[0])
     for k in range(1, horizon):
         # good stays good with prob 1 − p_gb; bad becomes good with prob p_bg
         out[k] = np.where(out[k - 1], u[k] >= p_gb, u[k] < p_bg)
@@ -137,10 +149,29 @@ class GilbertElliottChannel(ChannelModel):
         """Stationary loss probability π_B = p_gb / (p_gb + p_bg) (``loss_rate`` itself when given)."""
         return float(self.pi_loss) if self.pi_loss is not None else float(self.stationary_loss)
 
-    def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
-        """``Trace.arrival`` (1, horizon, runs) from :func:`sample_gilbert_elliott_tm` (stationary start)."""
+    def uniforms(self, rng: np.random.Generator, runs: int, horizon: int) -> np.ndarray:
+        """The one uniform per step and run the trace is a function of: ``rng.random((horizon, runs))``."""
+        if runs < 0 or horizon < 0:
+            raise ValueError(f"runs and horizon must be ≥ 0, got {runs}, {horizon}")
+        return rng.random((horizon, runs)) if horizon else np.empty((0, runs))
+
+    def arrival_law(self) -> tuple[str, tuple[float, ...]]:
+        """("gilbert_elliott", (p_gb, p_bg, π_good)): the comparisons of :func:`gilbert_elliott_from_uniforms`
+        (a compiled kernel that forms the arrivals from :meth:`uniforms` itself, :mod:`netkf_cli.kf_fused`,
+        makes the same ones)."""
         p_gb, p_bg = self.transition
-        arr = sample_gilbert_elliott_tm(rng, runs, horizon, p_gb, p_bg)
+        return "gilbert_elliott", (float(p_gb), float(p_bg), float(pi_good_of(p_gb, p_bg)))
+
+    def arrivals_from_uniforms(self, u: np.ndarray) -> np.ndarray:
+        """γ (horizon, runs) bool from the uniforms ``u`` (horizon, runs)."""
+        p_gb, p_bg = self.transition
+        return gilbert_elliott_from_uniforms(u, p_gb, p_bg)
+
+    def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
+        """``Trace.arrival`` (1, horizon, runs) from :func:`gilbert_elliott_from_uniforms` of :meth:`uniforms`
+        (the draws of :func:`sample_gilbert_elliott_tm`, stationary start)."""
+        p_gb, p_bg = self.transition
+        arr = self.arrivals_from_uniforms(self.uniforms(rng, runs, horizon))
         return Trace(runs=runs, horizon=horizon, arrival=arr[None],
                      meta={"channel": "gilbert_elliott", "p_gb": p_gb, "p_bg": p_bg, "arrival": self.arrival})
 

@@ -16,7 +16,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from netkf_cli import kalman
+from netkf_cli import kalman, kf_fused
 from netkf_cli.errors import ConfigError
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
@@ -63,6 +63,20 @@ class KalmanFilterEstimator(EstimatorModel):
         """The backend a chunk of ``runs`` × ``horizon`` runs on (recorded in the manifest)."""
         S = channel_streams(channel) or 1
         return kalman.choose_backend(self.backend, kalman.Filter.of(system, S), runs * horizon)
+
+    def fused(self, system, channel, run_steps: int) -> "kf_fused.FusedFilter | None":
+        """The fused kernel (:mod:`netkf_cli.kf_fused`: the channel's uniforms → arrivals → generated filter
+        step, reduced by the engine in the same pass) where it applies: the channel has an ``arrival_law``
+        (bernoulli, gilbert_elliott), the backend is numba (``auto``: :func:`kalman.choose_backend`) and the
+        system has a generated kernel with one arrival stream; else None (the trace → covariances path)."""
+        law = getattr(channel, "arrival_law", None)
+        if law is None:
+            return None
+        f = kalman.Filter.of(system, 1, "estimator.kind")
+        if kalman.choose_backend(self.backend, f, run_steps) != "numba" or not kf_fused.supported(f):
+            return None
+        name, params = law()
+        return kf_fused.FusedFilter(f, name, params, initial_covariance(system))
 
     def estimates(self, system, trace, y, steps, quantities=("filtered",)):
         """Yield (k, {quantity: (x̂ (n, runs), P (n, n, runs))}): the state estimate beside the covariance of
