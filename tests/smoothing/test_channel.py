@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 from pydantic import ValidationError
 
 from netkf_cli.channels.bernoulli import BernoulliChannel
+from netkf_cli.channels.retransmission import effective_arrivals
 from netkf_cli.channels.gilbert_elliott import (
     GilbertElliottChannel,
     arrivals_for,
@@ -95,3 +97,11 @@ def test_arrivals_for_both_kinds_and_rejects_others():
     assert a.shape == b.shape == (3, 7)
     with pytest.raises(ValueError, match="loss channel"):
         arrivals_for(object(), rng, 3, 7)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+@pytest.mark.parametrize("lam, N, p", [(0.6, 2, 1.0), (0.6, 2, 0.5), (0.3, 5, 0.25), (0.6, 0, 1.0), (0.6, 2, 0.0)])
+def test_retransmission_compiled_slot_loop_is_the_numpy_loop(lam, N, p):
+    """The compiled slot loop of the retransmission channel on the same uniforms: the same trace, exactly."""
+    a, b = (effective_arrivals(np.random.default_rng(3), 301, 90, lam, N, p, backend=be) for be in ("numpy", "numba"))
+    assert a.dtype == b.dtype == bool and np.array_equal(a, b)
