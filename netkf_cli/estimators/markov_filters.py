@@ -58,6 +58,7 @@ import numpy as np
 
 from netkf_cli import batched, kalman
 from netkf_cli.errors import ConfigError
+from netkf_cli.estimators import _markov_codegen
 from netkf_cli.tolerances import FIXED_GAIN_PRECISION, PSD_INPUT_TOL, ZERO_INNOVATION_RTOL
 
 N_MODES = 4
@@ -779,3 +780,95 @@ class ModeAwareCompiled:
             P[:, :, idx] = sub.P
         ref.P = P
         return Pfx, None
+
+
+# =========================================================================== compiled state-level paths
+def linear_filter_covariances_compiled(model: AugmentedModel, filt: LinearFilter, modes: np.ndarray, x0, P0, steps,
+                                       quantities=("filtered",), base: str = "paper"):
+    """:func:`linear_filter_covariances` compiled: the same recursion per run in a kernel generated for these
+    matrices (:mod:`netkf_cli.estimators._markov_codegen`: structural zeros skipped, constants inlined); equal to
+    the numpy path to rounding. Yields (k, {quantity: P (n, n, runs)})."""
+    d, n = model.d, model.n
+    r = filt.As.shape[1]
+    D = d + r
+    if D > _markov_codegen.MAX_DIM:  # the written-out kernel grows as D³: numpy beyond
+        yield from linear_filter_covariances(model, filt, modes, x0, P0, steps, quantities, base)
+        return
+    K, runs = modes.shape
+    want = sorted(int(k) for k in steps)
+    if not want:
+        return
+    t1 = min(K, want[-1])
+    xbar, cov = model.prior_moments(np.asarray(x0, float), np.asarray(P0, float), base)
+    z0 = np.concatenate([xbar, filt.s0])
+    M0 = np.outer(z0, z0)
+    M0[:d, :d] += cov
+    Sig = model.Sigma
+    A = np.zeros((t1, N_MODES, D, D))
+    A[:, :, :d, :d] = model.F[None]
+    A[:, :, d:, :d] = np.einsum("tra,qad->tqrd", filt.Gs[:t1], model.H)
+    A[:, :, d:, d:] = filt.As[:t1, None]
+    B = np.concatenate([np.broadcast_to(model.G[None], (t1,) + model.G.shape),
+                        np.einsum("tra,qap->tqrp", filt.Gs[:t1], model.J)], axis=2)  # (t1, N, D, p)
+    BSB = np.einsum("tqap,pr,tqbr->tqab", B, Sig, B)
+    Cf = np.concatenate([model.Ex[None, None] - np.einsum("tna,qad->tqnd", filt.Lf[:t1], model.H),
+                         np.broadcast_to(-filt.Ef[:t1, None], (t1, N_MODES, n, r))], axis=3)  # (t1, N, n, D)
+    LJ = np.einsum("tna,qap->tqnp", filt.Lf[:t1], model.J)
+    LJS = np.einsum("tqap,pr,tqbr->tqab", LJ, Sig, LJ)
+    Cp = np.ascontiguousarray(np.concatenate([model.Ex, -filt.Ep], axis=1))
+    flat = lambda X: np.ascontiguousarray(X.reshape((t1 * N_MODES,) + X.shape[2:]))  # noqa: E731 - index t·N + q
+    slot = np.full(t1 + 1, -1, np.int64)
+    rep = [k for k in want if k <= t1]
+    slot[rep] = np.arange(len(rep))
+    wf, wp = "filtered" in quantities, "predicted" in quantities
+    out_f = np.empty((len(rep) if wf else 0, n, n, runs))
+    out_p = np.empty((len(rep) if wp else 0, n, n, runs))
+    mT = np.ascontiguousarray(modes[:t1].T, dtype=np.int64)
+    Cff = flat(Cf)
+    run = _markov_codegen.kernel(A, BSB, Cf, LJS, Cp)
+    run(M0, mT, t1, flat(A), flat(BSB), slot, Cff, flat(LJS), np.ascontiguousarray((Cff * Cff).sum(axis=(1, 2))),
+        float(np.sum(Cp * Cp)), wf, wp, float(np.finfo(float).eps), FIXED_GAIN_PRECISION, out_f, out_p)
+    for i, k in enumerate(rep):
+        got = {}
+        if wf:
+            got["filtered"] = out_f[i]
+        if wp:
+            got["predicted"] = out_p[i]
+        yield k, {q: got[q] for q in quantities}
+
+
+def mode_aware_estimates_compiled(model: AugmentedModel, modes: np.ndarray, y: np.ndarray, xhat0, P0, steps,
+                                  base: str = "paper") -> dict:
+    """The mode-aware KF with states (:class:`ModeAwareKFTr`, ``states=True``) compiled for one output (m = 1:
+    a kernel generated for this model, :func:`netkf_cli.estimators._markov_codegen.source_mode_aware`) over trace
+    steps 0 … max(steps) − 1: {k: (x̂(k|k), P_x(k|k), x̂(k+1|k), P_x(k+1|k))} for k in ``steps`` (run axis
+    last). ``y`` (m, horizon+2, runs): trace step t reads y[:, t + 1]. A run that trips the plain KF's overflow
+    flag is redone by the numpy reference. Equal to the numpy path to rounding."""
+    md = model
+    if md.m != 1:
+        raise ValueError("the compiled mode-aware KF with states needs one output (m = 1): use ModeAwareKFTr")
+    n, runs = md.n, modes.shape[1]
+    want = sorted(int(k) for k in steps)
+    t1 = want[-1]
+    ref = ModeAwareKFTr(md, 1, xhat0, P0, states=True, base=base)
+    slot = np.full(t1 + 1, -1, np.int64)
+    slot[want] = np.arange(len(want))
+    S = len(want)
+    xf, xp = np.empty((S, n, runs)), np.empty((S, n, runs))
+    Pf, Pp = np.empty((S, n, n, runs)), np.empty((S, n, n, runs))
+    flag = np.zeros(runs, dtype=np.bool_)
+    yT = np.ascontiguousarray(y[0].T)  # (runs, T + 2): one run contiguous
+    mT = np.ascontiguousarray(modes[:t1].T, dtype=np.int64)
+    run = _markov_codegen.kernel_mode_aware(md.H, ref.Rq, ref.Fb, ref.Qb, ref.D, n)
+    run(ref.xi[:, 0].copy(), ref.P[:, :, 0].copy(), mT, yT, t1, ref.scale, ZERO_INNOVATION_RTOL, ref.rescue.limit,
+        slot, xf, Pf, xp, Pp, flag)
+    if flag.any():  # the overflow policy: these runs through the numpy reference from the start
+        idx = np.flatnonzero(flag)
+        kf = ModeAwareKFTr(md, idx.size, xhat0, P0, states=True, base=base)
+        for t in range(t1):
+            a, _, pf = kf.step(y[:, t + 1, idx], modes[t, idx], want_cov=slot[t + 1] >= 0)
+            s = slot[t + 1]
+            if s >= 0:
+                xf[s][:, idx], Pf[s][:, :, idx] = a, pf
+                xp[s][:, idx], Pp[s][:, :, idx] = kf.xi[:n], kf.P[:n, :n]
+    return {k: (xf[i], Pf[i], xp[i], Pp[i]) for i, k in enumerate(want)}

@@ -59,6 +59,7 @@ from pydantic import Field
 
 from netkf_cli import kalman
 from netkf_cli.errors import ConfigError
+from netkf_cli.estimators import _markov_codegen
 from netkf_cli.estimators.kf import channel_streams
 from netkf_cli.estimators.markov_filters import (
     N_MODES,
@@ -67,7 +68,9 @@ from netkf_cli.estimators.markov_filters import (
     ModeAwareCompiled,
     ModeAwareKFTr,
     linear_filter_covariances,
+    linear_filter_covariances_compiled,
     lmmse_filter,
+    mode_aware_estimates_compiled,
     naive_filter,
     pinv_psd,
     psd_sqrt,
@@ -407,8 +410,9 @@ class MarkovLMIEstimator(EstimatorModel):
                                                "eq. (35) (variance of x_s(0) around its value)")
     precedence: bool = Field(True, description="use the precedence rule of eq. (34) for q = 2 (exclude j = 1 in Φ_2)")
     backend: Literal["auto", "numpy", "numba"] = Field(
-        "auto", description="mode-aware KF: auto = numba when importable (compiled run by run on kalman_numba's "
-                            "primitives, measured faster), else numpy (the reference; equal to rounding)")
+        "auto", description="auto = numba when importable, else numpy (the reference; equal to rounding): the "
+                            "fixed-gain filters' per-run covariances, the mode-aware KF (covariances; with states for "
+                            "one output) in kernels generated per system, run by run (measured faster)")
     S: Matrix | None = Field(None, description="cross-covariance E[w_k v_kᵀ] (n×m) of process and measurement noise the "
                                                "filters are built for (default 0; Moayedi's Example 1 has v = 0.2 w)")
     filter: Literal["lmi", "mode_aware", "naive", "lmmse"] = Field(
@@ -472,7 +476,9 @@ class MarkovLMIEstimator(EstimatorModel):
                 yield k, Ps
             return
         filt = self._fixed_gain(model, x0, P0, trace, steps[-1])
-        yield from linear_filter_covariances(model, filt, modes, x0, P0, steps, qs, base="contract")
+        lfc = linear_filter_covariances_compiled if resolve_backend(self.backend, model.m) == "numba" \
+            else linear_filter_covariances
+        yield from lfc(model, filt, modes, x0, P0, steps, qs, base="contract")
 
     def _lmmse(self, model, x0, P0, trace, want, qs):
         """Costa's exact LMMSE for the trace's chain and (k, {q: P}) with P = E[e eᵀ] (the same for every run)."""
@@ -496,6 +502,13 @@ class MarkovLMIEstimator(EstimatorModel):
         if not want:
             return
         n = model.n
+        compiled = resolve_backend(self.backend, model.m) == "numba"
+        if self.filter == "mode_aware" and compiled and _markov_codegen.mode_aware_supported(model.d, model.m):
+            res = mode_aware_estimates_compiled(model, modes, y, x0, P0, want, base="contract")
+            for k in want:
+                xf, Pf, xp, Pp = res[k]
+                yield k, {q: (xf, Pf) if q == "filtered" else (xp, Pp) for q in qs}
+            return
         if self.filter == "mode_aware":
             kf = ModeAwareKFTr(model, modes.shape[1], x0, P0, states=True, base="contract")
             wset = set(want)
@@ -509,7 +522,8 @@ class MarkovLMIEstimator(EstimatorModel):
             filt, covs = self._lmmse(model, x0, P0, trace, want, qs)
         else:
             filt = self._fixed_gain(model, x0, P0, trace, want[-1])
-            covs = linear_filter_covariances(model, filt, modes, x0, P0, want, qs, base="contract")
+            lfc = linear_filter_covariances_compiled if compiled else linear_filter_covariances
+            covs = lfc(model, filt, modes, x0, P0, want, qs, base="contract")
         s = np.repeat(filt.s0[:, None], modes.shape[1], axis=1)
         t = 0
         for k, Ps in covs:

@@ -1,0 +1,238 @@
+"""Generated compiled kernels of the Markov-mode fixed-gain filters (per system; numba, optional).
+
+:func:`~netkf_cli.estimators.markov_filters.linear_filter_covariances` propagates per run the second moment
+M of ζ = [ξ; s] (D = d + r), M⁺ = 𝒜_{t,q} M 𝒜_{t,q}ᵀ + ℬΣℬᵀ_{t,q}, with 𝒜_{t,q} = [[F_q, 0], [G_s(t) H_q,
+A_s(t)]] mostly zeros (the augmented transition F_q: a shift, one copied block, the mode's measurement row).
+This module writes that recursion out as scalar expressions over the upper triangle of one run's M (kept in
+locals across the time loop): structural zeros of 𝒜_{t,q} over every t are skipped, entries constant in t
+are inlined as numbers, the others (the gains) read from the stacked array. The operations are the numpy
+core's in its order (``batched.left`` / ``right`` term by term in ascending index, then ``sym``, then + Q),
+so for D ≤ 8 the numbers are the numpy path's bit for bit where no BLAS product intervenes — which keeps
+the degenerate cases (a covariance that is exactly 0, the NEES rank of it) identical. The reports — P_{k|k} =
+C_{t,q} M C_{t,q}ᵀ + L_f J_q Σ J_qᵀ L_fᵀ before the step, P_{k+1|k} = C_p M⁺ C_pᵀ after it — and the
+round-off guard (∞ where ε·‖C‖_F²·tr M > FIXED_GAIN_PRECISION·tr P) are written the same way. The same
+equations as the numpy path, in another floating-point order: equal to rounding
+(``tests/markov/test_fast_paths.py``). Compiled and cached on disk by source hash through
+``netkf_cli.kalman_codegen._load`` (numba compiles each system once per machine).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from netkf_cli import kalman_codegen
+
+
+MAX_DIM = 10
+"""Largest D = d + r (fixed gain) or d (mode-aware) written out: the kernel has O(D³) lines (≈ 1 200 at D = 8,
+numba compiles it in ≈ 15 s once per system); larger systems take the numpy path."""
+
+
+def mode_aware_supported(d: int, m: int) -> bool:
+    """Whether :func:`source_mode_aware` covers the model (one output, d ≤ :data:`MAX_DIM`)."""
+    return m == 1 and d <= MAX_DIM
+
+
+def _num(x: float) -> str:
+    return repr(float(x))
+
+
+def _pattern(X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For stacked matrices X (T, N, a, b): (nonzero anywhere (N, a, b), constant in t (N, a, b), the value)."""
+    nz = (X != 0.0).any(axis=0)
+    const = (X == X[:1]).all(axis=0)
+    return nz, const, X[0]
+
+
+def _m(i: int, j: int) -> str:
+    return f"m{min(i, j)}_{max(i, j)}"
+
+
+def _sym(X: str, i: int, j: int) -> str:
+    """(X + Xᵀ)/2 at (i, j) as ``batched.sym`` computes it (the diagonal unchanged)."""
+    return f"{X}{i}_{j}" if i == j else f"0.5 * ({X}{i}_{j} + {X}{j}_{i})"
+
+
+def _coef(name: str, q: int, i: int, j: int, const, val) -> str:
+    if const[q, i, j]:
+        return _num(val[q, i, j])
+    return f"{name}[idx, {i}, {j}]"
+
+
+def _sum(terms: list[tuple[str, str]], start: str | None = None) -> str:
+    """Σ coef·var with 1.0 and −1.0 folded; ``start`` the first term (a number or a load)."""
+    parts = [] if start is None else [start]
+    for c, v in terms:
+        if c == "1.0":
+            parts.append(f"+ {v}")
+        elif c == "-1.0":
+            parts.append(f"- {v}")
+        else:
+            parts.append(f"+ {c} * {v}")
+    if not parts:
+        return "0.0"
+    s = " ".join(parts)
+    return s[2:] if s.startswith("+ ") else ("-" + s[2:] if s.startswith("- ") else s)
+
+
+def source(A: np.ndarray, BSB: np.ndarray, Cf: np.ndarray, LJS: np.ndarray, Cp: np.ndarray) -> str:
+    """The kernel ``run`` for stacked 𝒜 (T, N, D, D), ℬΣℬᵀ (T, N, D, D), C_f (T, N, n, D), L_fJΣJᵀL_fᵀ
+    (T, N, n, n) and the constant C_p (n, D); its arguments are the same arrays flattened to index t·N + q."""
+    T, N, D = A.shape[0], A.shape[1], A.shape[2]
+    n = Cp.shape[0]
+    anz, aco, aval = _pattern(A)
+    bnz, bco, bval = _pattern(BSB)
+    cnz, cco, cval = _pattern(Cf)
+    lnz, lco, lval = _pattern(LJS)
+    up = [(i, j) for i in range(D) for j in range(i, D)]
+    L = ["import numpy as np", "import numba as nb", "", "",
+         "@nb.njit(cache=True, nogil=True)",
+         "def run(M0, modes, t1, AA, BB, slot, CF, LJ, sumCf, sumCp, want_f, want_p, eps, prec, out_f, out_p):",
+         "    runs = modes.shape[0]",
+         "    for r in range(runs):"]
+    L += [f"        {_m(i, j)} = M0[{i}, {j}]" for i, j in up]
+    L += ["        for t in range(t1):",
+          "            q = modes[r, t]",
+          f"            idx = t * {N} + q",
+          "            s = slot[t + 1]"]
+    I = "                "
+    for q in range(N):
+        L.append(f"            {'if' if q == 0 else 'elif'} q == {q}:")
+        # the filtered report, before the step
+        L.append(I + "if s >= 0 and want_f:")
+        J = I + "    "
+        for a in range(n):
+            for j in range(D):
+                terms = [(_coef("CF", q, a, k, cco, cval), _m(k, j)) for k in range(D) if cnz[q, a, k]]
+                L.append(J + f"x{a}_{j} = {_sum(terms)}")
+        for a in range(n):
+            for b in range(n):
+                terms = [(_coef("CF", q, b, k, cco, cval), f"x{a}_{k}") for k in range(D) if cnz[q, b, k]]
+                L.append(J + f"c{a}_{b} = {_sum(terms)}")
+        for a in range(n):
+            for b in range(a, n):
+                st = (_num(lval[q, a, b]) if lco[q, a, b] else f"LJ[idx, {a}, {b}]") if lnz[q, a, b] else "0.0"
+                L.append(J + f"p{a}_{b} = {_sym('c', a, b)} + {st}")
+        L.append(J + f"trm = {' + '.join(_m(i, i) for i in range(D))}")
+        L.append(J + f"trp = {' + '.join(f'p{a}_{a}' for a in range(n))}")
+        L.append(J + "bad = not (eps * sumCf[idx] * trm <= prec * trp)")
+        for a in range(n):
+            for b in range(n):
+                L.append(J + f"out_f[s, {a}, {b}, r] = np.inf if bad else p{min(a, b)}_{max(a, b)}")
+        # the step: t = 𝒜 M, M⁺ = t 𝒜ᵀ + ℬΣℬᵀ (upper triangle)
+        for i in range(D):
+            for j in range(D):
+                terms = [(_coef("AA", q, i, k, aco, aval), _m(k, j)) for k in range(D) if anz[q, i, k]]
+                L.append(I + f"t{i}_{j} = {_sum(terms)}")
+        for i in range(D):
+            for j in range(D):
+                terms = [(_coef("AA", q, j, k, aco, aval), f"t{i}_{k}") for k in range(D) if anz[q, j, k]]
+                L.append(I + f"u{i}_{j} = {_sum(terms)}")
+        for i, j in up:
+            st = (_num(bval[q, i, j]) if bco[q, i, j] else f"BB[idx, {i}, {j}]") if bnz[q, i, j] else "0.0"
+            L.append(I + f"n{i}_{j} = {_sym('u', i, j)} + {st}")
+    L += [f"            {_m(i, j)} = n{i}_{j}" for i, j in up]
+    # the predicted report, after the step
+    L.append("            if s >= 0 and want_p:")
+    I = "                "
+    for a in range(n):
+        for j in range(D):
+            terms = [(_num(Cp[a, k]), _m(k, j)) for k in range(D) if Cp[a, k] != 0.0]
+            L.append(I + f"x{a}_{j} = {_sum(terms)}")
+    for a in range(n):
+        for b in range(n):
+            terms = [(_num(Cp[b, k]), f"x{a}_{k}") for k in range(D) if Cp[b, k] != 0.0]
+            L.append(I + f"c{a}_{b} = {_sum(terms)}")
+    for a in range(n):
+        for b in range(a, n):
+            L.append(I + f"p{a}_{b} = {_sym('c', a, b)} + 0.0")
+    L.append(I + f"trm = {' + '.join(_m(i, i) for i in range(D))}")
+    L.append(I + f"trp = {' + '.join(f'p{a}_{a}' for a in range(n))}")
+    L.append(I + "bad = not (eps * sumCp * trm <= prec * trp)")
+    for a in range(n):
+        for b in range(n):
+            L.append(I + f"out_p[s, {a}, {b}, r] = np.inf if bad else p{min(a, b)}_{max(a, b)}")
+    return "\n".join(L) + "\n"
+
+
+def kernel(A, BSB, Cf, LJS, Cp):
+    """The compiled ``run`` for these stacked matrices (generated, written once, numba-cached)."""
+    return kalman_codegen._load(source(A, BSB, Cf, LJS, Cp), "netkf_markov_fixed", "run")  # its shared loader
+
+
+# =========================================================================== the mode-aware KF (one output)
+def source_mode_aware(H: np.ndarray, Rq: np.ndarray, Fb: np.ndarray, Qb: np.ndarray, Dg: np.ndarray, n: int) -> str:
+    """The kernel ``run`` of :class:`~netkf_cli.estimators.markov_filters.ModeAwareKFTr` with states for m = 1:
+    per mode q the scalar pseudo-inverse update (S = H_q P H_qᵀ + R_q; no gain unless S > floor =
+    ZERO_INNOVATION_RTOL·(tr Σ + tr P): ``kalman.update_pinv`` for one row), then P⁺ = F̄_q P_f F̄_qᵀ + Q̄_q,
+    ξ̂⁺ = F̄_q ξ̂_f + D_q y; H, R_q, F̄, Q̄, D inlined (structural zeros skipped). Mode 3 (H = 0) leaves P, ξ̂.
+    A run whose x block trips the plain KF's overflow flag in a mode-1 / mode-3 step is flagged and left."""
+    N, d = Fb.shape[0], Fb.shape[1]
+    up = [(i, j) for i in range(d) for j in range(i, d)]
+    P = lambda i, j: f"p{min(i, j)}_{max(i, j)}"  # noqa: E731
+    Fp = lambda i, j: f"f{min(i, j)}_{max(i, j)}"  # noqa: E731
+    L = ["import numpy as np", "import numba as nb", "", "",
+         "@nb.njit(cache=True, nogil=True)",
+         "def run(xi0, P0, modes, y, t1, scale, rtol, limit, slot, xf_out, Pf_out, xp_out, Pp_out, flag):",
+         "    runs = modes.shape[0]",
+         "    for r in range(runs):"]
+    L += [f"        {P(i, j)} = P0[{i}, {j}]" for i, j in up]
+    L += [f"        x{i} = xi0[{i}]" for i in range(d)]
+    L += ["        for t in range(t1):",
+          "            q = modes[r, t]",
+          "            yy = y[r, t + 1]"]
+    I = "                "
+    for q in range(N):
+        L.append(f"            {'if' if q == 0 else 'elif'} q == {q}:")
+        if q in (0, 2):
+            L.append(I + f"if not ({' + '.join(P(i, i) for i in range(n))} <= limit):")
+            L.append(I + "    flag[r] = True")
+            L.append(I + "    break")
+        h = H[q, 0]
+        hz = [k for k in range(d) if h[k] != 0.0]
+        if not hz:  # noise only: P_f = P, ξ̂_f = ξ̂
+            L += [I + f"{Fp(i, j)} = {P(i, j)}" for i, j in up]
+            L += [I + f"g{i} = x{i}" for i in range(d)]
+        else:
+            for i in range(d):
+                L.append(I + f"u{i} = {_sum([(_num(h[k]), P(k, i)) for k in hz])}")
+            L.append(I + f"ss = ({_sum([(_num(h[k]), f'u{k}') for k in hz])}) + {_num(Rq[q, 0, 0])}")
+            L.append(I + f"if ss > rtol * (scale + ({' + '.join(P(i, i) for i in range(d))})):")
+            J = I + "    "
+            L.append(J + "inv = 1.0 / ss")
+            L.append(J + f"e = yy - ({_sum([(_num(h[k]), f'x{k}') for k in hz])})")
+            for i in range(d):
+                L.append(J + f"b{i} = inv * u{i}")  # numpy's order: S⁻¹ (C P), then P Cᵀ · that, then (X + Xᵀ)/2
+            L += [J + (f"{Fp(i, j)} = {P(i, j)} - u{i} * b{i}" if i == j else
+                       f"{Fp(i, j)} = 0.5 * (({P(i, j)} - u{i} * b{j}) + ({P(i, j)} - u{j} * b{i}))") for i, j in up]
+            L += [J + f"g{i} = x{i} + b{i} * e" for i in range(d)]
+            L.append(I + "else:")
+            L += [J + f"{Fp(i, j)} = {P(i, j)}" for i, j in up]
+            L += [J + f"g{i} = x{i}" for i in range(d)]
+        F = Fb[q]
+        for i in range(d):
+            for j in range(d):
+                L.append(I + f"w{i}_{j} = {_sum([(_num(F[i, k]), Fp(k, j)) for k in range(d) if F[i, k] != 0.0])}")
+        for i in range(d):
+            for j in range(d):
+                L.append(I + f"v{i}_{j} = {_sum([(_num(F[j, k]), f'w{i}_{k}') for k in range(d) if F[j, k] != 0.0])}")
+        for i, j in up:
+            L.append(I + f"{P(i, j)} = {_sym('v', i, j)} + {_num(Qb[q, i, j])}")
+        for i in range(d):
+            st = f"{_num(Dg[q, i, 0])} * yy" if Dg[q, i, 0] != 0.0 else None
+            L.append(I + f"x{i} = {_sum([(_num(F[i, k]), f'g{k}') for k in range(d) if F[i, k] != 0.0], st)}")
+    L.append("            s = slot[t + 1]")
+    L.append("            if s >= 0:")
+    I = "                "
+    for i in range(n):
+        L.append(I + f"xf_out[s, {i}, r] = g{i}")
+        L.append(I + f"xp_out[s, {i}, r] = x{i}")
+        for j in range(n):
+            L.append(I + f"Pf_out[s, {i}, {j}, r] = {Fp(i, j)}")
+            L.append(I + f"Pp_out[s, {i}, {j}, r] = {P(i, j)}")
+    return "\n".join(L) + "\n"
+
+
+def kernel_mode_aware(H, Rq, Fb, Qb, Dg, n: int):
+    """The compiled mode-aware ``run`` for these per-mode matrices (m = 1; generated, numba-cached)."""
+    return kalman_codegen._load(source_mode_aware(H, Rq, Fb, Qb, Dg, n), "netkf_markov_aware", "run")  # its shared loader
