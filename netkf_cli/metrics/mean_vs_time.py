@@ -49,7 +49,8 @@ class MeanVsTime(GenericMetric):
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         first = max(e.first_step(self.quantity) for e in scenario.estimator_list())
         ks = self.steps(scenario.montecarlo.horizon, first)
-        s, ests, st = self.simulate(scenario, ctx, engine.MomentReducer(ks), ks, scenario.montecarlo.horizon)
+        s, ests, st = self.simulate(scenario, ctx, engine.MomentReducer(ks, lmax=self.of == "lambda_max"), ks,
+                                     scenario.montecarlo.horizon)
         labs = labels(ests)
         lab_cols = describe(scenario, s, ests, self.quantity)
         rows, warnings_ = [], []
