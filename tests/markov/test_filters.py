@@ -11,15 +11,40 @@ from netkf_cli.channels.markov_modes import stationary_distribution
 from netkf_cli.estimators.markov_filters import (
     AugmentedModel,
     ModeAwareKFTr,
-    draw_initial,
-    draw_noise,
     exact_mse,
     lmmse_filter,
     naive_filter,
-    plant_step,
     pinv_psd,
+    psd_sqrt,
 )
 from netkf_cli.estimators.markov_lmi import lmi_design
+
+
+# the augmented plant run directly (ξ(k+1) = F_q ξ + G_q ε): the reference these tests check the filters and the
+# mode matrices against (netkf's simulation, netkf_cli.state, draws x, w, v and applies the packet model itself)
+def draw_initial(model: AugmentedModel, rng: np.random.Generator, runs: int, x0, P0) -> np.ndarray:
+    """ξ(0) for ``runs`` runs, shape (runs, d): x(0) ~ N(x0, P0), x(−1) = x(0), y(−1) = v(−1) (eq. 35)."""
+    n, m = model.n, model.m
+    x = np.asarray(x0, float)[None, :] + rng.standard_normal((runs, n)) @ psd_sqrt(np.asarray(P0, float)).T
+    v = rng.standard_normal((runs, m)) @ psd_sqrt(model.R).T
+    return np.concatenate([x, x, v, v], axis=1)
+
+
+def draw_noise(model: AugmentedModel, rng: np.random.Generator, runs: int, horizon: int) -> np.ndarray:
+    """ε(k) = [w(k); v(k)] ~ N(0, Σ), shape (horizon, runs, p)."""
+    return rng.standard_normal((horizon, runs, model.p)) @ model.Lsig.T
+
+
+def plant_step(model: AugmentedModel, xi: np.ndarray, eps: np.ndarray, mode: np.ndarray):
+    """One step of the true system for all runs: returns y(k) (runs, m) and ξ(k+1) (runs, d)."""
+    runs = xi.shape[0]
+    idx = np.arange(runs)
+    y_all = np.einsum("qmd,rd->qrm", model.H, xi) + np.einsum("qmp,rp->qrm", model.J, eps)
+    y = y_all[mode, idx]
+    n, m = model.n, model.m
+    x = xi[:, :n]
+    xi_next = np.concatenate([x @ model.A.T + eps[:, :n], x, y, eps[:, n:]], axis=1)
+    return y, xi_next
 
 
 def test_plant_step_semantics(example):
