@@ -147,17 +147,33 @@ def source(A, C, Q, R, groups, limit: float) -> str:
     return "\n".join(L) + "\n"
 
 
-def _lin_symbolic(terms: list[tuple[str, str]]) -> str:
-    """Σ coef·name with every term (symbolic coefficients); '0.0' when empty."""
-    return " + ".join(f"{c} * {v}" for c, v in terms) or "0.0"
+def _lin_symbolic(terms: list[tuple[float | str, str]]) -> str:
+    """:func:`_lin` where a coefficient may be a local's name (then ``name * v``, as ``_lin`` writes a constant)."""
+    out = []
+    for c, v in terms:
+        if isinstance(c, str):
+            out.append(f"+ {c} * {v}")
+        elif c == 1.0:
+            out.append(f"+ {v}")
+        elif c == -1.0:
+            out.append(f"- {v}")
+        elif c != 0.0:
+            out.append(f"+ {_num(c)} * {v}")
+    if not out:
+        return "0.0"
+    s = " ".join(out)
+    return s[2:] if s.startswith("+ ") else "-" + s[2:]
 
 
-def _symbols(n: int, mg: int):
-    """(A, C1, Q, R1) as arrays of the local names :func:`_system_locals` defines."""
-    def sym(name, r, c, tri):
-        return np.array([[f"{name}{min(i, j)}_{max(i, j)}" if tri else f"{name}{i}_{j}" for j in range(c)]
+def _symbols(A, C1, Q, R1):
+    """(A, C1, Q, R1) as object arrays: the entries 0 and ±1 kept as numbers (dropped / folded as :func:`_lin`
+    does: the kernel's structure), every other entry the name of its local (:func:`_system_locals`)."""
+    def sym(X, name, tri):
+        r, c = X.shape
+        return np.array([[float(X[i, j]) if X[i, j] in (0.0, 1.0, -1.0) else
+                          (f"{name}{min(i, j)}_{max(i, j)}" if tri else f"{name}{i}_{j}") for j in range(c)]
                          for i in range(r)], dtype=object)
-    return sym("sa", n, n, False), sym("sc", mg, n, False), sym("sq", n, n, True), sym("sr", mg, mg, True)
+    return sym(A, "sa", False), sym(C1, "sc", False), sym(Q, "sq", True), sym(R1, "sr", True)
 
 
 def _system_locals(n: int, mg: int, ind: str = "    ") -> list[str]:
@@ -184,9 +200,9 @@ def _count_step(A, C1, Q, R1, ind: str, g: str, symbolic: bool = False) -> list[
     """Straight-line lines of one predicted count update, from the locals ``p{i}_{j}`` (upper triangle of
     P_{k−1|k−1}) to ``q{i}_{j}`` (P_{k|k}), count ``g`` (a float expression); raises ``flag[r]`` when the
     prior's trace exceeds ``limit`` or is non-finite, or the update gives a NaN. ``symbolic``: the system's
-    numbers are the locals of :func:`_system_locals` (``sa``/``sc``/``sq``/``sr``), every term kept (only
-    the shapes of A, C1 are read): the same operations in the same order, so for finite P the same bits as
-    the inlined form (a dropped term is an exact 0·x, a folded 1·x is exact)."""
+    numbers other than 0 and ±1 are the locals of :func:`_system_locals` (``sa``/``sc``/``sq``/``sr``), so the
+    source depends on the zero / ±1 pattern only (one kernel for a whole grid over Q or the loss) and is the
+    inlined expression with names for numbers: the same operations in the same order, the same bits."""
     n, mg = A.shape[0], C1.shape[0]
     tri = [(i, j) for i in range(n) for j in range(i, n)]
 
@@ -196,8 +212,8 @@ def _count_step(A, C1, Q, R1, ind: str, g: str, symbolic: bool = False) -> list[
     lin, num = _lin, _num
     if symbolic:
         lin = _lin_symbolic
-        num = str
-        A, C1, Q, R1 = _symbols(n, mg)
+        num = str  # a name, or repr of 0.0 / ±1.0 (as _num)
+        A, C1, Q, R1 = _symbols(A, C1, Q, R1)
 
     L = []
     for i in range(n):

@@ -611,9 +611,9 @@ def test_a_small_lazy_trace_is_drawn_once_on_first_read_with_the_same_bits(monke
 @needs_numba
 @pytest.mark.parametrize("name", ["scalar", "vehicle", "3-rows"])
 def test_symbolic_kernels_give_the_bits_of_the_inlined_ones(name):
-    """The fusion kernels read the system from a vector (kalman_codegen ``limit=None``: one compile per shape,
-    not per system of an ``over`` grid): on finite P the same bits as the kernels with the numbers inlined
-    (a dropped term is an exact 0·x, a folded one an exact 1·x), MF's count update and IBF's evaluation."""
+    """The fusion kernels read the system's numbers from a vector (kalman_codegen ``limit=None``: one compile
+    per shape and zero / ±1 pattern, not per point of an ``over`` grid): the same bits as the kernels with the
+    numbers inlined (the same expressions), MF's count update and IBF's evaluation."""
     Av = [[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1.0]]
     cases = {"scalar": (0.9, 1.0, 1e-3, 10.0),
              "vehicle": (Av, np.hstack([np.eye(2), np.zeros((2, 2))]), 0.01 * np.eye(4), 0.001 * np.eye(2)),
