@@ -254,6 +254,7 @@ def save(fig: Figure, path, dpi: int | None = None, formats: Iterable[str] | Non
     lint_dir = os.environ.get("NETKF_FIGURE_LINT")
     if lint_dir:
         try:
+            fig.canvas.draw()  # the lint reads drawn positions (a legend's loc="best" is placed at draw time)
             problems = lint(fig)
         except Exception as exc:  # the lint must never stop a figure from being written
             problems = [f"lint crashed: {type(exc).__name__}: {exc}"]
