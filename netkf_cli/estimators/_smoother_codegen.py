@@ -111,57 +111,52 @@ def source_prepare(A, Q, limit: float) -> str:
             a, b = _sym(i, j)
             L.append(f"{ind}C[t, {i}, {j}, r] = c{a}_{b}")
     L.append(f"{ind}tr = " + " + ".join(f"p{i}_{i}" for i in rng))
-    L.append(f"{ind}flag[t, r] = not (tr < limit and " + " and ".join(f"{e} - {e} == 0.0" for e in chk) + ")")
+    L.append(f"{ind}flag[t, r] = not ((tr < limit) & " + " & ".join(f"({e} - {e} == 0.0)" for e in chk) + ")")
     return "\n".join(L) + "\n"
 
 
 def source_chain(n: int) -> str:
-    """The source of ``rts_chain(S0, sidx, J, C, tix, out)``: per output i and run r, start from
-    S0[sidx[i]] and apply the RTS map of rows tix[i, 0], tix[i, 1], … (C + J P Jᵀ, symmetrized; a
-    non-finite result is ∞ in every entry, as :class:`kalman.SmoothStep`), into out[i]. Independent of the
-    system's numbers (J and C carry them)."""
+    """The source of ``rts_chain(S0, sidx, J, C, tix, out)``: per output i, start from S0[sidx[i]] and apply
+    the RTS map of rows tix[i, 0], tix[i, 1], … (C + J P Jᵀ, symmetrized; a non-finite result is ∞ in
+    every entry, as :class:`kalman.SmoothStep`), into out[i] — the run loop innermost (branch-free: the
+    compiler vectorizes it). Independent of the system's numbers (J and C carry them)."""
     rng = range(n)
     L = _header("rts_chain", "S0, sidx, J, C, tix, out")
-    L += ["    K = tix.shape[0]", "    D = tix.shape[1]", "    runs = S0.shape[3]", "    for i in range(K):",
-          "        s = sidx[i]", "        for r in range(runs):"]
-    ind = " " * 12
+    L += ["    K = tix.shape[0]", "    D = tix.shape[1]", "    runs = S0.shape[3]", "    inf = np.inf",
+          "    for i in range(K):", "        s = sidx[i]", "        for r in range(runs):"]
     for a in rng:
-        for b in range(a, n):
-            L.append(f"{ind}p{a}_{b} = S0[s, {a}, {b}, r]")
+        for b in rng:
+            L.append(f"            out[i, {a}, {b}, r] = S0[s, {a}, {b}, r]")
+    L += ["        for u in range(D):", "            t = tix[i, u]", "            for r in range(runs):"]
+    ind = " " * 16
 
     def p(i, j):
         a, b = _sym(i, j)
         return f"p{a}_{b}"
 
-    L.append(f"{ind}for u in range(D):")
-    ind2 = ind + "    "
-    L.append(f"{ind2}t = tix[i, u]")
+    for a in rng:
+        for b in range(a, n):
+            L.append(f"{ind}p{a}_{b} = out[i, {a}, {b}, r]")
     for a in rng:
         for b in rng:
-            L.append(f"{ind2}j{a}_{b} = J[t, {a}, {b}, r]")
+            L.append(f"{ind}j{a}_{b} = J[t, {a}, {b}, r]")
     # Y = J P (batched.matmul, inner index ascending), Z = Y Jᵀ, new = sym(C + Z)
     for a in rng:
         for b in rng:
-            L.append(f"{ind2}y{a}_{b} = " + " + ".join(f"j{a}_{k} * {p(k, b)}" for k in rng))
+            L.append(f"{ind}y{a}_{b} = " + " + ".join(f"j{a}_{k} * {p(k, b)}" for k in rng))
     for a in rng:
         for b in rng:
-            L.append(f"{ind2}z{a}_{b} = " + " + ".join(f"y{a}_{k} * j{b}_{k}" for k in rng))
+            L.append(f"{ind}z{a}_{b} = " + " + ".join(f"y{a}_{k} * j{b}_{k}" for k in rng))
     new = []
     for a in rng:
         for b in range(a, n):
-            L.append(f"{ind2}e{a}_{b} = 0.5 * ((C[t, {a}, {b}, r] + z{a}_{b}) + (C[t, {b}, {a}, r] + z{b}_{a}))")
+            L.append(f"{ind}e{a}_{b} = 0.5 * ((C[t, {a}, {b}, r] + z{a}_{b}) + (C[t, {b}, {a}, r] + z{b}_{a}))")
             new.append(f"e{a}_{b}")
-    L.append(f"{ind2}if " + " and ".join(f"{e} - {e} == 0.0" for e in new) + ":")
-    for a in rng:
-        for b in range(a, n):
-            L.append(f"{ind2}    p{a}_{b} = e{a}_{b}")
-    L.append(f"{ind2}else:")
-    for a in rng:
-        for b in range(a, n):
-            L.append(f"{ind2}    p{a}_{b} = np.inf")
+    L.append(f"{ind}ok = " + " & ".join(f"({e} - {e} == 0.0)" for e in new))
     for a in rng:
         for b in rng:
-            L.append(f"{ind}out[i, {a}, {b}, r] = {p(a, b)}")
+            e = "e%d_%d" % _sym(a, b)
+            L.append(f"{ind}out[i, {a}, {b}, r] = {e} if ok else inf")
     return "\n".join(L) + "\n"
 
 

@@ -512,13 +512,17 @@ def _forward_compiled(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, want:
     first = np.full(runs, -1, dtype=np.int64)
     adv = kc.kernel(f.A, f.C, f.Q, f.R, f.groups, f.rescue.limit)
     T, gam = kc.pack(P), np.ascontiguousarray(gamma)
+    iu = np.triu_indices(n)
     out: dict[int, dict] = {}
     t = 0
     for k in want:
         adv(T, gam, t, k, flag)
         t = k
         first[flag & (first < 0)] = k
-        out[k] = {"filtered": kc.unpack(T, n)}
+        Pk = np.empty((n, n, runs))  # kc.unpack without recomputing the triangle's indices every step
+        Pk[iu[0], iu[1]] = T
+        Pk[iu[1], iu[0]] = T
+        out[k] = {"filtered": Pk}
     idx = np.flatnonzero(first >= 0)
     if idx.size:
         Pn, t, k0 = P_init[:, :, idx], 0, first[idx]
