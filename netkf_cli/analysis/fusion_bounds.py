@@ -24,6 +24,7 @@ The bounds that use L^LB (Prop. 1, Prop. 2 for k ≥ 2) are restricted to scalar
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property, lru_cache
 
 import numpy as np
 import scipy.linalg
@@ -149,11 +150,12 @@ class ScalarFusionModel:
         _require_scalar(A, "this bound")
         return cls(float(_as2d(A)[0, 0]), float(_as2d(C)[0, 0]), float(_as2d(Q)[0, 0]), float(_as2d(R)[0, 0]), int(N))
 
-    @property
+    @cached_property
     def pm(self) -> float:
+        """P_m (a DARE: solved once per model, the bounds read it hundreds of times)."""
         return float(p_m(self.a, self.c, self.q, self.r, self.N)[0, 0])
 
-    @property
+    @cached_property
     def pM(self) -> float:
         return float(p_M(self.a, self.q)[0, 0])
 
@@ -259,15 +261,18 @@ def mf_lower_bound(loss: float, model: ScalarFusionModel) -> tuple[float, float]
 # ----------------------------------------------------------------------------------------
 
 
+@lru_cache(maxsize=256)
 def backward_transition(N: int, loss: float) -> np.ndarray:
     """T[ℓ, ℓ'] = p(ℓ_{t−k−1} = ℓ' | ℓ_{t−k} = ℓ) = Binom(N−ℓ, 1−λ) at ℓ'−ℓ (Sec. III-C).
 
     The printed density C(N−ℓ_{t−k}, ℓ−ℓ_{t−k}) λ^{N−ℓ} (1−λ)^{ℓ−ℓ_{t−k}} is exactly this
     (τ^i geometric and memoryless); checked in tests against simulated arrival traces.
+    Cached (every bound at every k reads it; read-only).
     """
     T = np.zeros((N + 1, N + 1))
     for l in range(N + 1):
         T[l, l:] = stats.binom.pmf(np.arange(N - l + 1), N - l, 1.0 - loss)
+    T.flags.writeable = False
     return T
 
 
