@@ -50,11 +50,12 @@ def source_prepare(A, Q, limit: float) -> str:
     rng = range(n)
     L = _header("rts_prepare", "H, rows, J, C, flag")
     L += [f"    limit = {kc._num(limit)}", "    runs = H.shape[3]", "    for q in range(rows.shape[0]):",
-          "        t = rows[q]", "        for r in range(runs):"]
+          "        t = rows[q]", "        Ht = H[t]", "        Jt = J[t]", "        Ct = C[t]", "        ft = flag[t]",
+          "        for r in range(runs):"]
     ind = " " * 12
     for i in rng:
         for j in range(i, n):
-            L.append(f"{ind}p{i}_{j} = H[t, {i}, {j}, r]")
+            L.append(f"{ind}p{i}_{j} = Ht[{i}, {j}, r]")
 
     def p(i, j):
         a, b = _sym(i, j)
@@ -80,19 +81,20 @@ def source_prepare(A, Q, limit: float) -> str:
             for c in rng:
                 L.append(f"{ind}x{a}_{c} = i{a}_0 * u{c}_0 + i{a}_1 * u{c}_1")
     else:  # Cholesky S = L Lᵀ (upper triangle of S), then forward / back substitution per column
+        # (reciprocals of the pivots: 3 divisions instead of n² + 2n, whose dependent chains bound the loop)
         for j in rng:
             acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
-            L.append(f"{ind}l{j}_{j} = np.sqrt({acc})")
+            L.append(f"{ind}d{j} = 1.0 / np.sqrt({acc})")
             for i in range(j + 1, n):
                 acc = " - ".join([f"s{j}_{i}"] + [f"l{i}_{k} * l{j}_{k}" for k in range(j)])
-                L.append(f"{ind}l{i}_{j} = ({acc}) / l{j}_{j}")
+                L.append(f"{ind}l{i}_{j} = ({acc}) * d{j}")
         for c in rng:
             for a in rng:
                 acc = " - ".join([f"u{c}_{a}"] + [f"l{a}_{k} * y{k}_{c}" for k in range(a)])
-                L.append(f"{ind}y{a}_{c} = ({acc}) / l{a}_{a}")
+                L.append(f"{ind}y{a}_{c} = ({acc}) * d{a}")
             for a in reversed(rng):
                 acc = " - ".join([f"y{a}_{c}"] + [f"l{k}_{a} * x{k}_{c}" for k in range(a + 1, n)])
-                L.append(f"{ind}x{a}_{c} = ({acc}) / l{a}_{a}")
+                L.append(f"{ind}x{a}_{c} = ({acc}) * d{a}")
     # corr = U X (batched.matmul: a ascending); C = sym(P − corr)
     for i in rng:
         for j in rng:
@@ -104,14 +106,14 @@ def source_prepare(A, Q, limit: float) -> str:
             chk.append(f"c{i}_{j}")
     for i in rng:
         for a in rng:
-            L.append(f"{ind}J[t, {i}, {a}, r] = x{a}_{i}")
+            L.append(f"{ind}Jt[{i}, {a}, r] = x{a}_{i}")
             chk.append(f"x{a}_{i}")
     for i in rng:
         for j in rng:
             a, b = _sym(i, j)
-            L.append(f"{ind}C[t, {i}, {j}, r] = c{a}_{b}")
+            L.append(f"{ind}Ct[{i}, {j}, r] = c{a}_{b}")
     L.append(f"{ind}tr = " + " + ".join(f"p{i}_{i}" for i in rng))
-    L.append(f"{ind}flag[t, r] = not ((tr < limit) & " + " & ".join(f"({e} - {e} == 0.0)" for e in chk) + ")")
+    L.append(f"{ind}ft[r] = not ((tr < limit) & " + " & ".join(f"({e} - {e} == 0.0)" for e in chk) + ")")
     return "\n".join(L) + "\n"
 
 
@@ -127,7 +129,8 @@ def source_chain(n: int) -> str:
     for a in rng:
         for b in rng:
             L.append(f"            out[i, {a}, {b}, r] = S0[s, {a}, {b}, r]")
-    L += ["        for u in range(D):", "            t = tix[i, u]", "            for r in range(runs):"]
+    L += ["        o = out[i]", "        for u in range(D):", "            t = tix[i, u]", "            Jt = J[t]", "            Ct = C[t]",
+          "            for r in range(runs):"]
     ind = " " * 16
 
     def p(i, j):
@@ -136,10 +139,10 @@ def source_chain(n: int) -> str:
 
     for a in rng:
         for b in range(a, n):
-            L.append(f"{ind}p{a}_{b} = out[i, {a}, {b}, r]")
+            L.append(f"{ind}p{a}_{b} = o[{a}, {b}, r]")
     for a in rng:
         for b in rng:
-            L.append(f"{ind}j{a}_{b} = J[t, {a}, {b}, r]")
+            L.append(f"{ind}j{a}_{b} = Jt[{a}, {b}, r]")
     # Y = J P (batched.matmul, inner index ascending), Z = Y Jᵀ, new = sym(C + Z)
     for a in rng:
         for b in rng:
@@ -150,13 +153,13 @@ def source_chain(n: int) -> str:
     new = []
     for a in rng:
         for b in range(a, n):
-            L.append(f"{ind}e{a}_{b} = 0.5 * ((C[t, {a}, {b}, r] + z{a}_{b}) + (C[t, {b}, {a}, r] + z{b}_{a}))")
+            L.append(f"{ind}e{a}_{b} = 0.5 * ((Ct[{a}, {b}, r] + z{a}_{b}) + (Ct[{b}, {a}, r] + z{b}_{a}))")
             new.append(f"e{a}_{b}")
     L.append(f"{ind}ok = " + " & ".join(f"({e} - {e} == 0.0)" for e in new))
     for a in rng:
         for b in rng:
             e = "e%d_%d" % _sym(a, b)
-            L.append(f"{ind}out[i, {a}, {b}, r] = {e} if ok else inf")
+            L.append(f"{ind}o[{a}, {b}, r] = {e} if ok else inf")
     return "\n".join(L) + "\n"
 
 
