@@ -25,7 +25,8 @@ LDLᵀ factorization of (th − mg)·I − P (every pivot positive: P < th − m
 (th + mg)·I − P (a pivot < −1e-9 of its magnitude: P is not ≤ th + mg); only inside the margin by
 eigvalsh itself (the caller's numpy). The decision is monotone in th, so for ascending thresholds a
 binary search decides ~log₂ nM of them per run. Those kernels are generated per n with P in scalar
-locals (:mod:`netkf_cli.reduce_codegen`); this module holds λ_max and the generic sums.
+locals (:mod:`netkf_cli.reduce_codegen`), as are the moment sums; this module holds λ_max and the
+time-average sum.
 """
 
 from __future__ import annotations
@@ -126,60 +127,6 @@ def lmax_tri(T, n, out):
             out[r] = lmax_loaded(a, n)
         else:
             out[r] = np.inf
-
-
-@nb.njit(**_opts)
-def moment_sums(T, n, skip, want_lmax, out, sumP, sumsqP):
-    """MomentReducer at one step over the runs with ``skip[r]`` False: out ← [Σtr, Σtr², Σtr³, Σtr⁴, Σλ,
-    Σλ², #non-finite, max tr] of the finite runs (λ sums 0 unless ``want_lmax``); sumP, sumsqP (n, n) ←
-    Σ P, Σ P² entry-wise (a non-finite run counts 0, as the numpy reducer's np.where)."""
-    a = np.empty((n, n))
-    s1 = s2 = s3 = s4 = l1 = l2 = 0.0
-    bad = 0
-    mx = 0.0
-    nt = T.shape[0]
-    acc = np.zeros(nt)
-    acc2 = np.zeros(nt)
-    for r in range(T.shape[1]):
-        if skip[r]:
-            continue
-        fin = True
-        for k in range(nt):
-            if not math.isfinite(T[k, r]):
-                fin = False
-        if not fin:
-            bad += 1
-            continue
-        for k in range(nt):
-            v = T[k, r]
-            acc[k] += v
-            acc2[k] += v * v
-        tr = 0.0
-        k = 0
-        for i in range(n):
-            tr += T[k, r]
-            k += n - i
-        t2 = tr * tr
-        s1 += tr
-        s2 += t2
-        s3 += t2 * tr
-        s4 += t2 * t2
-        if tr > mx:
-            mx = tr
-        if want_lmax:
-            load(T, n, r, a)
-            lm = lmax_loaded(a, n)
-            l1 += lm
-            l2 += lm * lm
-    k = 0
-    for i in range(n):
-        for j in range(i, n):
-            sumP[i, j] = acc[k]
-            sumP[j, i] = acc[k]
-            sumsqP[i, j] = acc2[k]
-            sumsqP[j, i] = acc2[k]
-            k += 1
-    out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7] = s1, s2, s3, s4, l1, l2, bad, mx
 
 
 @nb.njit(**_opts)

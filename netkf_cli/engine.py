@@ -88,6 +88,16 @@ def _thresholds(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(ascending M + PSD_TOL·max(1, M), the index of each in M): P ≤ M·I ⇔ λ_max(P) ≤ this (the numpy
     reducers' comparison), sorted for the compiled binary search."""
     M = np.atleast_1d(np.asarray(M, dtype=float))
+    key = M.tobytes()
+    if key not in _THRESHOLDS:
+        _THRESHOLDS[key] = _sorted_thresholds(M)
+    return _THRESHOLDS[key]
+
+
+_THRESHOLDS: dict = {}
+
+
+def _sorted_thresholds(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     thr = M + batched.PSD_TOL * np.maximum(1.0, M)
     order = np.argsort(thr, kind="stable")
     return np.ascontiguousarray(thr[order]), order.astype(np.int64)
@@ -153,8 +163,10 @@ class MomentReducer:
     def update_tri(self, stats: dict, j: int, k: int, T: np.ndarray, n: int) -> None:
         """:meth:`update` for packed covariances T (n(n+1)/2, runs), compiled (sums in run order)."""
         i, K = self.steps.index(k), len(self.steps)
-        out, sP, sP2 = np.zeros(8), np.zeros((n, n)), np.zeros((n, n))
-        _rn().moment_sums(T, n, np.zeros(T.shape[-1], dtype=np.bool_), self.lmax, out, sP, sP2)
+        nt = T.shape[0]
+        out, e, e2 = np.zeros(8), np.zeros(nt), np.zeros(nt)
+        rc.kernel_moments(n)(T, self.lmax, out, e, e2, np.empty((n, n)))
+        sP, sP2 = kc.unpack(e[:, None], n)[:, :, 0], kc.unpack(e2[:, None], n)[:, :, 0]
 
         def acc(key, shape, value):
             stats.setdefault(f"{key}_{j}", np.zeros(shape))[i] += value

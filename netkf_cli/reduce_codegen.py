@@ -129,9 +129,54 @@ def source_stationary(n: int) -> str:
     return "\n".join(L) + "\n"
 
 
+_KERNELS: dict = {}
+
+
+def source_moments(n: int) -> str:
+    """``moment_sums(T, want_lmax, out, acc, acc2, b)`` over the runs of T: out ← [Σtr, Σtr², Σtr³, Σtr⁴, Σλ,
+    Σλ², #non-finite, max(0, tr)] of the finite runs (λ sums 0 unless ``want_lmax``: λ_max by
+    :func:`netkf_cli._reduce_numba.lmax_loaded` on the scratch b (n, n)); acc, acc2 (n(n+1)/2,) ← Σ P, Σ P²
+    of the packed entries (as :func:`netkf_cli._reduce_numba.moment_sums`, with P in scalar locals)."""
+    tri = _tri(n)
+    L = ["import math", "import numpy as np", "import numba as nb", "from netkf_cli._reduce_numba import lmax_loaded", "",
+         "@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')",
+         "def moment_sums(T, want_lmax, out, acc, acc2, b):",
+         "    s1 = 0.0", "    s2 = 0.0", "    s3 = 0.0", "    s4 = 0.0", "    l1 = 0.0", "    l2 = 0.0",
+         "    bad = 0", "    mx = 0.0"]
+    L += [f"    e{k} = 0.0\n    f{k} = 0.0" for k in range(len(tri))]
+    L += ["    for r in range(T.shape[1]):"]
+    L += _loads(n, "        ")
+    L += ["        if not fin:", "            bad += 1", "            continue"]
+    for k, (i, j) in enumerate(tri):
+        L += [f"        e{k} += {_p(i, j)}", f"        f{k} += {_p(i, j)} * {_p(i, j)}"]
+    L += ["        tr = " + " + ".join(_p(i, i) for i in range(n)),
+          "        t2 = tr * tr", "        s1 += tr", "        s2 += t2", "        s3 += t2 * tr", "        s4 += t2 * t2",
+          "        if tr > mx:", "            mx = tr",
+          "        if want_lmax:"]
+    L += [f"            b[{i}, {j}] = {_p(i, j)}" for i in range(n) for j in range(n)]
+    L += ["            lm = lmax_loaded(b, " + str(n) + ")", "            l1 += lm", "            l2 += lm * lm"]
+    L += [f"    acc[{k}] = e{k}\n    acc2[{k}] = f{k}" for k in range(len(tri))]
+    L += ["    out[0] = s1", "    out[1] = s2", "    out[2] = s3", "    out[3] = s4", "    out[4] = l1", "    out[5] = l2",
+          "    out[6] = bad", "    out[7] = mx"]
+    return "\n".join(L) + "\n"
+
+
+def kernel_moments(n: int):
+    key = ("moment_sums", n)
+    if key not in _KERNELS:  # the source is generated and hashed once per process
+        _KERNELS[key] = kc._load(source_moments(n), "netkf_rmom", "moment_sums")
+    return _KERNELS[key]
+
+
 def kernel_dist(n: int):
-    return kc._load(source_dist(n), "netkf_rdist", "dist_counts")
+    key = ("dist_counts", n)
+    if key not in _KERNELS:  # the source is generated and hashed once per process
+        _KERNELS[key] = kc._load(source_dist(n), "netkf_rdist", "dist_counts")
+    return _KERNELS[key]
 
 
 def kernel_stationary(n: int):
-    return kc._load(source_stationary(n), "netkf_rstat", "stationary_acc")
+    key = ("stationary_acc", n)
+    if key not in _KERNELS:  # the source is generated and hashed once per process
+        _KERNELS[key] = kc._load(source_stationary(n), "netkf_rstat", "stationary_acc")
+    return _KERNELS[key]
