@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from netkf_cli import kalman_codegen
 from netkf_cli.errors import ConfigError
 from netkf_cli.montecarlo import run_chunked
 from netkf_cli.riccati import initial_covariance
@@ -124,8 +125,73 @@ def nees(err: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     larger n through ``np.linalg.eigh`` (:func:`nees_eigh`, the reference).
     """
     if P.shape[0] <= 2:
-        return _nees_small(err, P)
+        fn = _nees_kernel()
+        if fn is None or P.shape[0] == 1:
+            return _nees_small(err, P)
+        q, rank = np.empty(err.shape[1]), np.empty(err.shape[1])
+        fn(np.ascontiguousarray(err), np.ascontiguousarray(P), ZERO_INNOVATION_RTOL, q, rank)
+        return q, rank
     return nees_eigh(err, P)
+
+
+NEES2_SOURCE = """import math
+import numpy as np
+import numba as nb
+
+
+@nb.njit(cache=True, nogil=True)
+def nees2(err, P, rtol, q, rank):
+    for r in range(err.shape[1]):
+        a = P[0, 0, r]
+        c = P[1, 1, r]
+        b = 0.5 * (P[0, 1, r] + P[1, 0, r])
+        h = 0.5 * (a - c)
+        rr = math.hypot(h, b)
+        mid = 0.5 * (a + c)
+        lmax = mid + rr
+        lmin = mid - rr
+        if h >= 0.0:
+            vx = rr + h
+            vy = b
+        else:
+            vx = b
+            vy = rr - h
+        nv = math.hypot(vx, vy)
+        if nv > 0.0:
+            vx = vx / nv
+            vy = vy / nv
+        else:
+            vx = 1.0
+            vy = 0.0
+        u1 = vx * err[0, r] + vy * err[1, r]
+        u2 = -vy * err[0, r] + vx * err[1, r]
+        tol = max(rtol * max(lmax, 0.0), 0.0)
+        s = 0.0
+        k = 0.0
+        if lmax > tol:
+            s += u1 * u1 / lmax
+            k += 1.0
+        if lmin > tol:
+            s += u2 * u2 / lmin
+            k += 1.0
+        q[r] = s
+        rank[r] = k
+"""
+""":func:`_nees_small` for n = 2 in one compiled pass (the same operations in the same order)."""
+
+_NEES2 = []
+
+
+def _nees_kernel():
+    """The compiled n = 2 NEES when numba imports (through ``kalman_codegen``'s kernel cache), else None."""
+    if not _NEES2:
+        try:
+            import numba  # noqa: F401  (optional: the compiled NEES only when netkf[fast] is installed)
+        except ImportError:
+            _NEES2.append(None)
+        else:
+            _NEES2.append(kalman_codegen._load(NEES2_SOURCE, "netkf_nees2", "nees2"))  # its shared loader
+    return _NEES2[0]
 
 
 def nees_eigh(err: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -364,6 +364,31 @@ def _record(diag, blocks, rho, val, status, dt, Lam_sdp, Lam_exact, best, gain_d
 
 
 # =========================================================================== scenario block
+_DESIGNS: dict = {}
+_DESIGNS_MAX = 16
+
+
+def _key_part(x):
+    if isinstance(x, AugmentedModel):
+        return tuple(_key_part(M) for M in (x.A, x.C, x.Q, x.R, x.S))
+    if isinstance(x, np.ndarray):
+        return (x.shape, np.ascontiguousarray(x, dtype=float).tobytes())
+    return x
+
+
+def _designed(key: tuple, make):
+    """A filter's data-independent gains, computed once per process for the same inputs (``key``: the filter and
+    every number its design reads): every chunk of a run (and its trajectories) uses the same gains, the LMMSE's
+    r = 4d Riccati recursion and the LMI design are a fixed cost per chunk otherwise. Deterministic: a cached
+    value equals a recomputed one bit for bit."""
+    k = tuple(_key_part(x) for x in key)
+    if k not in _DESIGNS:
+        if len(_DESIGNS) >= _DESIGNS_MAX:
+            _DESIGNS.pop(next(iter(_DESIGNS)))
+        _DESIGNS[k] = make()
+    return _DESIGNS[k]
+
+
 def _modes_of(trace) -> np.ndarray:
     """(horizon, runs) 0-based modes: the trace's mode path, or — for a one-stream arrival trace — mode 1
     where the packet arrived and mode 3 (noise only: nothing about x) where it did not."""
@@ -483,7 +508,8 @@ class MarkovLMIEstimator(EstimatorModel):
     def _lmmse(self, model, x0, P0, trace, want, qs):
         """Costa's exact LMMSE for the trace's chain and (k, {q: P}) with P = E[e eᵀ] (the same for every run)."""
         T, pi0 = (np.asarray(trace.meta.get(key), float) for key in ("transition", "initial"))
-        filt = lmmse_filter(model, T, pi0, x0, P0, want[-1] + 1, base="contract")
+        filt = _designed(("lmmse", model, T, pi0, x0, P0, want[-1] + 1),
+                         lambda: lmmse_filter(model, T, pi0, x0, P0, want[-1] + 1, base="contract"))
         cov = {"filtered": filt.predicted["filt_cov"], "predicted": filt.predicted["pred_cov"][1:]}
         runs = trace.runs
         return filt, ((k, {q: np.repeat(cov[q][k - 1][:, :, None], runs, axis=2) for q in qs}) for k in want)
@@ -538,7 +564,7 @@ class MarkovLMIEstimator(EstimatorModel):
         """The naive KF or the LMI filter (data-independent gains) for K steps on netkf's time base."""
         if self.filter == "naive":
             prior_x = model.prior_moments(x0, P0, "contract")[1][: model.n, : model.n]
-            return naive_filter(model, x0, prior_x, K)
+            return _designed(("naive", model, x0, prior_x, K), lambda: naive_filter(model, x0, prior_x, K))
         if self.rho == "stationary":
             rho = np.asarray(trace.meta.get("rho"), float) if trace.meta.get("rho") is not None else None
             if rho is None:
@@ -546,8 +572,11 @@ class MarkovLMIEstimator(EstimatorModel):
         else:
             rho = np.asarray(self.rho, float)
         try:
-            filt = lmi_design(model, rho, x0, P0, K, design=self.design, solver=self.solver, tol=self.solver_tol,
-                              eps=self.eps, precedence=self.precedence, sdp_check=0, base="contract").filter
+            filt = _designed(("lmi", model, rho, x0, P0, K, self.design, self.solver, self.solver_tol, self.eps,
+                              self.precedence),
+                             lambda: lmi_design(model, rho, x0, P0, K, design=self.design, solver=self.solver,
+                                                tol=self.solver_tol, eps=self.eps, precedence=self.precedence,
+                                                sdp_check=0, base="contract").filter)
         except RuntimeError as e:
             raise ConfigError.at("estimator", f"{e}; try `solver: SCS`, a larger `eps` or `design: closed_form`") from None
         return filt

@@ -109,6 +109,13 @@ class StateError(GenericMetric):
         ctx.total(runs)
         stream = int(getattr(ctx, "stream", 0) or 0)
         S = None if self.S is None else np.asarray(self.S, float)
+        tr = None
+        if self.trajectories:  # first: a one-chunk serial run that loads every compiled kernel in this process,
+            # so the Monte Carlo's forked workers inherit them (the numbers do not depend on the order: own stream)
+            tstream = TRAJECTORY_STREAM + stream
+            allk = list(range(first, H + 1))
+            tr = state.trajectories(s, ch, ests, runs=self.trajectories, steps=allk, horizon=H, seed=mc.seed,
+                                    stream=tstream, quantity=qs, S=S)
         st = state.simulate_errors(s, ch, ests, steps=ks, runs=runs, horizon=H, seed=mc.seed, chunk=mc.chunk,
                                    stream=stream, quantity=qs, window=window, S=S, progress=ctx.progress,
                                    label=self.kind)
@@ -170,11 +177,7 @@ class StateError(GenericMetric):
                               "from each chunk's generator",
                 "consistency_rule": f"|mean NEES − E rank P| ≤ {Z:g} s.e.; |E‖e‖² − E tr P| ≤ {Z:g} s.e. (paired)",
                 "backend": "numpy (state-level recursions)"}
-        if self.trajectories:
-            tstream = TRAJECTORY_STREAM + stream
-            allk = list(range(first, H + 1))
-            tr = state.trajectories(s, ch, ests, runs=self.trajectories, steps=allk, horizon=H, seed=mc.seed,
-                                    stream=tstream, quantity=qs, S=S)
+        if tr is not None:
             extra["trajectories"] = _trajectory_table(tr, labs, cols, allk)
             meta["trajectories"] = f"the first {self.trajectories} run(s) of stream {tstream} (SeedSequence(seed, "\
                                    f"spawn_key=({tstream}, 0)))"

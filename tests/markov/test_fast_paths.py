@@ -99,3 +99,20 @@ def test_compiled_mode_aware_hands_overflowing_runs_to_numpy():
                 assert np.array_equal(np.isfinite(a), np.isfinite(b))
                 ok = np.isfinite(a)
                 np.testing.assert_allclose(b[ok], a[ok], rtol=1e-10, atol=1e-10 * max(1.0, np.abs(a[ok]).max()))
+
+
+@needs_numba
+def test_compiled_nees_equals_numpy_closed_form():
+    """The compiled n = 2 NEES is :func:`state._nees_small` operation for operation: the same bits."""
+    rng = np.random.default_rng(9)
+    R = 3000
+    L = rng.standard_normal((2, 2, R))
+    P = np.einsum("ikr,jkr->ijr", L, L)
+    P[:, :, :30] = 0.0
+    P[:, :, 30:60] = np.diag([2.0, 0.0])[:, :, None]
+    P[:, :, 60:90] = 4.0 * np.eye(2)[:, :, None]
+    e = rng.standard_normal((2, R))
+    q, r = state.nees(e, P)
+    q0, r0 = state._nees_small(e, P)
+    np.testing.assert_array_equal(r, r0)
+    np.testing.assert_array_equal(q, q0)
