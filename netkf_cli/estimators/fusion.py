@@ -143,7 +143,7 @@ class FusionEstimator(EstimatorModel):
         "auto", description="numpy (the reference) | numba (kernels generated for the system by kalman_codegen: MF's "
                             "count update, IBF's count steps from the full-information P, OLPEF's τ-histogram form, "
                             "equal to rounding; identical sensors, or MF = kf's compiled filter) | auto = numba for "
-                            "chunks of ≥ 1e5 run-steps when numba is importable (identical sensors: the kernels read "
+                            "chunks of ≥ 4e4 run-steps when numba is importable (identical sensors: the kernels read "
                             "the system's numbers from a vector, one compile per zero pattern; else kf's rule, ≥ 2e6)")
 
     def check(self, system, channel) -> None:
@@ -236,8 +236,10 @@ class FusionEstimator(EstimatorModel):
             yield k, out
 
 
-AUTO_MIN_RUN_STEPS = 100_000
-"""``backend: auto`` runs the fusion kernels (identical sensors) on chunks of at least this many run-steps.
+AUTO_MIN_RUN_STEPS = 40_000
+"""``backend: auto`` runs the fusion kernels (identical sensors) on chunks of at least this many run-steps
+(the paper figures' quick chunks, 200 runs × 200 steps, included: fig1 --quick 1.9 → 0.5 s CPU once numba is
+loaded).
 They read the system's numbers from a vector (``kalman_codegen`` symbolic kernels: the source depends on
 the shapes and the zero / ±1 pattern only), so a grid over Q or the loss shares one compile per machine; what a process pays is numba's start (~0.3–0.8 s, once), which
 the compiled IBF/OLPEF (3–6× numpy) repay within one 1000-run × 200-step chunk of the paper's figures.
