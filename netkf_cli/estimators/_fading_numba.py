@@ -154,12 +154,16 @@ def _make(MODE, N, M, RESCUE):
     # (the sizes and the mode are int/bool closure constants — numba caches such closures on disk; a
     # function-valued closure variable would defeat the cache, so the mode is a branch on a constant)
     @njit(**_opts)
-    def advance(keep, s2, s2u, separate_u, mu, want_u, A_, Q_, C_, R_, Kc_, limit, Pt, Pf, Ft, U, Uf, flags):
+    def advance(keep, s2, s2u, separate_u, mu, want_u, A_, Q_, C_, R_, Kc_, limit, Pt, Pf, Ft, U, Uf, flags,
+                rec, RecP, RecF, RecU, RecUf):
         """Advance every run b through the block: ``keep``/``s2``/``s2u`` (B, T) run-major; state RUN-MAJOR (B, n, n):
         ``Pt`` the true prior (in/out), ``Pf`` the filter's prior (mode 2), ``Ft`` the last P_{k|k} (out),
         ``U``/``Uf`` the burst-conditioned prior (in/out) and last U_{k|k} (out) when ``want_u``; ``flags``
         (B,) int8 out: 1 the run met a prior that needs the rescue (redo its block with the rescue variant),
-        2 a non-finite value appeared (redo its block on the numpy core, which defines overflow)."""
+        2 a non-finite value appeared (redo its block on the numpy core, which defines overflow).
+        ``rec`` (T,) int: the slot r ≥ 0 of step t in the records (−1: not recorded); after step t the prior P,
+        the last P_{k|k} and (``want_u``) U, U_{k|k} are copied to ``RecP``/``RecF``/``RecU``/``RecUf``[b, r]
+        ((B, slots, n, n), run-major): one call serves every reported step of a block."""
         B, T = keep.shape
         n = N
         mode = MODE
@@ -254,6 +258,13 @@ def _make(MODE, N, M, RESCUE):
                         flags[b] = 2
                 if flags[b] == 2:
                     break  # redone on the numpy core
+                r = rec[t]
+                if r >= 0:
+                    _copy(P, RecP[b, r])
+                    _copy(Fl, RecF[b, r])
+                    if want_u:
+                        _copy(Uv, RecU[b, r])
+                        _copy(Ul, RecUf[b, r])
             _copy(P, Pt[b])
             if T > 0:
                 _copy(Fl, Ft[b])

@@ -59,6 +59,9 @@ from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
 
 BackendKind = Literal["auto", "numpy", "numba"]
+RECORD_BYTES = 64e6
+"""Most bytes of recorded covariances one block of :meth:`ReceiverEstimator.covariances` holds (the reported
+steps of a block come out of one recursion call)."""
 VarianceReduction = Literal["auto", "none", "conditioned"]
 
 
@@ -192,27 +195,38 @@ class ReceiverEstimator(EstimatorModel):
         P00 = initial_covariance(system)
         st = Stepper(rm, kalman.one(kalman.predict, P00, rm.A, rm.Q), B, self.backend, want_u=cond,
                      U0=P00 if cond else None)
-        t = 0
-        for k in sorted(set(int(k) for k in steps)):
-            if k > t:
-                Y = trace.snr[t:k]
-                keep = Y >= T
-                if rm.scenario == 1:
-                    s2 = np.zeros(Y.shape)
-                    s2u = None
-                elif cond:
-                    s2 = rm.noise(snr_given_kept(Y, T, Ya))  # = σ_n²(Υ) where kept
-                    s2u = None if rb is None else np.full(Y.shape, float(rb))
-                else:
-                    s2 = rm.noise(np.where(keep, Y, 1.0))
-                    s2u = None
-                st.advance(keep, s2, mu if cond else None, s2u)
-                t = k
-            if cond:
-                out = {"filtered": st.cond_filtered, "predicted": st.cond}
+        names = {"filtered": "cond_filtered", "predicted": "cond"} if cond else {"filtered": "filtered", "predicted": "true"}
+        # the reported steps in blocks: one advance per block records every reported step in it (the same
+        # arithmetic as one advance per step, without a Python round trip per step); blocks hold ≤ RECORD_BYTES
+        cap = max(1, int(RECORD_BYTES // (8 * rm.n * rm.n * B * (4 if cond else 2))))
+        want = sorted(set(int(k) for k in steps))
+        t, i = 0, 0
+        while i < len(want):
+            if want[i] <= t:  # nothing to advance (k = 0): the current state
+                out = {q: getattr(st, names[q]) for q in qs}
+                yield want[i], out
+                i += 1
+                continue
+            grp = want[i:i + cap]
+            k = grp[-1]
+            Y = trace.snr[t:k]
+            keep = Y >= T
+            if rm.scenario == 1:
+                s2 = np.zeros(Y.shape)
+                s2u = None
+            elif cond:
+                s2 = rm.noise(snr_given_kept(Y, T, Ya))  # = σ_n²(Υ) where kept
+                s2u = None if rb is None else np.full(Y.shape, float(rb))
             else:
-                out = {"filtered": st.filtered, "predicted": st.true}
-            yield k, {q: out[q] for q in qs}
+                s2 = rm.noise(np.where(keep, Y, 1.0))
+                s2u = None
+            rec = np.full(k - t, -1, dtype=np.int64)
+            rec[np.asarray(grp) - t - 1] = np.arange(len(grp))
+            got = st.advance(keep, s2, mu if cond else None, s2u, record=rec)
+            for j, kk in enumerate(grp):
+                yield kk, {q: got[names[q]][j] for q in qs}
+            t = k
+            i += len(grp)
 
 
     def estimates(self, system, trace, y, steps, quantities=("filtered",)):
@@ -366,6 +380,12 @@ def resolve_backend(backend: str, n: int | None = None) -> str:
     return backend
 
 
+def needs_rescue(rm: ReceiverModel, P0) -> bool:
+    """Scenarios 1 and 3 from a prior whose trace is above the core's rescue limit (:class:`kalman.Rescue`): the
+    information-form update then runs at the first step (and, with a tiny R, at every step)."""
+    return rm.scenario in (1, 3) and not bool(np.trace(np.atleast_2d(np.asarray(P0, dtype=float))) <= rm.rescue.limit)
+
+
 class Stepper:
     """Batched receiver recursion over B runs from the PRIOR ``P0`` (P_{1|0}): per step, the
     measurement step (:func:`correct`) then the time update (:func:`predict`).
@@ -378,6 +398,11 @@ class Stepper:
 
     def __init__(self, rm: ReceiverModel, P0, B: int, backend: str = "numpy", want_u: bool = False, U0=None):
         self.rm, self.backend, self.want_u = rm, resolve_backend(backend, rm.n), want_u
+        if backend == "auto" and self.backend == "numpy" and numba_available() and needs_rescue(rm, P0):
+            # a scalar system whose every step needs the overflow rescue (R ≪ P: Theorem 4's R = 1e-12):
+            # the numpy core's rescue is a batched SVD per step, the compiled variant runs it inline
+            # (thm4, 200 000 runs × 30 steps, load ≈ 6.5, one process: numpy 12.3 s, compiled 5.5 s; same CSV)
+            self.backend = "numba"
         self.state = initial_state(rm, P0, B)
         self._filtered = None
         self.U = self.Uf = None
@@ -439,18 +464,28 @@ class Stepper:
         self.advance(np.asarray(keep)[None, :], np.asarray(s2, dtype=float)[None, :], mu)
 
     def advance(self, keep: np.ndarray, s2: np.ndarray, mu: np.ndarray | None = None,
-                s2u: np.ndarray | None = None) -> None:
+                s2u: np.ndarray | None = None, record: np.ndarray | None = None) -> dict[str, np.ndarray] | None:
         """Advance len(keep) steps: keep (T, B) bool, s2 (T, B) σ_n² of the packets (path, and U's kept
-        term), ``s2u`` (T, B) a different σ_n² for U's kept term (Rao–Blackwellized), mu (B,)."""
+        term), ``s2u`` (T, B) a different σ_n² for U's kept term (Rao–Blackwellized), mu (B,).
+
+        ``record`` (T,) int: slot r ≥ 0 of the steps to report (−1 elsewhere; slots 0 … R−1 in order). Returns
+        then ``{true, filtered[, cond, cond_filtered]}`` each (R, n, n, B): the properties of the same names
+        after each recorded step — one call per block instead of one per reported step (the same arithmetic)."""
         rm = self.rm
         keep = np.ascontiguousarray(keep, dtype=bool)
         s2 = np.zeros(keep.shape) if rm.scenario == 1 else np.ascontiguousarray(s2, dtype=float)
+        rec = None if record is None else np.ascontiguousarray(record, dtype=np.int64)
         if self.backend == "numba":
-            self._advance_numba(keep, s2, mu, s2u)
-            return
-        self._advance_numpy(keep, s2, mu, s2u)
+            return self._advance_numba(keep, s2, mu, s2u, rec)
+        return self._advance_numpy(keep, s2, mu, s2u, rec)
 
-    def _advance_numba(self, keep, s2, mu, s2u) -> None:
+    def _records(self, rec, B: int) -> dict[str, np.ndarray]:
+        R = 0 if rec is None else int(rec.max(initial=-1)) + 1
+        n = self.rm.n
+        names = ("true", "filtered") + (("cond", "cond_filtered") if self.want_u else ())
+        return {k: np.empty((B, R, n, n)) for k in names}
+
+    def _advance_numba(self, keep, s2, mu, s2u, rec=None) -> dict[str, np.ndarray] | None:
         rm = self.rm
         B = self._Pt.shape[0]
         start = (self._Pt.copy(), self._Pf.copy(), self._U.copy())
@@ -458,11 +493,16 @@ class Stepper:
         mu_ = np.ascontiguousarray(mu, dtype=float) if self.want_u else np.zeros(1)
         s2u_ = s2 if s2u is None else np.ascontiguousarray(s2u, dtype=float)
         tr = (lambda X: np.ascontiguousarray(X.T))  # run-major (B, T): each run's inputs contiguous
+        rec_ = np.full(keep.shape[0], -1, dtype=np.int64) if rec is None else rec
+        out = self._records(rec, B)  # run-major (B, slots, n, n) while the kernel writes them
+        none = np.empty((B, 0, rm.n, rm.n))
+        bufs = lambda o: (o["true"], o["filtered"], o.get("cond", none), o.get("cond_filtered", none))  # noqa: E731
         # the rescue variant directly when many runs need it (a tiny R makes kalman.Rescue's limit small:
         # Sec. 4.2's C = [1 2 3], R = 1e-8 flags P0 = I), else the fast variant and a redo of the flagged runs
         self._fnb.kernel(self._mode, rm.n, rm.C.shape[0], rescue=self._use_rescue)(
             tr(keep), tr(s2), tr(s2u_), s2u is not None, mu_, self.want_u,
-            rm.A, rm.Q, rm.C, rm.R, rm.gain_inv, rm.rescue.limit, self._Pt, self._Pf, self._Ft, self._U, self._Uf, flags)
+            rm.A, rm.Q, rm.C, rm.R, rm.gain_inv, rm.rescue.limit, self._Pt, self._Pf, self._Ft, self._U, self._Uf, flags,
+            rec_, *bufs(out))
         if (flags == 1).mean() > 0.05:
             self._use_rescue = True
         idx = np.flatnonzero(flags == 1)
@@ -472,12 +512,16 @@ class Stepper:
             Pt, Ft = sub(Pt0), np.empty((idx.size, rm.n, rm.n))
             U, Uf = (sub(U0), np.empty((idx.size, rm.n, rm.n))) if self.want_u else (self._U, self._Uf)
             f2 = np.zeros(idx.size, dtype=np.int8)
+            sub_out = {k: np.empty((idx.size,) + v.shape[1:]) for k, v in out.items()}
             self._fnb.kernel(self._mode, rm.n, rm.C.shape[0], rescue=True)(
                 tr(keep[:, idx]), tr(s2[:, idx]), tr(s2u_[:, idx]), s2u is not None, mu_[idx] if self.want_u else mu_,
-                self.want_u, rm.A, rm.Q, rm.C, rm.R, rm.gain_inv, rm.rescue.limit, Pt, self._Pf, Ft, U, Uf, f2)
+                self.want_u, rm.A, rm.Q, rm.C, rm.R, rm.gain_inv, rm.rescue.limit, Pt, self._Pf, Ft, U, Uf, f2,
+                rec_, *bufs(sub_out))
             self._Pt[idx], self._Ft[idx] = Pt, Ft
             if self.want_u:
                 self._U[idx], self._Uf[idx] = U, Uf
+            for k, v in sub_out.items():
+                out[k][idx] = v
             flags[idx[f2 == 2]] = 2
         idx = np.flatnonzero(flags == 2)
         if idx.size:  # a non-finite value appeared: the numpy core owns what an overflow means
@@ -486,8 +530,8 @@ class Stepper:
             sub.state = [Pf0[:, :, idx], Pt0[:, :, idx]] if self._mode == 2 else [Pt0[:, :, idx]]
             if self.want_u:
                 sub.U = U0[:, :, idx]
-            sub._advance_numpy(keep[:, idx], s2[:, idx], None if mu is None else np.asarray(mu)[idx],
-                               None if s2u is None else s2u[:, idx])
+            got = sub._advance_numpy(keep[:, idx], s2[:, idx], None if mu is None else np.asarray(mu)[idx],
+                                     None if s2u is None else s2u[:, idx], rec)
             self._Pt[idx] = np.moveaxis(true_cov(sub.state), 2, 0)
             if self._mode == 2:
                 self._Pf[idx] = np.moveaxis(sub.state[0], 2, 0)
@@ -495,9 +539,17 @@ class Stepper:
             if self.want_u:
                 self._U[idx] = np.moveaxis(sub.U, 2, 0)
                 self._Uf[idx] = np.moveaxis(sub.Uf, 2, 0)
+            if rec is not None:
+                for k, v in got.items():  # (slots, n, n, runs) → run-major
+                    out[k][idx] = np.moveaxis(v, 3, 0)
+        if rec is None:
+            return None
+        return {k: np.ascontiguousarray(v.transpose(1, 2, 3, 0)) for k, v in out.items()}  # (slots, n, n, B)
 
-    def _advance_numpy(self, keep, s2, mu, s2u) -> None:
+    def _advance_numpy(self, keep, s2, mu, s2u, rec=None) -> dict[str, np.ndarray] | None:
         rm = self.rm
+        B = keep.shape[1]
+        out = None if rec is None else {k: np.empty((v.shape[1], rm.n, rm.n, B)) for k, v in self._records(rec, 0).items()}
         for t in range(keep.shape[0]):
             F = correct(rm, self.state, keep[t], s2[t])
             if self.want_u:
@@ -511,6 +563,12 @@ class Stepper:
                 self.U = predict(rm, [self.Uf])[0]
             self._filtered = true_cov(F)
             self.state = predict(rm, F)
+            if rec is not None and rec[t] >= 0:
+                r = rec[t]
+                out["true"][r], out["filtered"][r] = true_cov(self.state), self._filtered
+                if self.want_u:
+                    out["cond"][r], out["cond_filtered"][r] = self.U, self.Uf
+        return out
 
 
 def covariance_paths(rm: ReceiverModel, snr: np.ndarray, threshold, P0, record=None, backend: str = "numpy") -> np.ndarray:
