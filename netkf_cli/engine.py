@@ -434,13 +434,14 @@ class StationaryReducer:
             return
         runs = T.shape[-1]
         a = self._acc(stats, j, runs)
-        thr, order = (np.zeros(0), np.zeros(0, dtype=np.int64)) if self.M is None else _thresholds(self.M)
-        ind = np.zeros((0, runs)) if a["ind"] is None else a["ind"]
+        thr = np.zeros(0) if self.M is None else _thresholds(self.M)[0]
+        if a.get("hist") is None:
+            a["hist"] = np.zeros((0 if self.M is None else len(self.M) + 1, runs))
         amb = np.zeros(runs, dtype=np.bool_)
-        rc.kernel_stationary(n)(T, thr, order, a["tr"], a["bad"], ind, amb)
+        rc.kernel_stationary(n)(T, thr, a["tr"], a["bad"], a["hist"], amb)
         if amb.any():
             idx, ok = _ambiguous(T, n, amb, self.M)
-            ind[:, idx] += ok
+            a["ind"][:, idx] += ok
         a["steps"] += 1
 
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
@@ -462,6 +463,8 @@ class StationaryReducer:
 
     def finish(self, stats: dict) -> None:
         for j, a in stats.pop("_acc", {}).items():
+            if a.get("hist") is not None and a["ind"] is not None:  # the compiled update's per-run histogram
+                a["ind"][_thresholds(self.M)[1]] += np.cumsum(a["hist"][:-1], axis=0)
             T = max(a["steps"], 1)
             ok = ~a["bad"]
             avg = np.where(ok, a["tr"] / T, 0.0)

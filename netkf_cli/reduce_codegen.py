@@ -114,10 +114,12 @@ def source_dist(n: int) -> str:
 
 
 def source_stationary(n: int) -> str:
-    """``stationary_acc(T, thr, order, tr_acc, bad, ind, amb)``: per run, bad |= P not finite; tr_acc += tr P
-    (finite runs); ind[order[i], r] += 1[λ_max ≤ thr[i]] (finite runs it decides; ``thr`` ascending, empty:
-    no indicator); ``amb[r]`` raised for the runs it leaves to the caller."""
-    L = _head("stationary_acc", "T, thr, order, tr_acc, bad, ind, amb")
+    """``stationary_acc(T, thr, tr_acc, bad, hist, amb)``: per run, bad |= P not finite; tr_acc += tr P
+    (finite runs); hist[i0, r] += 1 with i0 the number of the ascending thresholds ``thr`` below λ_max (finite
+    runs it decides; one write per run and step: the indicator of threshold i is Σ_{i0 ≤ i} hist[i0], summed
+    once per chunk by the caller; ``thr`` empty: no indicator); ``amb[r]`` raised for the runs it leaves to the
+    caller."""
+    L = _head("stationary_acc", "T, thr, tr_acc, bad, hist, amb")
     L += ["    nM = thr.shape[0]", "    for r in range(T.shape[1]):"]
     L += _loads(n, "        ")
     L += ["        if not fin:", "            bad[r] = True", "            continue",
@@ -125,7 +127,7 @@ def source_stationary(n: int) -> str:
           "        if nM == 0:", "            continue"]
     L += _search(n, "        ")
     L += ["        if ambig:", "            amb[r] = True", "            continue",
-          "        for i in range(i0, nM):", "            ind[order[i], r] += 1.0"]
+          "        hist[i0, r] += 1.0"]
     return "\n".join(L) + "\n"
 
 

@@ -87,8 +87,10 @@ def test_psd_order_decisions_equal_the_numpy_reducer(n):
     red.backend = "numba"
     red.update(st, 0, 1, P)
     a = st["_acc"][0]
+    ind = a["ind"].copy()  # the eigvalsh-decided runs, plus the kernel's per-run histogram (as finish folds it)
+    ind[engine._thresholds(M)[1]] += np.cumsum(a["hist"][:-1], axis=0)
     ok = batched.lambda_max(P)[None, :] <= (M + batched.PSD_TOL * np.maximum(1.0, M))[:, None]
-    assert np.array_equal(a["ind"].astype(bool), ok & ~a["bad"][None, :])
+    assert np.array_equal(ind.astype(bool), ok & ~a["bad"][None, :]) and ind.max() == 1
     # the certificates (conservative) leave few runs to eigvalsh: here mostly the near-degenerate quarter,
     # whose λ_max = 3 (+ 1e-13) is a threshold
     thr, order = engine._thresholds(M)
