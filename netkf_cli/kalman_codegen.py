@@ -377,9 +377,8 @@ def source_olpef(n: int) -> str:
           "                worst = tau",
           "            if tau > Kmax:",
           "                continue",
-          "            if cnts[tau] == 0.0:",
-          "                vals[m] = tau",
-          "                m += 1",
+          "            vals[m] = tau  # kept if tau is new (branch-free: a first occurrence is unpredictable)",
+          "            m += cnts[tau] == 0.0",
           "            cnts[tau] += 1.0"]
     L += [f"        e{k} = sxx[{k}]" for k in range(nt)]
     L += ["        for q in range(m):", "            a = vals[q]", "            h = cnts[a]", "            hh = h * h"]
