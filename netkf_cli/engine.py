@@ -71,9 +71,18 @@ def _compiled(backend: str, P: np.ndarray, w) -> bool:
     return P.shape[-1] >= REDUCE_MIN_RUNS and kalman.numba_available()
 
 
+_TRIU: dict = {}
+
+
 def _tri(P: np.ndarray) -> np.ndarray:
-    """The packed upper triangle (kalman_codegen layout) of sym(P), the matrix every reduction reads."""
-    return kc.pack(batched.sym(P))
+    """The packed upper triangle (kalman_codegen layout) of sym(P) = (P + Pᵀ)/2 (the same operations as
+    ``batched.sym``), the matrix every reduction reads."""
+    n = P.shape[0]
+    if n not in _TRIU:
+        _TRIU[n] = np.triu_indices(n)
+    i, j = _TRIU[n]
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.ascontiguousarray(0.5 * (P[i, j] + P[j, i]))
 
 
 def _ambiguous(T: np.ndarray, n: int, amb: np.ndarray, M: np.ndarray):
