@@ -2,15 +2,18 @@
 
 ``CASES``: dicts ``{"estimator": "markov_lmi" | "markov_lmmse" | "markov_mode_aware" | "markov_naive",
 "system": ..., "backend": "numpy" | "numba", "threads": None | 1, "make": callable() -> (kernel, runs, horizon)}``
-(``numba``: the compiled mode-aware KF step, listed only when numba imports).
+(``numba`` rows listed only when numba imports).
 The kernel is the one ``netkf run`` builds for the artefacts' ``analysis.kind: state_error`` (the generic
 state path :class:`netkf_cli.state.StateErrorKernel`) with one ``markov_lmi`` estimator: it samples the mode
 chain (``channel.sample_trace``), the plant and its noise (:func:`netkf_cli.state.simulate`), runs the
 filter's ``estimates`` and reduces squared errors, tr P and NEES per step (filtered, every step; window = the
-second half). One run advanced one step is one run-step. Gains are designed per chunk by the estimator
-(closed form). The compiled backend reaches the mode-aware KF's covariance-only path
-(:class:`netkf_cli.engine.PairKernel` + ``TimeAverageReducer``, what ``time_average`` / ``mean_vs_time`` run):
-the state-level ``estimates`` are numpy code.
+second half). One run advanced one step is one run-step. Gains are designed once per process (closed form).
+``backend: numba`` is what ``auto`` runs: the fixed-gain filters' per-run covariances (LMI, naive) and the
+mode-aware KF with states (m = 1) in kernels generated per system (:mod:`netkf_cli.estimators._markov_codegen`;
+D = d + r ≤ 10, so the 4-state system, D = 14, stays on numpy there); the LMMSE is numpy in both (one P for
+every run; its r = 4d state update is a BLAS product). The NEES of n = 2 is compiled whenever numba imports
+(also in the numpy rows). ``markov_mode_aware/engine`` (numba): the mode-aware KF's covariance-only path
+(:class:`netkf_cli.engine.PairKernel` + ``TimeAverageReducer``, what ``time_average`` / ``mean_vs_time`` run).
 
 Systems (mode chain of Example 2):
 * scalar — A = 0.9, C = 1, Q = 1, R = 0.25 (augmented state ξ: d = 4);
@@ -56,8 +59,8 @@ FILTER = {"markov_lmi": "lmi", "markov_lmmse": "lmmse", "markov_mode_aware": "mo
 class _Make:
     """Picklable ``make()``: the one-filter generic kernel (state level for numpy, covariance only for numba)."""
 
-    def __init__(self, estimator: str, system: str, backend: str = "numpy"):
-        self.estimator, self.system, self.backend = estimator, system, backend
+    def __init__(self, estimator: str, system: str, backend: str = "numpy", engine: bool = False):
+        self.estimator, self.system, self.backend, self.engine = estimator, system, backend, engine
 
     def __call__(self):
         A, C, Q, R = systems()[self.system]
@@ -67,7 +70,7 @@ class _Make:
         est = MarkovLMIEstimator(kind="markov_lmi", filter=FILTER[self.estimator], design="closed_form", sdp_check=0,
                                  backend=self.backend)
         steps = list(range(1, HORIZON + 1))
-        if self.backend == "numba":
+        if self.backend == "numba" and self.engine:
             window = steps[HORIZON // 2:]
             kernel = PairKernel(sysm, ch, [est], HORIZON, window, TimeAverageReducer(window))
         else:
@@ -84,8 +87,16 @@ BOUND = {
 CASES = [{"estimator": est, "system": name, "backend": "numpy", "threads": None, "make": _Make(est, name),
           "bound": BOUND[est]}
          for est in FILTER for name in ("scalar", "example2", "4-state")]
-if numba_available():  # the compiled mode-aware KF (covariance only: per-run Riccati step), one thread per chunk
-    CASES += [{"estimator": "markov_mode_aware", "system": name, "backend": "numba", "threads": 1,
-               "make": _Make("markov_mode_aware", name, "numba"),
+COMPILED_BOUND = {
+    "markov_lmi": "the shared state-level work (normal draws for x, w, v; the per-step reduction in numpy passes)",
+    "markov_naive": "the shared state-level work (normal draws for x, w, v; the per-step reduction in numpy passes)",
+    "markov_mode_aware": "the shared state-level work (normal draws for x, w, v; the per-step reduction in numpy passes)",
+}
+if numba_available():  # what `auto` runs at state level; and the mode-aware KF's covariance-only engine path
+    CASES += [{"estimator": est, "system": name, "backend": "numba", "threads": 1,
+               "make": _Make(est, name, "numba"), "bound": COMPILED_BOUND[est]}
+              for est in ("markov_lmi", "markov_naive", "markov_mode_aware") for name in ("scalar", "example2")]
+    CASES += [{"estimator": "markov_mode_aware", "system": name, "backend": "numba", "threads": 1, "path": "engine",
+               "make": _Make("markov_mode_aware", name, "numba", engine=True),
                "bound": "flops: ≈ 3d³ per run-step in the compiled Riccati step (covariance only: no plant simulation)"}
               for name in ("scalar", "example2", "4-state")]

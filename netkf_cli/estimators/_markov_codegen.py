@@ -4,8 +4,9 @@
 M of ζ = [ξ; s] (D = d + r), M⁺ = 𝒜_{t,q} M 𝒜_{t,q}ᵀ + ℬΣℬᵀ_{t,q}, with 𝒜_{t,q} = [[F_q, 0], [G_s(t) H_q,
 A_s(t)]] mostly zeros (the augmented transition F_q: a shift, one copied block, the mode's measurement row).
 This module writes that recursion out as scalar expressions over the upper triangle of one run's M (kept in
-locals across the time loop): structural zeros of 𝒜_{t,q} over every t are skipped, entries constant in t
-are inlined as numbers, the others (the gains) read from the stacked array. The operations are the numpy
+locals across the time loop): entries that are zero for every gain are skipped, the model's constants (F_q,
+G_qΣG_qᵀ, E_x) inlined as numbers, the gain-dependent ones read from the stacked arrays — so the code depends on
+the model alone (one kernel per system for the LMI and the naive filter, any horizon). The operations are the numpy
 core's in its order (``batched.left`` / ``right`` term by term in ascending index, then ``sym``, then + Q),
 so for D ≤ 8 the numbers are the numpy path's bit for bit where no BLAS product intervenes — which keeps
 the degenerate cases (a covariance that is exactly 0, the NEES rank of it) identical. The reports — P_{k|k} =
@@ -35,13 +36,6 @@ def mode_aware_supported(d: int, m: int) -> bool:
 
 def _num(x: float) -> str:
     return repr(float(x))
-
-
-def _pattern(X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For stacked matrices X (T, N, a, b): (nonzero anywhere (N, a, b), constant in t (N, a, b), the value)."""
-    nz = (X != 0.0).any(axis=0)
-    const = (X == X[:1]).all(axis=0)
-    return nz, const, X[0]
 
 
 def _m(i: int, j: int) -> str:
@@ -75,15 +69,43 @@ def _sum(terms: list[tuple[str, str]], start: str | None = None) -> str:
     return s[2:] if s.startswith("+ ") else ("-" + s[2:] if s.startswith("- ") else s)
 
 
-def source(A: np.ndarray, BSB: np.ndarray, Cf: np.ndarray, LJS: np.ndarray, Cp: np.ndarray) -> str:
+def source(A: np.ndarray, BSB: np.ndarray, Cf: np.ndarray, LJS: np.ndarray, Cp: np.ndarray, H: np.ndarray,
+           J: np.ndarray, d: int) -> str:
     """The kernel ``run`` for stacked 𝒜 (T, N, D, D), ℬΣℬᵀ (T, N, D, D), C_f (T, N, n, D), L_fJΣJᵀL_fᵀ
-    (T, N, n, n) and the constant C_p (n, D); its arguments are the same arrays flattened to index t·N + q."""
-    T, N, D = A.shape[0], A.shape[1], A.shape[2]
+    (T, N, n, n) and the constant C_p (n, D); its arguments are the same arrays flattened to index t·N + q.
+    What is written depends on the model only (H_q, J_q, d, C_p and the ξ blocks F_q, G_qΣG_qᵀ of the first
+    step): entries that can be nonzero for some gains are read from the arrays, the model's own inlined."""
+    N, D = A.shape[1], A.shape[2]
     n = Cp.shape[0]
-    anz, aco, aval = _pattern(A)
-    bnz, bco, bval = _pattern(BSB)
-    cnz, cco, cval = _pattern(Cf)
-    lnz, lco, lval = _pattern(LJS)
+    hcol = (H != 0.0).any(axis=1)  # (N, d): the columns each mode's measurement reads
+    jany = (J != 0.0).any(axis=(1, 2))  # (N,): the mode's packet carries noise
+    anz = np.zeros((N, D, D), bool)
+    aco = np.zeros((N, D, D), bool)
+    aval = np.zeros((N, D, D))
+    anz[:, :d, :d] = A[0, :, :d, :d] != 0.0
+    aco[:, :d, :d] = True
+    aval[:, :d, :d] = A[0, :, :d, :d]
+    anz[:, d:, :d] = hcol[:, None, :]
+    anz[:, d:, d:] = True
+    bnz = np.zeros((N, D, D), bool)
+    bco = np.zeros((N, D, D), bool)
+    bval = np.zeros((N, D, D))
+    bnz[:, :d, :d] = BSB[0, :, :d, :d] != 0.0
+    bco[:, :d, :d] = True
+    bval[:, :d, :d] = BSB[0, :, :d, :d]
+    bnz[:, d:, :] |= jany[:, None, None]
+    bnz[:, :, d:] |= jany[:, None, None]
+    Ex = Cp[:, :d]
+    cnz = np.zeros((N, n, D), bool)
+    cco = np.zeros((N, n, D), bool)
+    cval = np.zeros((N, n, D))
+    cnz[:, :, :d] = (Ex != 0.0)[None] | hcol[:, None, :]
+    cco[:, :, :d] = ~hcol[:, None, :]
+    cval[:, :, :d] = Ex[None]
+    cnz[:, :, d:] = True
+    lnz = np.broadcast_to(jany[:, None, None], (N, n, n))
+    lco = np.zeros((N, n, n), bool)
+    lval = np.zeros((N, n, n))
     up = [(i, j) for i in range(D) for j in range(i, D)]
     L = ["import numpy as np", "import numba as nb", "", "",
          "@nb.njit(cache=True, nogil=True)",
@@ -155,9 +177,9 @@ def source(A: np.ndarray, BSB: np.ndarray, Cf: np.ndarray, LJS: np.ndarray, Cp: 
     return "\n".join(L) + "\n"
 
 
-def kernel(A, BSB, Cf, LJS, Cp):
-    """The compiled ``run`` for these stacked matrices (generated, written once, numba-cached)."""
-    return kalman_codegen._load(source(A, BSB, Cf, LJS, Cp), "netkf_markov_fixed", "run")  # its shared loader
+def kernel(A, BSB, Cf, LJS, Cp, H, J, d: int):
+    """The compiled ``run`` for this model (generated, written once, numba-cached: :func:`source`)."""
+    return kalman_codegen._load(source(A, BSB, Cf, LJS, Cp, H, J, d), "netkf_markov_fixed", "run")  # its shared loader
 
 
 # =========================================================================== the mode-aware KF (one output)

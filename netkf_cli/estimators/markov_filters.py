@@ -35,12 +35,15 @@ Filters (all run on the same simulated runs)
 * the LMI filter of the paper (:mod:`netkf_cli.estimators.markov_lmi`).
 * :class:`ModeAwareKFTr` — the time-varying Kalman filter on ξ for a receiver that knows
   θ(k) (per run; the lower bound), on the Kalman core (``kalman.update_pinv`` + ``kalman.predict``),
-  compiled twin :class:`ModeAwareCompiled` on ``kalman_numba``'s primitives.
+  compiled twin :class:`ModeAwareCompiled` on ``kalman_numba``'s primitives (covariances only), and with states
+  (one output) :func:`mode_aware_estimates_compiled` (a kernel generated per model).
 
 All filters whose gains do not depend on the data are :class:`LinearFilter` objects
 ``s(k+1) = A_s(k) s(k) + G_s(k) y(k)``, ``x̂(k|k−1) = E_p s(k)``,
 ``x̂(k|k) = E_f(k) s(k) + L_f(k) y(k)``; :func:`exact_mse` evaluates any of them exactly
-through the second moments of the joint Markov-jump system ``[ξ; s]``.
+through the second moments of the joint Markov-jump system ``[ξ; s]``; their per-run error covariances given
+the mode path are :func:`linear_filter_covariances` (numpy, the reference) or
+:func:`linear_filter_covariances_compiled` (a kernel generated per system, :mod:`netkf_cli.estimators._markov_codegen`).
 
 Time bases
 ----------
@@ -716,7 +719,7 @@ class ModeAwareCompiled:
     ``update_pinv`` / ``predict``): a run-outer, time-inner loop on one run's d×d covariance at a time,
     the (d, d, runs) layout in and out. Equal to the numpy path to rounding (tested); a run whose
     x block trips the plain KF's overflow flag (``kalman.Rescue``) is redone by the numpy path. (The
-    state-level estimates are numpy code: :meth:`MarkovLMIEstimator.estimates`.)"""
+    state-level estimates with states: :func:`mode_aware_estimates_compiled`.)"""
 
     def __init__(self, model: AugmentedModel, runs: int, xhat0, P0, states: bool = False, base: str = "paper"):
         if states:
@@ -799,7 +802,7 @@ def linear_filter_covariances_compiled(model: AugmentedModel, filt: LinearFilter
     out_p = np.empty((len(rep) if wp else 0, n, n, runs))
     mT = np.ascontiguousarray(modes[:t1].T, dtype=np.int64)
     Cff = flat(Cf)
-    run = _markov_codegen.kernel(A, BSB, Cf, LJS, Cp)
+    run = _markov_codegen.kernel(A, BSB, Cf, LJS, Cp, model.H, model.J, d)
     run(M0, mT, t1, flat(A), flat(BSB), slot, Cff, flat(LJS), np.ascontiguousarray((Cff * Cff).sum(axis=(1, 2))),
         float(np.sum(Cp * Cp)), wf, wp, float(np.finfo(float).eps), FIXED_GAIN_PRECISION, out_f, out_p)
     for i, k in enumerate(rep):

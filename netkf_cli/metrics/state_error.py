@@ -24,7 +24,8 @@ with s < 2³⁰ (an ``over`` grid or a sweep has at most 10 000 points), so the 
 chunk's random numbers — the old "stream + 1" was the next ``over`` point's stream under ``independent``.
 
 Which x the estimate aims at: ``filtered`` x̂_{k|k} → x_k, ``predicted`` x̂_{k+1|k} → x_{k+1}. The
-state-level recursions are numpy code (the compiled kernels compute covariances only).
+state-level recursions are each estimator's ``estimates`` (its ``backend``: the Markov filters compile theirs,
+equal to their numpy reference to rounding); the per-step reduction is numpy (the n = 2 NEES compiled).
 """
 
 from __future__ import annotations
@@ -176,7 +177,8 @@ class StateError(GenericMetric):
                               f"S = {'0' if S is None else S.tolist()}; stream {stream}: the trace, then the states, "
                               "from each chunk's generator",
                 "consistency_rule": f"|mean NEES − E rank P| ≤ {Z:g} s.e.; |E‖e‖² − E tr P| ≤ {Z:g} s.e. (paired)",
-                "backend": "numpy (state-level recursions)"}
+                "backend": "each estimator's estimates() (its backend); the reduction numpy, the n = 2 NEES compiled "
+                           "when numba imports"}
         if tr is not None:
             extra["trajectories"] = _trajectory_table(tr, labs, cols, allk)
             meta["trajectories"] = f"the first {self.trajectories} run(s) of stream {tstream} (SeedSequence(seed, "\
