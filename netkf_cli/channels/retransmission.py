@@ -26,10 +26,11 @@ from netkf_cli.trace import Trace
 MAX_BUDGET = 50
 
 
-AUTO_MIN_SLOTS = 200_000
+AUTO_MIN_SLOTS = 1_000_000
 """``backend: auto`` of :func:`effective_arrivals` compiles the slot loop (numba, when installed) from this
-many run-slots: the numpy loop costs ~12 passes over the runs per slot (~50 ms for 5 000 runs × 362
-slots), the compiled one the same logic per run and slot on the same uniforms (the same trace, a test)."""
+many run-slots: the numpy loop costs ~12 passes over the runs per slot (~50–150 ms for 5 000 runs × 362
+slots), the compiled one the same logic per run and slot on the same uniforms (the same trace, a test);
+below it (a quick run) importing numba would cost more than it saves."""
 
 _JIT: dict[str, object] = {}
 

@@ -77,13 +77,15 @@ AUTO_NUMBA_MAX_RUNS = 256
 path overtakes it at a few hundred runs). Long runs of few columns — the paper's-way run of
 Table I — are where it wins (10–100× a numpy loop over the steps)."""
 
-AUTO_MIN_RTS_WORK = 1_000_000
+AUTO_MIN_RTS_RUN_STEPS = 1_000_000
 """``backend: auto`` runs the backward pass on the generated compiled kernels (after kf's numpy forward
-pass, when kf's choice is numpy) from this many run-step-lags (runs × requested steps × lag) per call:
-the kernels depend only on (A, Q) — one compilation per system and machine, shared by an over grid of
-channel parameters — and load in well under a second, which this much work repays (the numpy pass costs
-~50 ns per run-step-lag at n = 1, the compiled ~2 ns). Bit for bit the numpy pass for n ≤ 2 (the same
-operations in the same order, S⁻¹ in closed form: a test); equal to rounding for n ≥ 3 (Cholesky)."""
+pass, when kf's choice is numpy) from this many run-steps (runs × requested steps) per call — by the batch,
+not the lag, so the smoothers of every lag on one trace choose alike and share one pass. The kernels
+depend only on (A, Q) — one compilation per system and machine, shared by an over grid of channel
+parameters — and load in well under a second, which this much work repays (the numpy pass costs ~50 ns
+per run-step-lag at n = 1, the compiled ~1 ns); a quick run stays on numpy (numba not even imported for
+it). Bit for bit the numpy pass for n ≤ 2 (the same operations in the same order, S⁻¹ in closed form: a
+test); equal to rounding for n ≥ 3 (Cholesky)."""
 
 # =============================================================================================
 # the estimator
@@ -255,8 +257,9 @@ def run(system: LinearSystem, gamma: np.ndarray, steps, quantities=("smoothed",)
         if backend not in BACKENDS:
             resolve_backend(backend)  # the ConfigError naming the backends
         fwd = kalman.choose_backend("auto" if backend == "auto" else "numpy", f, runs * horizon)
-    work = runs * len(steps) * N  # the backward pass's run-step-lags
-    compiled = fwd == "numba" or (backend == "auto" and work >= AUTO_MIN_RTS_WORK and numba_available())
+    # (by the batch, not the lag: smoothers of every lag on one trace make the same choice and share its pass)
+    big = runs * len(steps) >= AUTO_MIN_RTS_RUN_STEPS
+    compiled = fwd == "numba" or (backend == "auto" and big and numba_available())
     rts = "compiled" if (compiled and sc.supported(f.A.shape[0])) else "numpy"
     yield from _run_shared(f, system, gamma, steps, qs, N, fwd, rts)
 

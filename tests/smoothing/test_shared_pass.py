@@ -151,7 +151,7 @@ def test_two_pass_forward_is_kfs_compiled_run_bit_for_bit(name):
 @pytest.mark.skipif(numba_missing, reason="numba not installed")
 @pytest.mark.parametrize("name", list(SYSTEMS))
 def test_compiled_rts_on_the_numpy_forward_pass(name):
-    """``auto`` with kf's numpy forward pass and a large backward pass (AUTO_MIN_RTS_WORK): the generated
+    """``auto`` with kf's numpy forward pass and a large batch (AUTO_MIN_RTS_RUN_STEPS): the generated
     kernels give the numpy pass's numbers bit for bit for n ≤ 2 (closed-form S⁻¹, the core's order of
     operations), to rounding for n ≥ 3 (Cholesky)."""
     s = SYSTEMS[name]
