@@ -107,6 +107,12 @@ MATERIALIZE_MAX = 1 << 24
 sensors × 200 steps is 5 MB) is drawn whole on its first read and kept, so the estimators of one chunk
 share one draw; a larger one is drawn block by block for each reader (memory O(RAW_BLOCK))."""
 
+_DRAWN: dict = {}
+"""The last small per-sensor traces a process drew (read-only, ≤ MATERIALIZE_MAX arrivals in all), by generator
+state, class, loss and size: an ``over`` grid that leaves the channel alone (Fusion Fig. 1 over Q: stream 0 at
+every point, common random numbers) samples chunk i's trace once per process, not once per point — the same
+bits, since the trace is a function of exactly these."""
+
 
 # ----------------------------------------------------------------------------------------
 # The count sampler (``sampling: counts``): one raw draw per run-step
@@ -261,10 +267,21 @@ class SensorTrace(_LazyArrival):
         return out
 
     def _draw(self) -> np.ndarray:
+        small = self._loss.size * self.horizon * self.runs <= MATERIALIZE_MAX
+        st = self._state["state"]
+        key = (type(self).__name__, st["state"], st["inc"], self._loss.tobytes(), self.horizon, self.runs)
+        if small and key in _DRAWN:
+            _DRAWN[key] = _DRAWN.pop(key)  # most recently used last
+            return _DRAWN[key]
         out = np.empty((self._loss.size, self.horizon, self.runs), dtype=bool)
         b = block_steps(self.horizon, self.runs, self._loss.size)
         for t0 in range(0, self.horizon, b):
             out[:, t0 : t0 + b] = self._draw_steps(t0, min(self.horizon, t0 + b))
+        if small:
+            out.flags.writeable = False  # shared by every trace drawn from this state
+            _DRAWN[key] = out
+            while sum(x.size for x in _DRAWN.values()) > MATERIALIZE_MAX:
+                _DRAWN.pop(next(iter(_DRAWN)))
         return out
 
     @property

@@ -608,6 +608,28 @@ def test_a_small_lazy_trace_is_drawn_once_on_first_read_with_the_same_bits(monke
     assert not tr.materialized
 
 
+def test_small_traces_drawn_from_the_same_state_are_drawn_once_per_process(monkeypatch):
+    """An over grid that leaves the channel alone draws chunk i's trace once per process (multi._DRAWN): the
+    same state, loss and size give the same read-only array; another loss or state draws anew (the bits of
+    the eager sampler either way); the kept traces stay within MATERIALIZE_MAX arrivals."""
+    from netkf_cli.channels import multi
+
+    monkeypatch.setattr(multi, "_DRAWN", {})
+    ch = MultiChannel(kind="multi", sensors=5, loss=0.4)
+    a = ch.sample_trace(np.random.default_rng(np.random.SeedSequence(3, spawn_key=(0, 1))), 300, 20).arrival
+    b = ch.sample_trace(np.random.default_rng(np.random.SeedSequence(3, spawn_key=(0, 1))), 300, 20).arrival
+    assert b is a and not a.flags.writeable
+    ref = sample_multi_trace_arrivals(np.random.default_rng(np.random.SeedSequence(3, spawn_key=(0, 1))), 300, 20,
+                                      np.full(5, 0.4))
+    np.testing.assert_array_equal(a, ref)
+    c = ch.with_loss(0.5).sample_trace(np.random.default_rng(np.random.SeedSequence(3, spawn_key=(0, 1))), 300, 20)
+    d = ch.sample_trace(np.random.default_rng(np.random.SeedSequence(3, spawn_key=(0, 2))), 300, 20)
+    assert c.arrival is not a and d.arrival is not a and len(multi._DRAWN) == 3
+    monkeypatch.setattr(multi, "MATERIALIZE_MAX", 2 * 5 * 20 * 300)
+    ch.sample_trace(np.random.default_rng(9), 300, 20).arrival
+    assert sum(x.size for x in multi._DRAWN.values()) <= multi.MATERIALIZE_MAX
+
+
 @needs_numba
 @pytest.mark.parametrize("name", ["scalar", "vehicle", "3-rows"])
 def test_symbolic_kernels_give_the_bits_of_the_inlined_ones(name):
