@@ -33,8 +33,8 @@ into J_t, C_t = P_{t|t, x_{t+1}} (functions of P_{t|t} only: computed once per t
 the steps) and the affine map P_{t|k} = C_t + J_t P_{t+1|k} J_tᵀ, applied N times per requested step,
 batched over the steps. ``numpy``: the core's operations (bit for bit the per-step reference
 :func:`_run_core`); with kf's compiled forward pass, the generated kernels of
-:mod:`netkf_cli.estimators._smoother_codegen` (A, Q inlined; equal to rounding, bit for bit for a scalar
-system). The pass of one trace is kept for the next call on the same arrivals and system, so the engine's
+:mod:`netkf_cli.estimators._smoother_codegen` (A, Q inlined; bit for bit the numpy pass for n ≤ 2, equal
+to rounding for n ≥ 3), also after kf's numpy forward pass for batches of ≥ :data:`AUTO_MIN_RTS_RUN_STEPS`. The pass of one trace is kept for the next call on the same arrivals and system, so the engine's
 smoothers that differ only in lag share the forward pass, the RTS pieces and the chain (P_{k−4|k}
 continues from P_{k−2|k}): the same numbers as separate passes (a test). ``numba``: the batched pass with
 the compiled forward and backward passes; for at most :data:`AUTO_NUMBA_MAX_RUNS` runs and one arrival
