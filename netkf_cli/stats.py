@@ -90,6 +90,23 @@ def rare_event_flag(s1, max_x, n):
     return (np.asarray(n) >= 2) & (frac > RARE_EVENT_FRACTION)
 
 
+FLAG_REASONS = {
+    "nonfinite": "a run diverged (non-finite)",
+    "sample": "the sample's variance is too uncertain (relative s.e. of the sample variance above HEAVY_TAIL_RSE)",
+    "theory": "the theoretical tail exponent says E[(tr P)^2] is infinite (manifest: heavy_tail_by_theory)",
+    "rare_event": "one run carries more than half of the sum",
+}
+"""The codes of a CSV's ``flag_reason`` column (joined by ``+``; empty when the mean is reliable)."""
+
+
+def flag_reason(*, nonfinite=0, sample=False, theory=False, rare=False) -> str:
+    """Why a mean is flagged: the :data:`FLAG_REASONS` codes that apply, joined by ``+`` ("" = reliable).
+    ``sample`` is the heavy-tail rule's sample part (what :func:`heavy_tail_flag` says beyond non-finite runs)."""
+    codes = [c for c, on in (("nonfinite", int(nonfinite) > 0), ("sample", bool(sample) and int(nonfinite) == 0),
+                             ("theory", bool(theory)), ("rare_event", bool(rare))) if on]
+    return "+".join(codes)
+
+
 @dataclass
 class MeanSummary:
     """E[·] over runs with its standard error and reliability diagnostics (``unreliable`` = heavy-tailed

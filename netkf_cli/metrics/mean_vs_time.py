@@ -19,6 +19,7 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine
+from netkf_cli.stats import FLAG_REASONS, flag_reason
 from netkf_cli.metrics.common import (fold_over, LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels,
                                       math_text, n_runs_of, PaperRef, quantity_text)
 from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
@@ -26,7 +27,8 @@ from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.spec import PositiveInt
 
 ONE = {"trace": r"$\mathrm{tr}\,P_k$", "lambda_max": r"$\lambda_{\max}(P_k)$", "entries": r"$P_k$ entries"}
-COLUMNS = ["k", "estimator", "series", "value", "stderr", "n", "nonfinite", "heavy_tail", "rare_event"] + LABEL_COLUMNS
+COLUMNS = ["k", "estimator", "series", "value", "stderr", "n", "nonfinite", "heavy_tail", "rare_event",
+           "flag_reason"] + LABEL_COLUMNS
 WHAT = {"trace": r"$\mathrm{E}[\mathrm{tr}\,P_k]$", "lambda_max": r"$\mathrm{E}[\lambda_{\max}(P_k)]$",
         "entries": r"$\mathrm{E}[P_k]$ entries"}
 
@@ -59,6 +61,7 @@ class MeanVsTime(GenericMetric):
             tr_summary = engine.mean_summary(st, j, "tr")
             flags = dict(heavy=tr_summary.heavy_tail, rare=tr_summary.rare_event)
             bad = st[f"nonfinite_{j}"]
+            reasons = [flag_reason(nonfinite=bad[i], sample=flags["heavy"][i], rare=flags["rare"][i]) for i in range(len(ks))]
             if bad.any():
                 warnings_.append(f"{lab}: {int(bad.max())} of {n} runs non-finite at some step (excluded, step flagged)")
             if self.of in ("trace", "lambda_max"):
@@ -67,7 +70,7 @@ class MeanVsTime(GenericMetric):
                 for i, k in enumerate(ks):
                     rows.append(dict(k=k, estimator=lab, series=self.of, value=ms.mean[i], stderr=ms.stderr[i], n=n,
                                      nonfinite=int(bad[i]), heavy_tail=bool(heavy[i]), rare_event=bool(flags["rare"][i]),
-                                     **lab_cols[j]))
+                                     flag_reason=reasons[i], **lab_cols[j]))
             else:
                 heavy = flags["heavy"]
                 m_ok = np.maximum(n - bad, 1)[:, None, None]
@@ -80,7 +83,7 @@ class MeanVsTime(GenericMetric):
                         for b in range(a, nn):
                             rows.append(dict(k=k, estimator=lab, series=f"P[{a + 1},{b + 1}]", value=mean[i, a, b],
                                              stderr=se[i, a, b], n=n, nonfinite=int(bad[i]), heavy_tail=bool(heavy[i]),
-                                             rare_event=bool(flags["rare"][i]), **lab_cols[j]))
+                                             rare_event=bool(flags["rare"][i]), flag_reason=reasons[i], **lab_cols[j]))
         for w in warnings_:  # one line on the terminal, and in the manifest
             warnings.warn(w, stacklevel=2)
         cols = COLUMNS
@@ -91,6 +94,7 @@ class MeanVsTime(GenericMetric):
             for r in self.reference_rows(scenario, labs):
                 rows.append(dict(k=r.get("k", np.nan), estimator=r.get("estimator", ""), series=r["series"],
                                  value=r["value"], stderr=np.nan, n=0, nonfinite=0, heavy_tail=False, rare_event=False,
+                                 flag_reason="",
                                  quantity=r.get("quantity", self.quantity), P0="", conventions="",
                                  source="closed_form", reference=r["reference"]))
         table = pd.DataFrame(rows, columns=cols)
@@ -99,7 +103,8 @@ class MeanVsTime(GenericMetric):
                               "backends": backends(scenario, s, ests, labs, n_runs_of(st), horizon_of(scenario, self)),
                                      "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE} "
                                                         f"or any non-finite run",
-                                     "rare_event_rule": "one run carries more than half of the sum", "warnings": warnings_})
+                                     "rare_event_rule": "one run carries more than half of the sum",
+                                     "flag_reasons": FLAG_REASONS, "warnings": warnings_})
 
     def plot(self, tables, scenario):
         t = fold_over(tables["main"], self.over)

@@ -27,14 +27,14 @@ from netkf_cli.metrics import derived
 from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric,
                                       kf_tail_exponent, labels, math_text, PaperRef, Quantity)
 from netkf_cli.plotting import LINESTYLES, MARKERS, MIN_FONT_PT, PALETTE, footnote, legend_outside, new_figure, paper_title
-from netkf_cli.stats import heavy_tail_flag, mean_se, rare_event_flag
+from netkf_cli.stats import FLAG_REASONS, flag_reason, heavy_tail_flag, mean_se, rare_event_flag
 
 TRACE, PROB = "E[tr P]", "Pr[P<=M]"
 M4_ROUNDING = 1e-3
 """Largest relative rounding error of the 4th central moment from raw power sums, ≈ eps·(mean/sd)⁴, accepted
 before the power sums are taken again about the mean (:func:`_cancelling`)."""
 COLUMNS = ["estimator", "quantity", "series", "M", "value", "stderr", "n", "nonfinite", "heavy_tail", "rare_event",
-           "source", "reference"] + LABEL_COLUMNS[1:]
+           "flag_reason", "source", "reference"] + LABEL_COLUMNS[1:]
 
 
 class TimeAverage(GenericMetric):
@@ -105,21 +105,23 @@ class TimeAverage(GenericMetric):
                 base = dict(estimator=lab, quantity=q, n=n, nonfinite=bad, source="monte_carlo", reference="",
                             P0=lab_cols["P0"], conventions=lab_cols["conventions"])
                 phi, why = kf_tail_exponent(s, scenario.channel, e)
-                if phi is not None and phi >= -2.0:  # E[(tr P)²] = ∞: the sample's variance (and s.e.) mean nothing
+                by_theory = phi is not None and phi >= -2.0
+                reason = flag_reason(nonfinite=bad, sample=heavy, theory=by_theory, rare=rare)
+                if by_theory:  # E[(tr P)²] = ∞: the sample's variance (and s.e.) mean nothing
                     heavy = True
                     theory_flags[lab] = (f"tail exponent φ = {phi:.3g} ≥ −2 (Mo & Sinopoli 2012: E[(tr P)²] = ∞"
                                          + (", E[tr P] = ∞" if phi >= -1.0 else "") + f"; {why})")
                 rows.append(dict(base, series=TRACE, M=np.nan, value=mean if bad == 0 else np.inf, stderr=se,
-                                 heavy_tail=bool(heavy), rare_event=rare))
+                                 heavy_tail=bool(heavy), rare_event=rare, flag_reason=reason))
                 if Ms is not None:  # a non-finite run counts as not ≤ M: the probability is over every run
                     pm, pse = mean_se(st[f"sum_ind_{c}"], st[f"sumsq_ind_{c}"], n)
                     for i, m in enumerate(Ms):
                         rows.append(dict(base, series=PROB, M=float(m), value=float(pm[i]), stderr=float(pse[i]),
-                                         heavy_tail=False, rare_event=False))
+                                         heavy_tail=False, rare_event=False, flag_reason=""))
         for r in self.reference_rows(scenario, labs):
             rows.append(dict(estimator=r.get("estimator", ""), quantity=r.get("quantity", qs[0]),
                              series=r["series"], M=r.get("M", np.nan), value=r["value"], stderr=np.nan, n=0,
-                             nonfinite=0, heavy_tail=False, rare_event=False, source="closed_form",
+                             nonfinite=0, heavy_tail=False, rare_event=False, flag_reason="", source="closed_form",
                              reference=r["reference"], P0="", conventions=""))
         table = pd.DataFrame(rows, columns=COLUMNS)
         return Artefact(table, meta={"runs": n, "estimators": labs, "quantities": qs,
@@ -129,7 +131,7 @@ class TimeAverage(GenericMetric):
                                      "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE}, "
                                                         f"any non-finite run, or (kf and the smoother on i.i.d. or "
                                                         f"Gilbert–Elliott loss) the theoretical tail exponent ≥ −2",
-                                     "heavy_tail_by_theory": theory_flags})
+                                     "heavy_tail_by_theory": theory_flags, "flag_reasons": FLAG_REASONS})
 
     def finish_over(self, scenario, art: Artefact) -> Artefact:
         """The over grid's derived tables (``pairs``: MC vs MC / closed form at each point; ``trend``: along each
