@@ -531,7 +531,7 @@ def critical(
 @app.command()
 @user_errors
 def reproduce(
-    topics: Annotated[Optional[list[str]], typer.Argument(help="Topics to run (default: all): shi2009, fading, smoothing, fusion, markov.")] = None,
+    topics: Annotated[Optional[list[str]], typer.Argument(help="Topics to run (default: all): critical, fading, fusion, markov, shi2009, smoothing (the folders of configs/; its top-level configs are shi2009).")] = None,
     quick: Annotated[bool, typer.Option("--quick", help="Small Monte Carlo sizes; tolerances widened by their standard errors.")] = False,
     out_dir: Annotated[Optional[Path], typer.Option("--out", help="Root folder of the results (default: results/, or build/quick-results/ with --quick).")] = None,
     check: Annotated[bool, typer.Option("--check", help="Exit 1 if a check expected to reproduce fails, or a golden CSV moved.")] = False,
