@@ -55,6 +55,7 @@ from netkf_cli import kalman
 from netkf_cli.analysis import fading as fa
 from netkf_cli.channels.fading import IidCorrelation, NoiseFn, Snr, sample_gain, snr_given_kept  # noqa: F401
 from netkf_cli.errors import ConfigError
+from netkf_cli.estimators import _fading_codegen as fcg
 from netkf_cli.riccati import initial_covariance
 from netkf_cli.spec import EstimatorModel
 
@@ -499,10 +500,30 @@ class Stepper:
         bufs = lambda o: (o["true"], o["filtered"], o.get("cond", none), o.get("cond_filtered", none))  # noqa: E731
         # the rescue variant directly when many runs need it (a tiny R makes kalman.Rescue's limit small:
         # Sec. 4.2's C = [1 2 3], R = 1e-8 flags P0 = I), else the fast variant and a redo of the flagged runs
-        self._fnb.kernel(self._mode, rm.n, rm.C.shape[0], rescue=self._use_rescue)(
-            tr(keep), tr(s2), tr(s2u_), s2u is not None, mu_, self.want_u,
-            rm.A, rm.Q, rm.C, rm.R, rm.gain_inv, rm.rescue.limit, self._Pt, self._Pf, self._Ft, self._U, self._Uf, flags,
-            rec_, *bufs(out))
+        inline = fcg.inline_rescue(self._mode, rm.C)
+        if (inline or not self._use_rescue) and keep.shape[0] > 0 and fcg.supported(self._mode, rm.n, rm.C.shape[0]):
+            # the generated kernel, runs innermost (vectorised); its flag bits: 1 rescue, 2 non-finite
+            n, nt, R_ = rm.n, rm.n * (rm.n + 1) // 2, out["true"].shape[1]
+            P, Fk = fcg.pack(self._Pt), np.empty((nt, B))
+            U, Uf = (fcg.pack(self._U), np.empty((nt, B))) if self.want_u else (np.zeros((nt, 1)), np.zeros((nt, 1)))
+            recs = {k: np.empty((R_, nt, B)) for k in out}
+            nil = np.empty((0, nt, B))
+            fcg.kernel(self._mode, rm.A, rm.C, rm.Q, rm.R, rm.gain_inv, rm.rescue.limit, self.want_u, s2u is not None,
+                       inline)(
+                keep, s2, s2u_, mu_, P, Fk, U, Uf, flags, rec_, recs["true"], recs["filtered"],
+                recs.get("cond", nil), recs.get("cond_filtered", nil))
+            flags = np.where(flags & 2, 2, np.where(flags & 1, 1, 0)).astype(np.int8)
+            self._Pt = np.ascontiguousarray(np.moveaxis(fcg.unpack(P, n), 2, 0))
+            self._Ft = np.ascontiguousarray(np.moveaxis(fcg.unpack(Fk, n), 2, 0))
+            if self.want_u:
+                self._U = np.ascontiguousarray(np.moveaxis(fcg.unpack(U, n), 2, 0))
+                self._Uf = np.ascontiguousarray(np.moveaxis(fcg.unpack(Uf, n), 2, 0))
+            out = {k: np.moveaxis(fcg.unpack(v, n), 3, 0) for k, v in recs.items()}  # run-major views
+        else:
+            self._fnb.kernel(self._mode, rm.n, rm.C.shape[0], rescue=self._use_rescue)(
+                tr(keep), tr(s2), tr(s2u_), s2u is not None, mu_, self.want_u,
+                rm.A, rm.Q, rm.C, rm.R, rm.gain_inv, rm.rescue.limit, self._Pt, self._Pf, self._Ft, self._U, self._Uf,
+                flags, rec_, *bufs(out))
         if (flags == 1).mean() > 0.05:
             self._use_rescue = True
         idx = np.flatnonzero(flags == 1)

@@ -1,0 +1,259 @@
+"""The fading receivers' block step generated per system, the run axis innermost (issue 20).
+
+The same recursion as :mod:`netkf_cli.estimators._fading_numba` (one run at a time, scalar code LLVM
+does not vectorise), written out as scalar expressions with the system's numbers as constants (zeros
+skipped, ones dropped; :func:`netkf_cli.kalman_codegen._lin`) over the upper triangle of each covariance,
+one contiguous array per entry with the runs innermost, and a branch-free loop over runs (a dropped
+packet selects P_{k|k−1} instead of the kept update), so the compiler vectorises it — the layout of
+:mod:`netkf_cli.kalman_codegen`. Modes (:func:`_fading_numba.mode_of`):
+
+* ``0`` — scenarios 1 and 3: P − U S⁻¹ Uᵀ, U = P Cᵀ, S = C P Cᵀ + R + σ² I (S⁻¹ closed form for one or
+  two rows, an unrolled Cholesky factor for three or four, as kalman_codegen); a prior with
+  tr P > limit (or non-finite) raises bit 0 of ``flags``: the caller redoes that run's block with the
+  scalar kernel's rescue variant (the rescue policy stays :class:`kalman.Rescue`'s);
+* ``1`` — scenario 2 with an invertible C: the Joseph form (I − C⁻¹C) P (·)ᵀ + C⁻¹ (R + σ² I) C⁻ᵀ (eq. 12)
+  with I − C⁻¹C evaluated as the scalar kernel does (``kalman_numba.joseph``) and inlined.
+
+A non-finite P, U_{k|k} or U_{k+1|k} raises bit 1: the caller redoes the run's block on the numpy core
+(which owns what an overflow means), as for the scalar kernel. The same inputs (keep decisions and σ²
+values from numpy, the same uniforms) give the scalar kernel's numbers to rounding: sums run in
+another order. Kernels are cached on disk by the hash of their source (``kalman_codegen._load``).
+Tested against the numpy reference in ``tests/fading/test_fading_codegen.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from netkf_cli.kalman_codegen import _lin, _load, _num
+
+MAX_N = 6
+MAX_M = 4
+
+
+def supported(mode: int, n: int, m: int) -> bool:
+    return mode in (0, 1) and n <= MAX_N and 1 <= m <= MAX_M
+
+
+def pack(X: np.ndarray) -> np.ndarray:
+    """Run-major (B, n, n) → (n(n+1)/2, B), the upper triangle row by row (the kernel's layout)."""
+    iu = np.triu_indices(X.shape[1])
+    return np.ascontiguousarray(X[:, iu[0], iu[1]].T)
+
+
+def unpack(T: np.ndarray, n: int) -> np.ndarray:
+    """(…, n(n+1)/2, B) → (…, n, n, B), symmetric."""
+    iu = np.triu_indices(n)
+    P = np.empty(T.shape[:-2] + (n, n, T.shape[-1]))
+    P[..., iu[0], iu[1], :] = T
+    P[..., iu[1], iu[0], :] = T
+    return P
+
+
+def _p(name, i, j):
+    return f"{name}{min(i, j)}_{max(i, j)}"
+
+
+def _chol_inv(src: str, n: int, out: str) -> list[str]:
+    """Lines of the inverse of the SPD (n, n) locals ``src`` (upper triangle) into ``out``: the Cholesky factor
+    L, Z = L⁻¹, out = Zᵀ Z (a non-SPD input gives NaN: the caller flags it)."""
+    L = []
+    for j in range(n):
+        acc = " - ".join([_p(src, j, j)] + [f"{out}l{j}_{k} * {out}l{j}_{k}" for k in range(j)])
+        L.append(f"{out}l{j}_{j} = np.sqrt({acc})")
+        for i in range(j + 1, n):
+            acc = " - ".join([_p(src, j, i)] + [f"{out}l{i}_{k} * {out}l{j}_{k}" for k in range(j)])
+            L.append(f"{out}l{i}_{j} = ({acc}) / {out}l{j}_{j}")
+    for i in range(n):
+        L.append(f"{out}z{i}_{i} = 1.0 / {out}l{i}_{i}")
+        for j in range(i - 1, -1, -1):
+            acc = " + ".join(f"{out}l{i}_{k} * {out}z{k}_{j}" for k in range(j, i))
+            L.append(f"{out}z{i}_{j} = -({acc}) / {out}l{i}_{i}")
+    for i in range(n):
+        for j in range(i, n):
+            L.append(f"{_p(out, i, j)} = " + " + ".join(f"{out}z{k}_{i} * {out}z{k}_{j}" for k in range(j, n)))
+    return L
+
+
+def inline_rescue(mode: int, C) -> bool:
+    """Mode 0 with C of full column rank: the information-form rescue (:class:`kalman.Rescue`) runs inline."""
+    C = np.atleast_2d(np.asarray(C, dtype=float))
+    return mode == 0 and C.shape[0] >= C.shape[1] and np.linalg.matrix_rank(C) == C.shape[1]
+
+
+def _kept(mode, A, C, R, Kc, src: str, s2: str, out: str, rescue: bool = False, need: str = "True") -> list[str]:
+    """Lines of the kept update from the prior locals ``src`` to ``out`` (upper triangle), noise σ² = ``s2``.
+    ``rescue`` (mode 0): a prior with tr > limit takes the information form (P⁻¹ + Cᵀ(R + σ² I)⁻¹C)⁻¹ instead
+    (selected branch-free); where that is non-finite while ``need`` holds, flag bit 0 (the scalar rescue redoes
+    the run)."""
+    n, m = A.shape[0], C.shape[0]
+    tri = [(i, j) for i in range(n) for j in range(i, n)]
+    L = []
+    if rescue:
+        L += [ln for ln in _kept(mode, A, C, R, Kc, src, s2, out + "s")]
+        L.append("trr = " + " + ".join(_p(src, i, i) for i in range(n)))
+        L.append("big = not (trr <= limit)")
+        for a in range(m):
+            for b in range(a, m):
+                L.append(f"{_p(out + 'rz', a, b)} = {_num(R[a, b])}" + (f" + {s2}" if a == b else ""))
+        L += _chol_inv(out + "rz", m, out + "ri")  # (R + σ² I)⁻¹
+        for a in range(m):
+            for j in range(n):
+                L.append(f"{out}g{a}_{j} = " + " + ".join(f"{_p(out + 'ri', a, b)} * {_num(C[b, j])}"
+                                                           for b in range(m) if C[b, j] != 0.0) if any(
+                    C[b, j] != 0.0 for b in range(m)) else f"{out}g{a}_{j} = 0.0")
+        L += _chol_inv(src, n, out + "pi")  # P⁻¹
+        for i, j in tri:
+            info = _lin([(C[a, i], f"{out}g{a}_{j}") for a in range(m)])
+            L.append(f"{_p(out + 'mm', i, j)} = {_p(out + 'pi', i, j)} + {info}")
+        L += _chol_inv(out + "mm", n, out + "in")
+        fin = " + ".join(_p(out + "in", i, j) for i, j in tri)
+        L.append(f"okr = ({fin}) - ({fin}) == 0.0")
+        L.append(f"f = f | (np.int8(1) if (big and not okr and {need}) else np.int8(0))")
+        for i, j in tri:
+            L.append(f"{_p(out, i, j)} = {_p(out + 'in', i, j)} if big else {_p(out + 's', i, j)}")
+        return L
+    if mode == 1:
+        # I − K C exactly as kalman_numba.joseph evaluates it (γ = 1), then inlined as constants
+        IKC = np.empty((n, n))
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                for a in range(m):
+                    acc += Kc[i, a] * C[a, j]
+                IKC[i, j] = (1.0 if i == j else 0.0) - 1.0 * acc
+        for a in range(m):
+            for b in range(a, m):
+                rz = _num(R[a, b]) + (f" + {s2}" if a == b else "")
+                L.append(f"rz{a}_{b} = {rz}")
+        for i in range(n):
+            for j in range(n):
+                L.append(f"{out}x{i}_{j} = {_lin([(IKC[i, k], _p(src, k, j)) for k in range(n)])}")
+        for i, j in tri:
+            terms = [(IKC[j, k], f"{out}x{i}_{k}") for k in range(n)]
+            terms += [(Kc[i, a] * Kc[j, b], _p("rz", a, b)) for a in range(m) for b in range(m)]
+            L.append(f"{_p(out, i, j)} = {_lin(terms)}")
+        return L
+    # mode 0: U = P Cᵀ, S = C U + R + σ² I, out = P − U S⁻¹ Uᵀ
+    for i in range(n):
+        for a in range(m):
+            L.append(f"u{i}_{a} = {_lin([(C[a, k], _p(src, i, k)) for k in range(n)])}")
+    for a in range(m):
+        for b in range(a, m):
+            extra = f" + {s2}" if a == b else ""
+            L.append(f"s{a}_{b} = {_lin([(C[a, k], f'u{k}_{b}') for k in range(n)])} + {_num(R[a, b])}{extra}")
+    if m >= 3:
+        for j in range(m):
+            acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
+            L.append(f"l{j}_{j} = np.sqrt({acc})")
+            for i in range(j + 1, m):
+                acc = " - ".join([f"s{j}_{i}"] + [f"l{i}_{k} * l{j}_{k}" for k in range(j)])
+                L.append(f"l{i}_{j} = ({acc}) / l{j}_{j}")
+        for i in range(n):
+            for a in range(m):
+                acc = " - ".join([f"u{i}_{a}"] + [f"w{i}_{b} * l{a}_{b}" for b in range(a)])
+                L.append(f"w{i}_{a} = ({acc}) / l{a}_{a}")
+        for i, j in tri:
+            corr = " + ".join(f"w{i}_{a} * w{j}_{a}" for a in range(m))
+            L.append(f"{_p(out, i, j)} = {_p(src, i, j)} - ({corr})")
+        return L
+    if m == 1:
+        L.append("i0_0 = 1.0 / s0_0")
+        inv = {(0, 0): "i0_0"}
+    else:
+        L.append("det = s0_0 * s1_1 - s0_1 * s0_1")
+        L.append("i0_0 = s1_1 / det")
+        L.append("i1_1 = s0_0 / det")
+        L.append("i0_1 = -s0_1 / det")
+        inv = {(0, 0): "i0_0", (1, 1): "i1_1", (0, 1): "i0_1", (1, 0): "i0_1"}
+    for i in range(n):
+        for a in range(m):
+            L.append(f"k{i}_{a} = " + " + ".join(f"u{i}_{b} * {inv[(b, a)]}" for b in range(m)))
+    for i, j in tri:
+        corr = " + ".join(f"k{i}_{a} * u{j}_{a}" for a in range(m))
+        L.append(f"{_p(out, i, j)} = {_p(src, i, j)} - ({corr})")
+    return L
+
+
+def _predict(A, Q, src: str, out: str) -> list[str]:
+    n = A.shape[0]
+    L = []
+    for i in range(n):
+        for j in range(n):
+            L.append(f"{out}x{i}_{j} = {_lin([(A[i, k], _p(src, k, j)) for k in range(n)])}")
+    for i in range(n):
+        for j in range(i, n):
+            L.append(f"{_p(out, i, j)} = {_lin([(A[j, k], f'{out}x{i}_{k}') for k in range(n)])} + {_num(Q[i, j])}")
+    return L
+
+
+def source(mode: int, A, C, Q, R, Kc, limit: float, want_u: bool, separate_u: bool, rescue: bool = False) -> str:
+    """The source of ``advance(keep, s2, s2u, mu, P, F, U, Uf, flags, rec, RecP, RecF, RecU, RecUf)``:
+    keep/s2/s2u (T, B) time-major, mu (B,), the state packed (n(n+1)/2, B) (``P`` the prior, ``F`` the last
+    P_{k|k}, ``U``/``Uf`` the burst-conditioned prior and last U_{k|k}), ``flags`` (B,) int8 bits (0: the
+    rescue is needed, 1: a non-finite value), ``rec`` (T,) the record slot of step t (−1: none), records
+    (slots, n(n+1)/2, B)."""
+    A, C, Q, R, Kc = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (A, C, Q, R, Kc))
+    n = A.shape[0]
+    tri = [(i, j) for i in range(n) for j in range(i, n)]
+    I1, I2, I3 = " " * 8, " " * 12, " " * 16
+    L = ["import numpy as np", "import numba as nb", "",
+         "@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')",
+         "def advance(keep, s2, s2u, mu, P, F, U, Uf, flags, rec, RecP, RecF, RecU, RecUf):",
+         "    T, B = keep.shape",
+         f"    limit = {_num(limit)}",
+         "    for t in range(T):",
+         f"{I1}for b in range(B):"]
+    body = [f"p{i}_{j} = P[{k}, b]" for k, (i, j) in enumerate(tri)]
+    body.append("kp = keep[t, b]")
+    body.append("sv = s2[t, b]")
+    if mode == 0 and rescue:
+        body.append("f = np.int8(0)")
+    elif mode == 0:
+        body.append("tr = " + " + ".join(_p("p", i, i) for i in range(n)))
+        # (as the scalar kernel: the prior is checked whenever a kept update is needed — U's kept term every step)
+        cond = "not (tr <= limit)" if want_u else "kp and not (tr <= limit)"
+        body.append(f"f = np.int8(1) if {cond} else np.int8(0)")
+    else:
+        body.append("f = np.int8(0)")
+    body += _kept(mode, A, C, R, Kc, "p", "sv", "kt", rescue, "True" if want_u and not separate_u else "kp")
+    if want_u:
+        for k, (i, j) in enumerate(tri):
+            body.append(f"v{i}_{j} = U[{k}, b]")
+        body.append("mb = mu[b]")
+        if separate_u:
+            body.append("su = s2u[t, b]")
+            body += _kept(mode, A, C, R, Kc, "p", "su", "ku", rescue)
+            ku = "ku"
+        else:
+            ku = "kt"
+        for i, j in tri:
+            body.append(f"{_p('ul', i, j)} = mb * {_p('v', i, j)} + (1.0 - mb) * {_p(ku, i, j)}")
+        body += _predict(A, Q, "ul", "un")
+        body.append("fin = " + " + ".join(_p("ul", i, j) for i, j in tri) + " + "
+                    + " + ".join(_p("un", i, j) for i, j in tri))
+    for i, j in tri:
+        body.append(f"{_p('fl', i, j)} = {_p('kt', i, j)} if kp else {_p('p', i, j)}")
+    body += _predict(A, Q, "fl", "pn")
+    ptr = " + ".join(_p("pn", i, j) for i, j in tri)
+    body.append(f"fin = {'fin + ' if want_u else ''}{ptr}")
+    body.append("f = f | (np.int8(0) if fin - fin == 0.0 else np.int8(2))")
+    body.append("flags[b] = flags[b] | f")
+    for k, (i, j) in enumerate(tri):
+        body.append(f"P[{k}, b] = {_p('pn', i, j)}")
+        body.append(f"F[{k}, b] = {_p('fl', i, j)}")
+        if want_u:
+            body.append(f"U[{k}, b] = {_p('un', i, j)}")
+            body.append(f"Uf[{k}, b] = {_p('ul', i, j)}")
+    L += [I2 + s for s in body]
+    L += [f"{I1}r = rec[t]", f"{I1}if r >= 0:", f"{I2}for k in range({len(tri)}):", f"{I3}for b in range(B):",
+          f"{I3}    RecP[r, k, b] = P[k, b]", f"{I3}    RecF[r, k, b] = F[k, b]"]
+    if want_u:
+        L += [f"{I3}    RecU[r, k, b] = U[k, b]", f"{I3}    RecUf[r, k, b] = Uf[k, b]"]
+    return "\n".join(L) + "\n"
+
+
+def kernel(mode: int, A, C, Q, R, Kc, limit: float, want_u: bool, separate_u: bool, rescue: bool = False):
+    """The compiled ``advance`` (:func:`source`) for this receiver (generated, written once, numba-cached)."""
+    src = source(mode, A, C, Q, R, Kc, limit, bool(want_u), bool(separate_u), bool(rescue))
+    return _load(src, "netkf_fading", "advance")
