@@ -192,7 +192,7 @@ def source(mode: int, A, C, Q, R, Kc, limit: float, want_u: bool, separate_u: bo
     keep/s2/s2u (T, B) time-major, mu (B,), the state packed (n(n+1)/2, B) (``P`` the prior, ``F`` the last
     P_{k|k}, ``U``/``Uf`` the burst-conditioned prior and last U_{k|k}), ``flags`` (B,) int8 bits (0: the
     rescue is needed, 1: a non-finite value), ``rec`` (T,) the record slot of step t (−1: none), records
-    (slots, n(n+1)/2, B)."""
+    (slots, n, n, B)."""
     A, C, Q, R, Kc = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (A, C, Q, R, Kc))
     n = A.shape[0]
     tri = [(i, j) for i in range(n) for j in range(i, n)]
@@ -246,10 +246,14 @@ def source(mode: int, A, C, Q, R, Kc, limit: float, want_u: bool, separate_u: bo
             body.append(f"U[{k}, b] = {_p('un', i, j)}")
             body.append(f"Uf[{k}, b] = {_p('ul', i, j)}")
     L += [I2 + s for s in body]
-    L += [f"{I1}r = rec[t]", f"{I1}if r >= 0:", f"{I2}for k in range({len(tri)}):", f"{I3}for b in range(B):",
-          f"{I3}    RecP[r, k, b] = P[k, b]", f"{I3}    RecF[r, k, b] = F[k, b]"]
-    if want_u:
-        L += [f"{I3}    RecU[r, k, b] = U[k, b]", f"{I3}    RecUf[r, k, b] = Uf[k, b]"]
+    L += [f"{I1}r = rec[t]", f"{I1}if r >= 0:"]
+    names = [("RecP", "P"), ("RecF", "F")] + ([("RecU", "U"), ("RecUf", "Uf")] if want_u else [])
+    for k, (i, j) in enumerate(tri):  # the records full (slots, n, n, B): the caller's layout, no unpacking
+        L.append(f"{I2}for b in range(B):")
+        for rn, sn in names:
+            L.append(f"{I3}{rn}[r, {i}, {j}, b] = {sn}[{k}, b]")
+            if i != j:
+                L.append(f"{I3}{rn}[r, {j}, {i}, b] = {sn}[{k}, b]")
     return "\n".join(L) + "\n"
 
 

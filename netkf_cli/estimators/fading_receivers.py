@@ -506,8 +506,8 @@ class Stepper:
             n, nt, R_ = rm.n, rm.n * (rm.n + 1) // 2, out["true"].shape[1]
             P, Fk = fcg.pack(self._Pt), np.empty((nt, B))
             U, Uf = (fcg.pack(self._U), np.empty((nt, B))) if self.want_u else (np.zeros((nt, 1)), np.zeros((nt, 1)))
-            recs = {k: np.empty((R_, nt, B)) for k in out}
-            nil = np.empty((0, nt, B))
+            recs = {k: np.empty((R_, n, n, B)) for k in out}
+            nil = np.empty((0, n, n, B))
             fcg.kernel(self._mode, rm.A, rm.C, rm.Q, rm.R, rm.gain_inv, rm.rescue.limit, self.want_u, s2u is not None,
                        inline)(
                 keep, s2, s2u_, mu_, P, Fk, U, Uf, flags, rec_, recs["true"], recs["filtered"],
@@ -518,7 +518,7 @@ class Stepper:
             if self.want_u:
                 self._U = np.ascontiguousarray(np.moveaxis(fcg.unpack(U, n), 2, 0))
                 self._Uf = np.ascontiguousarray(np.moveaxis(fcg.unpack(Uf, n), 2, 0))
-            out = {k: np.moveaxis(fcg.unpack(v, n), 3, 0) for k, v in recs.items()}  # run-major views
+            out = {k: np.moveaxis(v, 3, 0) for k, v in recs.items()}  # run-major views
         else:
             self._fnb.kernel(self._mode, rm.n, rm.C.shape[0], rescue=self._use_rescue)(
                 tr(keep), tr(s2), tr(s2u_), s2u is not None, mu_, self.want_u,
