@@ -1,0 +1,98 @@
+"""Peak memory and wall time of ``netkf run --jobs 2`` for every paper scenario (issue 20 item 3).
+
+    python benchmarks/bench_memory.py                      # every config in configs/, full size
+    python benchmarks/bench_memory.py fig5 fusion/fig1     # configs whose path contains one of these
+    python benchmarks/bench_memory.py fig9 --runs 2000000  # the same scenario at 10x its runs: flat in runs?
+
+Memory is the peak proportional set size (PSS) of netkf and its worker processes together, sampled every
+50 ms from /proc/<pid>/smaps_rollup (Linux): forked workers share the parent's pages, and PSS counts a shared
+page once across the processes (the sum of RSS counts it in each; printed beside it). The target is 300 MB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.bench_estimators import _descendants  # noqa: E402
+
+TARGET_MB = 300.0
+
+
+def _tree_mb(pid: int) -> tuple[float, float]:
+    """(PSS, RSS) in MB of a process and its descendants."""
+    pss = rss = 0.0
+    for p in [pid, *_descendants(pid)]:
+        try:
+            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
+                if line.startswith("Pss:"):
+                    pss += int(line.split()[1]) / 1024
+                elif line.startswith("Rss:"):
+                    rss += int(line.split()[1]) / 1024
+        except OSError:
+            pass
+    return pss, rss
+
+
+def measure(config: Path, out: Path, runs: int | None) -> dict:
+    cmd = [str(Path(sys.executable).with_name("netkf")), "run", str(config), "--jobs", "2", "--force", "--yes",
+           "--out", str(out)] + (["--runs", str(runs)] if runs else [])
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+    peak = {"pss": 0.0, "rss": 0.0, "procs": 1}
+
+    def watch():
+        while proc.poll() is None:
+            pss, rss = _tree_mb(proc.pid)
+            if pss > peak["pss"]:
+                peak.update(pss=pss, rss=rss, procs=1 + len(_descendants(proc.pid)))
+            time.sleep(0.05)
+
+    th = threading.Thread(target=watch)
+    th.start()
+    stdout, stderr = proc.communicate()
+    th.join()
+    m = re.search(r"compute ([0-9.]+) s", stdout.decode())
+    return {"rc": proc.returncode, "wall": time.perf_counter() - t0, "compute": float(m.group(1)) if m else float("nan"),
+            "err": stderr.decode()[-300:], **peak}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("only", nargs="*", help="configs whose path (under configs/) contains one of these")
+    ap.add_argument("--runs", type=int, default=None, help="override montecarlo.runs (default: the config's)")
+    a = ap.parse_args()
+    cfgs = sorted((ROOT / "configs").rglob("*.yaml"))
+    if a.only:
+        cfgs = [c for c in cfgs if any(s in str(c.relative_to(ROOT / "configs")) for s in a.only)]
+    with open("/proc/loadavg") as f:
+        load = f.read().split()[0]
+    print(f"netkf run --jobs 2, {'the configs’ own runs' if a.runs is None else f'{a.runs} runs'}; load average {load} "
+          f"on this machine at the start (2 cores)")
+    print(f"{'config':42s} {'peak PSS':>9s} {'(RSS sum)':>10s} {'procs':>5s} {'wall':>7s} {'compute':>8s}")
+    worst = 0.0
+    with tempfile.TemporaryDirectory() as tmp:
+        for c in cfgs:
+            r = measure(c, Path(tmp) / c.stem, a.runs)
+            name = str(c.relative_to(ROOT / "configs"))
+            if r["rc"]:
+                print(f"{name:42s} FAILED: {r['err']}")
+                continue
+            worst = max(worst, r["pss"])
+            flag = "ok" if r["pss"] <= TARGET_MB else f"OVER {TARGET_MB:.0f} MB"
+            print(f"{name:42s} {r['pss']:7.0f} MB {r['rss']:7.0f} MB {r['procs']:5d} {r['wall']:6.1f}s {r['compute']:7.1f}s  {flag}",
+                  flush=True)
+    print(f"largest peak PSS {worst:.0f} MB (target {TARGET_MB:.0f} MB)")
+
+
+if __name__ == "__main__":
+    main()
