@@ -32,7 +32,55 @@ MAX_M = 4
 
 
 def supported(mode: int, n: int, m: int) -> bool:
-    return mode in (0, 1) and n <= MAX_N and 1 <= m <= MAX_M
+    return (mode in (0, 1) and n <= MAX_N and 1 <= m <= MAX_M) or (mode == 2 and n <= MAX_N and 1 <= m <= 2)
+
+
+def _kept2(A, C, R, src: str, srcf: str, s2: str, out: str, outf: str | None) -> list[str]:
+    """Mode 2 (scenario 2, general C): the noise-free gain K = F Cᵀ (C F Cᵀ)⁻¹ of the filter's own F (locals
+    ``srcf``), then the Joseph forms (I − KC) P (·)ᵀ + K (R + σ² I) Kᵀ → ``out`` and (I − KC) F (·)ᵀ → ``outf``
+    (as ``kalman_numba.gain`` / ``joseph``; S⁻¹ in closed form, one or two rows)."""
+    n, m = A.shape[0], C.shape[0]
+    tri = [(i, j) for i in range(n) for j in range(i, n)]
+    L = []
+    for i in range(n):
+        for a in range(m):
+            L.append(f"{out}u{i}_{a} = {_lin([(C[a, k], _p(srcf, i, k)) for k in range(n)])}")
+    for a in range(m):
+        for b in range(a, m):
+            L.append(f"{out}s{a}_{b} = {_lin([(C[a, k], f'{out}u{k}_{b}') for k in range(n)])}")
+    if m == 1:
+        L.append(f"{out}i0_0 = 1.0 / {out}s0_0")
+        inv = {(0, 0): f"{out}i0_0"}
+    else:
+        L.append(f"{out}det = {out}s0_0 * {out}s1_1 - {out}s0_1 * {out}s0_1")
+        L.append(f"{out}i0_0 = {out}s1_1 / {out}det")
+        L.append(f"{out}i1_1 = {out}s0_0 / {out}det")
+        L.append(f"{out}i0_1 = -{out}s0_1 / {out}det")
+        inv = {(0, 0): f"{out}i0_0", (1, 1): f"{out}i1_1", (0, 1): f"{out}i0_1", (1, 0): f"{out}i0_1"}
+    for i in range(n):
+        for a in range(m):
+            L.append(f"{out}k{i}_{a} = " + " + ".join(f"{out}u{i}_{b} * {inv[(b, a)]}" for b in range(m)))
+    for i in range(n):
+        for j in range(n):
+            terms = [(-C[a, j], f"{out}k{i}_{a}") for a in range(m)]
+            e = _lin(terms)
+            L.append(f"{out}c{i}_{j} = " + (f"1.0 + ({e})" if i == j else e))
+    for a in range(m):
+        for b in range(a, m):
+            L.append(f"{_p(out + 'rz', a, b)} = {_num(R[a, b])}" + (f" + {s2}" if a == b else ""))
+    for dst, sp, noisy in ((out, src, True), (outf, srcf, False)):
+        if dst is None:
+            continue
+        for i in range(n):
+            for j in range(n):
+                L.append(f"{dst}t{i}_{j} = " + " + ".join(f"{out}c{i}_{k} * {_p(sp, k, j)}" for k in range(n)))
+        for i, j in tri:
+            e = " + ".join(f"{dst}t{i}_{k} * {out}c{j}_{k}" for k in range(n))
+            if noisy:
+                e += " + " + " + ".join(f"{out}k{i}_{a} * {_p(out + 'rz', a, b)} * {out}k{j}_{b}"
+                                        for a in range(m) for b in range(m))
+            L.append(f"{_p(dst, i, j)} = {e}")
+    return L
 
 
 def pack(X: np.ndarray) -> np.ndarray:
@@ -113,6 +161,8 @@ def _kept(mode, A, C, R, Kc, src: str, s2: str, out: str, rescue: bool = False, 
         for i, j in tri:
             L.append(f"{_p(out, i, j)} = {_p(out + 'in', i, j)} if big else {_p(out + 's', i, j)}")
         return L
+    if mode == 2:
+        return _kept2(A, C, R, src, "g", s2, out, out + "f")
     if mode == 1:
         # I − K C exactly as kalman_numba.joseph evaluates it (γ = 1), then inlined as constants
         IKC = np.empty((n, n))
@@ -190,7 +240,8 @@ def _predict(A, Q, src: str, out: str) -> list[str]:
 def source(mode: int, A, C, Q, R, Kc, limit: float, want_u: bool, separate_u: bool, rescue: bool = False) -> str:
     """The source of ``advance(keep, s2, s2u, mu, P, F, U, Uf, flags, rec, RecP, RecF, RecU, RecUf)``:
     keep/s2/s2u (T, B) time-major, mu (B,), the state packed (n(n+1)/2, B) (``P`` the prior, ``F`` the last
-    P_{k|k}, ``U``/``Uf`` the burst-conditioned prior and last U_{k|k}), ``flags`` (B,) int8 bits (0: the
+    P_{k|k}, ``U``/``Uf`` the burst-conditioned prior and last U_{k|k}, ``G`` the filter's own prior P_f in
+    mode 2), ``flags`` (B,) int8 bits (0: the
     rescue is needed, 1: a non-finite value), ``rec`` (T,) the record slot of step t (−1: none), records
     (slots, n, n, B)."""
     A, C, Q, R, Kc = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (A, C, Q, R, Kc))
@@ -199,12 +250,14 @@ def source(mode: int, A, C, Q, R, Kc, limit: float, want_u: bool, separate_u: bo
     I1, I2, I3 = " " * 8, " " * 12, " " * 16
     L = ["import numpy as np", "import numba as nb", "",
          "@nb.njit(cache=True, nogil=True, fastmath=False, error_model='numpy')",
-         "def advance(keep, s2, s2u, mu, P, F, U, Uf, flags, rec, RecP, RecF, RecU, RecUf):",
+         "def advance(keep, s2, s2u, mu, P, F, U, Uf, G, flags, rec, RecP, RecF, RecU, RecUf):",
          "    T, B = keep.shape",
          f"    limit = {_num(limit)}",
          "    for t in range(T):",
          f"{I1}for b in range(B):"]
     body = [f"p{i}_{j} = P[{k}, b]" for k, (i, j) in enumerate(tri)]
+    if mode == 2:
+        body += [f"g{i}_{j} = G[{k}, b]" for k, (i, j) in enumerate(tri)]
     body.append("kp = keep[t, b]")
     body.append("sv = s2[t, b]")
     if mode == 0 and rescue:
@@ -236,12 +289,19 @@ def source(mode: int, A, C, Q, R, Kc, limit: float, want_u: bool, separate_u: bo
         body.append(f"{_p('fl', i, j)} = {_p('kt', i, j)} if kp else {_p('p', i, j)}")
     body += _predict(A, Q, "fl", "pn")
     ptr = " + ".join(_p("pn", i, j) for i, j in tri)
+    if mode == 2:  # the filter's own covariance: A (kept ? its Joseph form : F) Aᵀ + Q
+        for i, j in tri:
+            body.append(f"{_p('gl', i, j)} = {_p('ktf', i, j)} if kp else {_p('g', i, j)}")
+        body += _predict(A, Q, "gl", "gn")
+        ptr += " + " + " + ".join(_p("gn", i, j) for i, j in tri)
     body.append(f"fin = {'fin + ' if want_u else ''}{ptr}")
     body.append("f = f | (np.int8(0) if fin - fin == 0.0 else np.int8(2))")
     body.append("flags[b] = flags[b] | f")
     for k, (i, j) in enumerate(tri):
         body.append(f"P[{k}, b] = {_p('pn', i, j)}")
         body.append(f"F[{k}, b] = {_p('fl', i, j)}")
+        if mode == 2:
+            body.append(f"G[{k}, b] = {_p('gn', i, j)}")
         if want_u:
             body.append(f"U[{k}, b] = {_p('un', i, j)}")
             body.append(f"Uf[{k}, b] = {_p('ul', i, j)}")

@@ -506,15 +506,18 @@ class Stepper:
             n, nt, R_ = rm.n, rm.n * (rm.n + 1) // 2, out["true"].shape[1]
             P, Fk = fcg.pack(self._Pt), np.empty((nt, B))
             U, Uf = (fcg.pack(self._U), np.empty((nt, B))) if self.want_u else (np.zeros((nt, 1)), np.zeros((nt, 1)))
+            G = fcg.pack(self._Pf) if self._mode == 2 else np.zeros((nt, 1))
             recs = {k: np.empty((R_, n, n, B)) for k in out}
             nil = np.empty((0, n, n, B))
             fcg.kernel(self._mode, rm.A, rm.C, rm.Q, rm.R, rm.gain_inv, rm.rescue.limit, self.want_u, s2u is not None,
                        inline)(
-                keep, s2, s2u_, mu_, P, Fk, U, Uf, flags, rec_, recs["true"], recs["filtered"],
+                keep, s2, s2u_, mu_, P, Fk, U, Uf, G, flags, rec_, recs["true"], recs["filtered"],
                 recs.get("cond", nil), recs.get("cond_filtered", nil))
             flags = np.where(flags & 2, 2, np.where(flags & 1, 1, 0)).astype(np.int8)
             self._Pt = np.ascontiguousarray(np.moveaxis(fcg.unpack(P, n), 2, 0))
             self._Ft = np.ascontiguousarray(np.moveaxis(fcg.unpack(Fk, n), 2, 0))
+            if self._mode == 2:
+                self._Pf = np.ascontiguousarray(np.moveaxis(fcg.unpack(G, n), 2, 0))
             if self.want_u:
                 self._U = np.ascontiguousarray(np.moveaxis(fcg.unpack(U, n), 2, 0))
                 self._Uf = np.ascontiguousarray(np.moveaxis(fcg.unpack(Uf, n), 2, 0))
