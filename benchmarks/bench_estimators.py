@@ -24,8 +24,8 @@ import argparse
 import importlib
 import os
 import pkgutil
-import re
 import sys
+import tempfile
 import time
 import tracemalloc
 from pathlib import Path
@@ -36,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from netkf_cli import montecarlo  # noqa: E402
+from benchmarks.bench_memory import TARGET_MB, measure  # noqa: E402
 
 TARGET = {"numpy": 2e7, "compiled": 1e8}
 
@@ -96,43 +97,9 @@ montecarlo: {{runs: {runs}, horizon: 200, burn_in: 100, seed: 1}}
 }
 
 
-def _descendants(pid: int) -> list[int]:
-    """Every descendant of ``pid``, from /proc/<p>/stat's parent field (Linux; no extra dependency)."""
-    parent = {}
-    for p in Path("/proc").iterdir():
-        if p.name.isdigit():
-            try:
-                parent[int(p.name)] = int((p / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                pass
-    out, todo = [], [pid]
-    while todo:
-        cur = todo.pop()
-        kids = [c for c, pp in parent.items() if pp == cur]
-        out += kids
-        todo += kids
-    return out
-
-
-def _tree_pss_mb(pid: int) -> float:
-    """Proportional set size of a process and its descendants (forked workers share the parent's pages)."""
-    total = 0.0
-    for p in [pid, *_descendants(pid)]:
-        try:
-            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
-                if line.startswith("Pss:"):
-                    total += int(line.split()[1]) / 1024
-        except OSError:
-            pass
-    return total
-
-
 def cli_runs(runs: int) -> None:
-    """``netkf run --jobs 2`` of the composed scenarios: wall time, run-steps/s, peak PSS (netkf + workers)."""
-    import subprocess
-    import tempfile
-    import threading
-
+    """``netkf run --jobs 2`` of the composed scenarios: wall time, run-steps/s, peak PSS (netkf + workers;
+    :func:`benchmarks.bench_memory.measure`)."""
     print(f"\nnetkf run --jobs 2 of composed scenarios, {runs} runs × 200 steps (wall time with start-up, and the "
           f"runner's own compute time):")
     with tempfile.TemporaryDirectory() as tmp:
@@ -140,30 +107,15 @@ def cli_runs(runs: int) -> None:
             for sampling in ("", ", sampling: counts") if "MF" in name else ("",):
                 cfg = Path(tmp) / "s.yaml"
                 cfg.write_text(text.format(runs=runs, sampling=sampling))
-                t0 = time.perf_counter()
-                proc = subprocess.Popen([str(Path(sys.executable).with_name("netkf")), "run", str(cfg), "--jobs", "2", "--force",
-                                         "--out", str(Path(tmp) / "out")], stdout=subprocess.PIPE,
-                                        stderr=subprocess.PIPE, cwd=ROOT)
-                peak = [0.0]
-
-                def watch():
-                    while proc.poll() is None:
-                        peak[0] = max(peak[0], _tree_pss_mb(proc.pid))
-                        time.sleep(0.05)
-                th = threading.Thread(target=watch)
-                th.start()
-                outb, err = proc.communicate()
-                th.join()
-                m = re.search(r"compute ([0-9.]+) s", outb.decode())
-                compute = float(m.group(1)) if m else float("nan")
-                dt = time.perf_counter() - t0
+                r = measure(cfg, Path(tmp) / "out", None)
                 label = name + (" sampling: counts" if sampling else "")
-                if proc.returncode:
-                    print(f"  {label:45s} FAILED: {err.decode()[-300:]}")
+                if r["rc"]:
+                    print(f"  {label:45s} FAILED: {r['err']}")
                     continue
+                dt, compute = r["wall"], r["compute"]
                 print(f"  {label:45s} {dt:6.1f} s ({runs * 200 / dt:9.3e} run-steps/s), compute {compute:5.1f} s "
-                      f"({runs * 200 / compute:9.3e} run-steps/s)  peak PSS {peak[0]:6.0f} MB"
-                      f"  {'ok' if peak[0] <= 300 else 'OVER 300 MB'}")
+                      f"({runs * 200 / compute:9.3e} run-steps/s)  peak PSS {r['pss']:6.0f} MB"
+                      f"  {'ok' if r['pss'] <= TARGET_MB else f'OVER {TARGET_MB:.0f} MB'}")
 
 
 def timed(fn, repeat: int) -> float:

@@ -23,9 +23,25 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_estimators import _descendants  # noqa: E402
-
 TARGET_MB = 300.0
+
+
+def _descendants(pid: int) -> list[int]:
+    """Every descendant of ``pid``, from /proc/<p>/stat's parent field (Linux; no extra dependency)."""
+    parent = {}
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit():
+            try:
+                parent[int(p.name)] = int((p / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                pass
+    out, todo = [], [pid]
+    while todo:
+        cur = todo.pop()
+        kids = [c for c, pp in parent.items() if pp == cur]
+        out += kids
+        todo += kids
+    return out
 
 
 def _tree_mb(pid: int) -> tuple[float, float]:
@@ -44,6 +60,7 @@ def _tree_mb(pid: int) -> tuple[float, float]:
 
 
 def measure(config: Path, out: Path, runs: int | None) -> dict:
+    """``netkf run config --jobs 2`` into ``out``: rc, wall and compute time, peak PSS / RSS sum / processes."""
     cmd = [str(Path(sys.executable).with_name("netkf")), "run", str(config), "--jobs", "2", "--force", "--yes",
            "--out", str(out)] + (["--runs", str(runs)] if runs else [])
     t0 = time.perf_counter()
