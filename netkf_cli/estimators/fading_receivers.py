@@ -502,7 +502,7 @@ class Stepper:
         # Sec. 4.2's C = [1 2 3], R = 1e-8 flags P0 = I), else the fast variant and a redo of the flagged runs
         inline = fcg.inline_rescue(self._mode, rm.C)
         if (inline or not self._use_rescue) and keep.shape[0] > 0 and fcg.supported(self._mode, rm.n, rm.C.shape[0]):
-            # the generated kernel, runs innermost (vectorised); its flag bits: 1 rescue, 2 non-finite
+            # the generated kernel (_fading_codegen, runs innermost); its flag bits: 1 rescue, 2 non-finite
             n, nt, R_ = rm.n, rm.n * (rm.n + 1) // 2, out["true"].shape[1]
             P, Fk = fcg.pack(self._Pt), np.empty((nt, B))
             U, Uf = (fcg.pack(self._U), np.empty((nt, B))) if self.want_u else (np.zeros((nt, 1)), np.zeros((nt, 1)))
