@@ -270,10 +270,18 @@ def test_read_only_parent_is_one_message(tmp_path, theta):
 
 # ---- locks: concurrent runs --------------------------------------------------------------------
 
+def default_sigint() -> None:
+    """preexec_fn: the child starts with SIGINT at its default, as from a terminal. A process that starts with SIGINT
+    ignored keeps ignoring it (Python installs its KeyboardInterrupt handler only over SIG_DFL; a non-interactive
+    shell's background job is started so, on purpose), and a test process can inherit SIG_IGN from whatever started
+    it: a fresh-clone CI run once got rc 0 here (the run ignored Ctrl-C and finished)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_long_run(cfg: Path, out: Path, extra=()) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "netkf_cli.cli", "run", str(cfg), "--out", str(out),
                              "--jobs", "1", "-q", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+                            text=True, start_new_session=True, preexec_fn=default_sigint)
 
 
 def _wait_for(pred, seconds: float, proc: subprocess.Popen | None = None) -> bool:
