@@ -43,7 +43,7 @@ from netkf_cli.estimators.fading_receivers import BurstSMCKernel
 from netkf_cli.metrics import derived
 from netkf_cli.metrics.common import LABEL_COLUMNS, describe, GenericMetric, labels, math_text, needs, PaperRef
 from netkf_cli.montecarlo import run_chunked
-from netkf_cli.plotting import PALETTE, footnote, new_figure, paper_title, series_style
+from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.spec import PositiveInt
 
 RELIABLE_REL_SE = 0.05
@@ -208,8 +208,8 @@ class BurstMean(GenericMetric):
         if x:
             ax.set_xlabel(self.x_label or x)
         ax.set_title(f"(a) performance vs {short}" if x else "(a) performance")
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(loc="upper right")
+        if ax.get_legend_handles_labels()[0]:  # below the axes: the curve runs corner to corner (the figure lint)
+            legend_outside(ax, loc="below", ncol=1)
         if panel_b:
             axb = np.atleast_1d(axs)[1]
             base = b[b.channel == "independent"] if self.baseline == "independent" else None
@@ -236,7 +236,7 @@ class BurstMean(GenericMetric):
                                                         f"{short} = {x0:g}, $\\pm$2 s.e.")
             if base is not None:
                 axb.axhline(1.0, color=PALETTE[0], ls="-", label="independent (ratio 1)")
-                axb.set_ylabel(r"Pr[received, then $L$ drops]: ratio to independent")
+                axb.set_ylabel("Pr[received, then $L$ drops]\nratio to independent")  # two lines: the axes are short
                 axb.set_title("(b) drop bursts: correlated / independent")
             else:
                 axb.set_yscale("log")
@@ -244,7 +244,7 @@ class BurstMean(GenericMetric):
                 axb.set_title("(b) drop bursts")
             axb.set_xlabel(r"burst length $L$ (steps; reliable estimates only)")
             if axb.get_legend_handles_labels()[0]:
-                axb.legend(loc="upper left")
+                legend_outside(axb, loc="below", ncol=1)
         fig.suptitle(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None,
                                  self.title or "E P by sequential Monte Carlo of the drop bursts"))
         mcr = t[t.source == "monte_carlo"]
