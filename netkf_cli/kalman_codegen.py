@@ -60,6 +60,27 @@ def _lin(terms: list[tuple[float, str]]) -> str:
     return s[2:] if s.startswith("+ ") else "-" + s[2:]
 
 
+def cholesky_correction(n: int, m: int, tri, out, src, scale: str = "") -> list[str]:
+    """Straight-line lines of P_out = P_src − scale·U S⁻¹ Uᵀ for m ≥ 3 outputs, from the locals ``u{i}_{a}`` (U = P Cᵀ)
+    and ``s{a}_{b}`` (S, upper triangle): Cholesky S = L Lᵀ, W = U L⁻ᵀ, U S⁻¹ Uᵀ = W Wᵀ (the same operations in the
+    same order for every kernel that uses it). ``out(i, j)`` / ``src(i, j)`` name P's upper-triangle entries."""
+    L = []
+    for j in range(m):
+        acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
+        L.append(f"l{j}_{j} = np.sqrt({acc})")
+        for i in range(j + 1, m):
+            acc = " - ".join([f"s{j}_{i}"] + [f"l{i}_{k} * l{j}_{k}" for k in range(j)])
+            L.append(f"l{i}_{j} = ({acc}) / l{j}_{j}")
+    for i in range(n):
+        for a in range(m):
+            acc = " - ".join([f"u{i}_{a}"] + [f"w{i}_{b} * l{a}_{b}" for b in range(a)])
+            L.append(f"w{i}_{a} = ({acc}) / l{a}_{a}")
+    for i, j in tri:
+        corr = " + ".join(f"w{i}_{a} * w{j}_{a}" for a in range(m))
+        L.append(f"{out(i, j)} = {src(i, j)} - {scale}({corr})")
+    return L
+
+
 def source(A, C, Q, R, groups, limit: float) -> str:
     """The Python source of ``advance(P, gam, t0, t1, flag)`` for this system (see the module doc)."""
     A, C, Q, R = (np.asarray(x, dtype=float) for x in (A, C, Q, R))
@@ -106,20 +127,9 @@ def source(A, C, Q, R, groups, limit: float) -> str:
             for b in range(a, mg):
                 L.append(f"            s{a}_{b} = {_lin([(Cg[a, k], f'u{k}_{b}') for k in range(n)])} + {_num(Rg[a, b])}")
         if mg >= 3:  # Cholesky S = L Lᵀ; U S⁻¹ Uᵀ = W Wᵀ with W = U L⁻ᵀ
-            for j in range(mg):
-                acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
-                L.append(f"            l{j}_{j} = np.sqrt({acc})")
-                for i in range(j + 1, mg):
-                    acc = " - ".join([f"s{j}_{i}"] + [f"l{i}_{k} * l{j}_{k}" for k in range(j)])
-                    L.append(f"            l{i}_{j} = ({acc}) / l{j}_{j}")
-            for i in range(n):
-                for a in range(mg):
-                    acc = " - ".join([f"u{i}_{a}"] + [f"w{i}_{b} * l{a}_{b}" for b in range(a)])
-                    L.append(f"            w{i}_{a} = ({acc}) / l{a}_{a}")
             nxt = f"q{g_idx}_"
-            for i, j in tri:
-                corr = " + ".join(f"w{i}_{a} * w{j}_{a}" for a in range(mg))
-                L.append(f"            {p(nxt, i, j)} = {p(cur, i, j)} - g * ({corr})")
+            L += ["            " + x for x in cholesky_correction(n, mg, tri, lambda i, j, o=nxt: p(o, i, j),
+                                                                  lambda i, j, c=cur: p(c, i, j), "g * ")]
             cur = nxt
             continue
         if mg == 1:
@@ -231,19 +241,7 @@ def _count_step(A, C1, Q, R1, ind: str, g: str, symbolic: bool = False) -> list[
         for b in range(a, mg):
             L.append(f"s{a}_{b} = g * ({lin([(C1[a, k], f'u{k}_{b}') for k in range(n)])}) + {num(R1[a, b])}")
     if mg >= 3:
-        for j in range(mg):
-            acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
-            L.append(f"l{j}_{j} = np.sqrt({acc})")
-            for i in range(j + 1, mg):
-                acc = " - ".join([f"s{j}_{i}"] + [f"l{i}_{k} * l{j}_{k}" for k in range(j)])
-                L.append(f"l{i}_{j} = ({acc}) / l{j}_{j}")
-        for i in range(n):
-            for a in range(mg):
-                acc = " - ".join([f"u{i}_{a}"] + [f"w{i}_{b} * l{a}_{b}" for b in range(a)])
-                L.append(f"w{i}_{a} = ({acc}) / l{a}_{a}")
-        for i, j in tri:
-            corr = " + ".join(f"w{i}_{a} * w{j}_{a}" for a in range(mg))
-            L.append(f"{p('q', i, j)} = {p('m', i, j)} - g * ({corr})")
+        L += cholesky_correction(n, mg, tri, lambda i, j: p("q", i, j), lambda i, j: p("m", i, j), "g * ")
     else:
         if mg == 1:
             L.append("i0_0 = g / s0_0")

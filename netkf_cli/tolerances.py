@@ -10,6 +10,13 @@ PSD_TOL = 1e-9
 """Relative tolerance of the PSD order: X ≤ M iff min eig(M − X) ≥ −PSD_TOL·max(1, ‖M‖).
 Riccati iterates converge to ~1e-12 relative; 1e-9 absorbs that without merging distinct jump points."""
 
+EXACT_PSD_TOL = 1e-10
+"""The PSD order inside the exact stationary enumeration of the smoother's Pr[P ≤ M] (Leong et al. 2008,
+analysis/smoothing.exact_probability): a node counts as ≤ M (its weight added to the certified lower bound) only
+when min eig ≥ −EXACT_PSD_TOL·‖·‖. Tighter than PSD_TOL: a looser tolerance could count a node slightly above M
+into the lower bound, a tighter one only leaves such a node undecided (refined, or its weight left in the
+reported gap), so the bracket stays certified."""
+
 SYM_TOL = 1e-9
 """Relative asymmetry ‖X − Xᵀ‖ / max(1, ‖X‖) above which an input matrix is refused as not symmetric."""
 

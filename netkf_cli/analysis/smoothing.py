@@ -44,9 +44,9 @@ import scipy.linalg
 from netkf_cli import kalman, riccati
 from netkf_cli.errors import ConfigError, TheoremConditionError
 from netkf_cli.system import LinearSystem
+from netkf_cli.tolerances import EXACT_PSD_TOL
 
 K_MAX = 100_000
-PSD_TOL = 1e-10
 MAX_EXACT_LAG = 8
 """Largest lag N of :func:`exact_probability`: it enumerates the 2^(N+1) future arrival patterns
 (N = 12 took 150 s for one column of a 2-state system; N = 8 is 16× less)."""
@@ -369,9 +369,9 @@ def exact_probability(
         ok = np.zeros(W.shape, dtype=bool)
         bad = np.zeros(W.shape, dtype=bool)
         for i, f in enumerate(futures):
-            ok[:, i] = _min_eig(Y_hi + Js[i] - Minv) >= -PSD_TOL * scale
+            ok[:, i] = _min_eig(Y_hi + Js[i] - Minv) >= -EXACT_PSD_TOL * scale
             Ps = bt.smoothed(P_lo, f)
-            bad[:, i] = ~ok[:, i] & (_min_eig(Mm - Ps) < -PSD_TOL * max(1.0, float(np.abs(Mm).max())))
+            bad[:, i] = ~ok[:, i] & (_min_eig(Mm - Ps) < -EXACT_PSD_TOL * max(1.0, float(np.abs(Mm).max())))
         lower += float(W[ok].sum())
         W = np.where(ok | bad, 0.0, W)
         tot = W.sum(axis=1)

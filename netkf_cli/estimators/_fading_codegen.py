@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli.kalman_codegen import _lin, _load, _num
+from netkf_cli.kalman_codegen import _lin, _load, _num, cholesky_correction
 
 MAX_N = 6
 MAX_M = 4
@@ -197,20 +197,7 @@ def _kept(mode, A, C, R, Kc, src: str, s2: str, out: str, rescue: bool = False, 
             extra = f" + {s2}" if a == b else ""
             L.append(f"s{a}_{b} = {_lin([(C[a, k], f'u{k}_{b}') for k in range(n)])} + {_num(R[a, b])}{extra}")
     if m >= 3:
-        for j in range(m):
-            acc = " - ".join([f"s{j}_{j}"] + [f"l{j}_{k} * l{j}_{k}" for k in range(j)])
-            L.append(f"l{j}_{j} = np.sqrt({acc})")
-            for i in range(j + 1, m):
-                acc = " - ".join([f"s{j}_{i}"] + [f"l{i}_{k} * l{j}_{k}" for k in range(j)])
-                L.append(f"l{i}_{j} = ({acc}) / l{j}_{j}")
-        for i in range(n):
-            for a in range(m):
-                acc = " - ".join([f"u{i}_{a}"] + [f"w{i}_{b} * l{a}_{b}" for b in range(a)])
-                L.append(f"w{i}_{a} = ({acc}) / l{a}_{a}")
-        for i, j in tri:
-            corr = " + ".join(f"w{i}_{a} * w{j}_{a}" for a in range(m))
-            L.append(f"{_p(out, i, j)} = {_p(src, i, j)} - ({corr})")
-        return L
+        return L + cholesky_correction(n, m, tri, lambda i, j: _p(out, i, j), lambda i, j: _p(src, i, j))
     if m == 1:
         L.append("i0_0 = 1.0 / s0_0")
         inv = {(0, 0): "i0_0"}
