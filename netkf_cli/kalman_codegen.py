@@ -81,6 +81,27 @@ def cholesky_correction(n: int, m: int, tri, out, src, scale: str = "") -> list[
     return L
 
 
+def gain_correction(n: int, m: int, tri, out, src, g: str = "") -> list[str]:
+    """Straight-line lines of P_out = P_src − K Uᵀ with K = U S⁻¹·g for m ≤ 2 outputs (S inverted in closed form),
+    from the locals ``u{i}_{a}`` and ``s{a}_{b}``; ``g`` a factor folded into S⁻¹ (the arrival γ or a count), ""
+    for none. The same operations in the same order for every kernel that uses it."""
+    if m == 1:
+        L = [f"i0_0 = {g or '1.0'} / s0_0"]
+        inv = {(0, 0): "i0_0"}
+    else:
+        f = f"{g} * " if g else ""
+        L = ["det = s0_0 * s1_1 - s0_1 * s0_1", f"i0_0 = {f}s1_1 / det", f"i1_1 = {f}s0_0 / det",
+             f"i0_1 = -{f}s0_1 / det"]
+        inv = {(0, 0): "i0_0", (1, 1): "i1_1", (0, 1): "i0_1", (1, 0): "i0_1"}
+    for i in range(n):
+        for a in range(m):
+            L.append(f"k{i}_{a} = " + " + ".join(f"u{i}_{b} * {inv[(b, a)]}" for b in range(m)))
+    for i, j in tri:
+        corr = " + ".join(f"k{i}_{a} * u{j}_{a}" for a in range(m))
+        L.append(f"{out(i, j)} = {src(i, j)} - ({corr})")
+    return L
+
+
 def source(A, C, Q, R, groups, limit: float) -> str:
     """The Python source of ``advance(P, gam, t0, t1, flag)`` for this system (see the module doc)."""
     A, C, Q, R = (np.asarray(x, dtype=float) for x in (A, C, Q, R))
@@ -132,23 +153,9 @@ def source(A, C, Q, R, groups, limit: float) -> str:
                                                                   lambda i, j, c=cur: p(c, i, j), "g * ")]
             cur = nxt
             continue
-        if mg == 1:
-            L.append("            i0_0 = g / s0_0")
-            inv = {(0, 0): "i0_0"}
-        else:
-            L.append("            det = s0_0 * s1_1 - s0_1 * s0_1")
-            L.append("            i0_0 = g * s1_1 / det")
-            L.append("            i1_1 = g * s0_0 / det")
-            L.append("            i0_1 = -g * s0_1 / det")
-            inv = {(0, 0): "i0_0", (1, 1): "i1_1", (0, 1): "i0_1", (1, 0): "i0_1"}
-        # K = U S⁻¹ γ ; P ← M − K Uᵀ (upper triangle)
-        for i in range(n):
-            for a in range(mg):
-                L.append(f"            k{i}_{a} = " + " + ".join(f"u{i}_{b} * {inv[(b, a)]}" for b in range(mg)))
-        nxt = f"q{g_idx}_"
-        for i, j in tri:
-            corr = " + ".join(f"k{i}_{a} * u{j}_{a}" for a in range(mg))
-            L.append(f"            {p(nxt, i, j)} = {p(cur, i, j)} - ({corr})")
+        nxt = f"q{g_idx}_"  # K = U S⁻¹ γ ; P ← M − K Uᵀ (upper triangle)
+        L += ["            " + x for x in gain_correction(n, mg, tri, lambda i, j, o=nxt: p(o, i, j),
+                                                            lambda i, j, c=cur: p(c, i, j), "g")]
         cur = nxt
     L.append("            tr = " + " + ".join(p(cur, i, i) for i in range(n)))
     L.append("            flag[r] = flag[r] or not (tr == tr)  # a NaN from the update: the numpy core redoes it")
@@ -243,21 +250,7 @@ def _count_step(A, C1, Q, R1, ind: str, g: str, symbolic: bool = False) -> list[
     if mg >= 3:
         L += cholesky_correction(n, mg, tri, lambda i, j: p("q", i, j), lambda i, j: p("m", i, j), "g * ")
     else:
-        if mg == 1:
-            L.append("i0_0 = g / s0_0")
-            inv = {(0, 0): "i0_0"}
-        else:
-            L.append("det = s0_0 * s1_1 - s0_1 * s0_1")
-            L.append("i0_0 = g * s1_1 / det")
-            L.append("i1_1 = g * s0_0 / det")
-            L.append("i0_1 = -g * s0_1 / det")
-            inv = {(0, 0): "i0_0", (1, 1): "i1_1", (0, 1): "i0_1", (1, 0): "i0_1"}
-        for i in range(n):
-            for a in range(mg):
-                L.append(f"k{i}_{a} = " + " + ".join(f"u{i}_{b} * {inv[(b, a)]}" for b in range(mg)))
-        for i, j in tri:
-            corr = " + ".join(f"k{i}_{a} * u{j}_{a}" for a in range(mg))
-            L.append(f"{p('q', i, j)} = {p('m', i, j)} - ({corr})")
+        L += gain_correction(n, mg, tri, lambda i, j: p("q", i, j), lambda i, j: p("m", i, j), "g")
     L.append("tr = " + " + ".join(p("q", i, i) for i in range(n)))
     L.append("flag[r] = flag[r] or not (tr == tr)")
     return [ind + x for x in L]

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli.kalman_codegen import _lin, _load, _num, cholesky_correction
+from netkf_cli.kalman_codegen import _lin, _load, _num, cholesky_correction, gain_correction
 
 MAX_N = 6
 MAX_M = 4
@@ -198,22 +198,7 @@ def _kept(mode, A, C, R, Kc, src: str, s2: str, out: str, rescue: bool = False, 
             L.append(f"s{a}_{b} = {_lin([(C[a, k], f'u{k}_{b}') for k in range(n)])} + {_num(R[a, b])}{extra}")
     if m >= 3:
         return L + cholesky_correction(n, m, tri, lambda i, j: _p(out, i, j), lambda i, j: _p(src, i, j))
-    if m == 1:
-        L.append("i0_0 = 1.0 / s0_0")
-        inv = {(0, 0): "i0_0"}
-    else:
-        L.append("det = s0_0 * s1_1 - s0_1 * s0_1")
-        L.append("i0_0 = s1_1 / det")
-        L.append("i1_1 = s0_0 / det")
-        L.append("i0_1 = -s0_1 / det")
-        inv = {(0, 0): "i0_0", (1, 1): "i1_1", (0, 1): "i0_1", (1, 0): "i0_1"}
-    for i in range(n):
-        for a in range(m):
-            L.append(f"k{i}_{a} = " + " + ".join(f"u{i}_{b} * {inv[(b, a)]}" for b in range(m)))
-    for i, j in tri:
-        corr = " + ".join(f"k{i}_{a} * u{j}_{a}" for a in range(m))
-        L.append(f"{_p(out, i, j)} = {_p(src, i, j)} - ({corr})")
-    return L
+    return L + gain_correction(n, m, tri, lambda i, j: _p(out, i, j), lambda i, j: _p(src, i, j))
 
 
 def _predict(A, Q, src: str, out: str) -> list[str]:
