@@ -434,15 +434,32 @@ def _steps(point) -> tuple[str, list[int]]:
     H = mc.get("horizon", getattr(point, "horizon", None))
     burn = mc.get("burn_in", getattr(point, "burn_in", 0)) or 0
     if m.get("kind") == "time_average":
+        if m.get("at") is not None:  # the statistic at one step k (no time average)
+            return "average", [int(m["at"])]
         return ("average", list(range(int(burn) + 1, int(H) + 1))) if H else ("stationary", [])
     if not H:  # per-step rows need the steps: none until the point carries the horizon
         return "each", []
     return "each", list(range(1, int(H) + 1))
 
 
-def _paths(pred: np.ndarray, filt: np.ndarray, mode: str, ks: list[int], quantities) -> list[tuple[str, int | None, float]]:
-    """(quantity, k or None, tr) rows from per-step mean matrices pred[k] = E P_{k+1|k}, filt[k] = E P_{k|k}."""
+def _norm_of_mean(point) -> bool:
+    """Whether the metric reports ‖E P̄‖₂ (time_average ``statistic: norm_of_mean``) rather than E tr P̄."""
+    return point.metric.get("statistic") == "norm_of_mean"
+
+
+def _paths(pred: np.ndarray, filt: np.ndarray, mode: str, ks: list[int], quantities,
+           norm: bool = False) -> list[tuple[str, int | None, float]]:
+    """(quantity, k or None, tr) rows from per-step mean matrices pred[k] = E P_{k+1|k}, filt[k] = E P_{k|k};
+    with ``norm`` (time_average's norm_of_mean) the spectral norm of the mean matrix over ks instead of its
+    trace: ‖E P̄‖₂, e.g. ‖E P[300]‖ of Fig. 6 (eq. 21's norm at a finite k)."""
     out = []
+    if norm:
+        mats = {"predicted": pred, "filtered": filt}
+        for q in quantities:
+            if q in mats and mode in ("average", "stationary"):
+                with np.errstate(over="ignore", invalid="ignore"):
+                    out.append((q, None, spectral_norm(np.mean(mats[q][ks or [0]], axis=0))))
+        return out
     with np.errstate(over="ignore", invalid="ignore"):
         tr = {"predicted": np.trace(pred, axis1=1, axis2=2), "filtered": np.trace(filt, axis1=1, axis2=2)}
     for q in quantities:
@@ -456,6 +473,7 @@ def _paths(pred: np.ndarray, filt: np.ndarray, mode: str, ks: list[int], quantit
 
 
 def _rows(series: str, label: str, items, extra=None) -> list[dict]:
+    """One reference row per (quantity, k, value); ``extra`` e.g. {statistic: norm_of_mean}."""
     rows = []
     for q, k, v in items:
         r = dict(series=series, value=v, estimator=label, quantity=q, **(extra or {}))
@@ -513,7 +531,11 @@ def scenario2_exact(point) -> list[dict]:
             pred = ep_recursion(A, C, Q, mu, s2, A @ P00 @ A.T + Q, K, R)          # pred[k] = E P_{k+1|k}
             filt = np.concatenate([P00[None], mu * pred[:-1] + Z])                # filt[k] = E P_{k|k}
             series = "scenario 2, exact mean (eq. 14)"
-        rows += _rows(series, lab, _paths(pred, filt, mode, ks, point.quantities))
+        norm = _norm_of_mean(point)
+        if norm:
+            series = series.replace("E P[∞]", "‖E P[∞]‖").replace("exact mean", "exact ‖E P‖")
+        rows += _rows(series, lab, _paths(pred, filt, mode, ks, point.quantities, norm),
+                      {"statistic": "norm_of_mean"} if norm else None)
     return rows
 
 
@@ -546,7 +568,9 @@ def lemma5_lower_bound(point) -> list[dict]:
         else:
             pred = lower_bound_recursion(A, Q, mu, A @ P00 @ A.T + Q, K)
             filt = np.concatenate([P00[None], mu * pred[:-1]])
-        rows += _rows("Lemma 5 lower bound (eq. 32)", lab, _paths(pred, filt, mode, ks, point.quantities))
+        norm = _norm_of_mean(point)  # E P ⪰ X in PSD order ⇒ ‖E P‖₂ = λ_max(E P) ≥ λ_max(X): a bound on the norm too
+        rows += _rows("Lemma 5 lower bound (eq. 32)", lab, _paths(pred, filt, mode, ks, point.quantities, norm),
+                      {"statistic": "norm_of_mean"} if norm else None)
     return rows
 
 

@@ -232,7 +232,7 @@ class GenericMetric(AnalysisModel):
                                          f"{e.kind} yields per-run estimates of E[P_k] here, not each run's covariance: "
                                          f"{self.kind} needs Pr[P_k ≤ M] of each run; use it with mean_vs_time (or "
                                          f"compare without M), or set variance_reduction: none")
-        if hasattr(self, "at"):
+        if getattr(self, "at", None) is not None:  # time_average's at is optional (None: the time average)
             k = step_of(self.at, scenario.montecarlo.horizon)
             for e in ests:
                 first = e.first_step(self.quantity)

@@ -10,6 +10,12 @@ With ``over`` (a grid of a channel, estimator or system parameter) the figure dr
 against the grid's first path; ``references`` adds closed-form rows (``source = closed_form``) drawn
 as dashed lines beside the Monte Carlo. Unreliable means (heavy-tailed, rare-event dominated or any
 run non-finite) are flagged in the CSV and drawn hollow, off the line.
+
+``statistic: norm_of_mean`` reports ‖E P̄‖₂ instead (series ``‖E P‖``): the spectral norm of the MEAN
+matrix of the per-run P̄ (P̄ = the time average over the steps, or P_k itself with ``at: k``), with a
+delta-method standard error and an eigen-gap flag (:mod:`netkf_cli.metrics.norm_of_mean`) — Mostofi &
+Murray 2009's ‖E P[300]‖ (Fig. 6, Sec. 4.2; eq. 21 for k → ∞). Its ``references`` must give the same
+quantity (rows marked ``statistic: norm_of_mean``), else the config is refused.
 """
 
 from __future__ import annotations
@@ -24,12 +30,14 @@ from netkf_cli import engine, kalman
 from netkf_cli.artefact import Artefact, RunContext
 from netkf_cli.errors import ConfigError
 from netkf_cli.metrics import derived
+from netkf_cli.metrics import norm_of_mean as nm
 from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric,
                                       kf_tail_exponent, labels, math_text, PaperRef, Quantity)
+from netkf_cli.spec import PositiveInt
 from netkf_cli.plotting import LINESTYLES, MARKERS, MIN_FONT_PT, PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.stats import FLAG_REASONS, flag_reason, heavy_tail_flag, mean_se, rare_event_flag
 
-TRACE, PROB = "E[tr P]", "Pr[P<=M]"
+TRACE, PROB, NORM = "E[tr P]", "Pr[P<=M]", "‖E P‖"
 M4_ROUNDING = 1e-3
 """Largest relative rounding error of the 4th central moment from raw power sums, ≈ eps·(mean/sd)⁴, accepted
 before the power sums are taken again about the mean (:func:`_cancelling`)."""
@@ -44,6 +52,12 @@ class TimeAverage(GenericMetric):
     quantities: list[Quantity] | None = Field(None, description="several quantities in one pass (default: `quantity`); "
                                                                 "each estimator reports those it offers")
     M: float | list[float] | None = Field(None, description="also the time-averaged Pr[P_k ≤ M·I] (PSD order) for each M")
+    statistic: Literal["mean_trace", "norm_of_mean"] = Field(
+        "mean_trace", description="mean_trace: E[tr P̄] (series E[tr P]); norm_of_mean: ‖E P̄‖₂, the spectral norm "
+                                  "of the mean matrix with a delta-method s.e. (series ‖E P‖; Mostofi & Murray 2009 "
+                                  "Fig. 6's ‖E P[300]‖)")
+    at: PositiveInt | None = Field(None, description="one step k instead of the time average over (burn_in, horizon] "
+                                                     "(P̄ = P_k; needs burn_in 0 and k ≤ horizon)")
     log_x: bool = Field(False, description="logarithmic x axis (the over grid's first path)")
     log_y: bool = Field(True, description="logarithmic y axis for E[tr P]")
     x_label: str = Field("", description="x-axis label for the over grid (default: its first path)")
@@ -57,6 +71,9 @@ class TimeAverage(GenericMetric):
             raise ValueError(f"M must be finite and > 0, got {self.M}")
         if self.quantities is not None and (not self.quantities or len(set(self.quantities)) < len(self.quantities)):
             raise ValueError(f"quantities: a non-empty list without repeats, got {self.quantities}")
+        if self.statistic == "norm_of_mean" and self.M is not None:
+            raise ValueError("M (Pr[P_k ≤ M]) is a per-run statistic: give it with statistic: mean_trace, "
+                             "not norm_of_mean (a statistic of the mean matrix)")
         return self
 
     def needs_per_run_covariance(self) -> bool:
@@ -65,19 +82,31 @@ class TimeAverage(GenericMetric):
     def check(self, scenario) -> None:
         super().check(scenario)
         mc = scenario.montecarlo
+        if self.at is not None:
+            if self.at > mc.horizon:
+                raise ConfigError.at("analysis.at", f"must be ≤ montecarlo.horizon = {mc.horizon}, got {self.at}")
+            if mc.burn_in:
+                raise ConfigError.at("montecarlo.burn_in", f"must be 0 with analysis.at = {self.at} (the statistic "
+                                                           f"is of P at that one step), got {mc.burn_in}")
         if mc.burn_in >= mc.horizon:
             raise ConfigError.at("montecarlo.burn_in", f"must be < montecarlo.horizon = {mc.horizon} (the average is "
                                                        f"over k in (burn_in, horizon]), got {mc.burn_in}")
         for e in scenario.estimator_list():
             for q in self.quantity_list():
-                if q in getattr(e, "quantities", ("filtered",)) and e.first_step(q) > mc.horizon:
+                if q in getattr(e, "quantities", ("filtered",)) and e.first_step(q) > (self.at or mc.horizon):
                     raise ConfigError.at("montecarlo.horizon", f"{e.kind} defines {q} from step {e.first_step(q)} on "
                                                                f"({kalman.SYMBOL[q]}); the horizon is {mc.horizon}")
+
+    def average_steps(self, mc) -> list[int]:
+        """The steps averaged per run: (burn_in, horizon], or [at]."""
+        return [int(self.at)] if self.at is not None else list(range(mc.burn_in + 1, mc.horizon + 1))
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         mc = scenario.montecarlo
         qs = self.quantity_list()
-        steps = list(range(mc.burn_in + 1, mc.horizon + 1))
+        steps = self.average_steps(mc)
+        if self.statistic == "norm_of_mean":
+            return self._compute_norm(scenario, ctx, qs, steps)
         Ms = None if self.M is None else np.atleast_1d(np.asarray(self.M, dtype=float))
         s, ests, st = self.simulate(scenario, ctx, engine.StationaryReducer(steps, Ms), steps, mc.horizon,
                                     quantities=qs)
@@ -125,13 +154,79 @@ class TimeAverage(GenericMetric):
                              reference=r["reference"], P0="", conventions=""))
         table = pd.DataFrame(rows, columns=COLUMNS)
         return Artefact(table, meta={"runs": n, "estimators": labs, "quantities": qs,
-                                     "average": f"per run over k = {steps[0]}…{steps[-1]} (burn-in {mc.burn_in})",
+                                     "average": self._average_text(steps),
                                      "backends": backends(scenario, s, ests, labs, n, mc.horizon),
                                      "references": list(self.references),
                                      "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE}, "
                                                         f"any non-finite run, or (kf and the smoother on i.i.d. or "
                                                         f"Gilbert–Elliott loss) the theoretical tail exponent ≥ −2",
                                      "heavy_tail_by_theory": theory_flags, "flag_reasons": FLAG_REASONS})
+
+    def _average_text(self, steps) -> str:
+        if self.at is not None:
+            return f"per run P at k = {self.at} (no time average)"
+        return f"per run over k = {steps[0]}…{steps[-1]} (burn-in {steps[0] - 1})"
+
+    def _compute_norm(self, scenario, ctx: RunContext, qs, steps) -> Artefact:
+        """``statistic: norm_of_mean``: ‖E P̄‖₂ per estimator and quantity, delta-method s.e. (norm_of_mean)."""
+        mc = scenario.montecarlo
+        s, ests, st = self.simulate(scenario, ctx, nm.MeanMatrixReducer(steps), steps, mc.horizon, quantities=qs)
+        shift = {c: nm.packed_mean(st, c) for c in _cancelling(st)}
+        if shift:  # runs that agree to ~1e-5 relative: the same runs again, sums about the first pass's mean
+            s, ests, st = self.simulate(scenario, ctx, nm.MeanMatrixReducer(steps, shift), steps, mc.horizon,
+                                        quantities=qs)
+        labs = labels(ests)
+        n = int(st["n"])
+        rows, theory_flags = [], {}
+        for j, (e, lab) in enumerate(zip(ests, labs)):
+            for qi, q in enumerate(qs):
+                c = engine.column(j, qi, len(qs))
+                if f"sum_T_{c}" not in st:
+                    continue  # this estimator does not report q
+                lab_cols = describe(scenario, s, [e], q)[0]
+                bad = int(st[f"nonfinite_{c}"])
+                m_ok = max(n - bad, 1)
+                r = nm.norm_of_mean(st, c, shift)
+                _, _, heavy = heavy_tail_flag(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], st[f"sum3_avg_{c}"],
+                                              st[f"sum4_avg_{c}"], m_ok, bad)
+                tr0 = float(np.trace(nm.unpack(shift[c], int(st[f"max_dim_{c}"])))) if c in shift else 0.0
+                rare = bool(rare_event_flag(st[f"sum_avg_{c}"] + m_ok * tr0, st[f"max_avg_{c}"], m_ok))
+                phi, why = kf_tail_exponent(s, scenario.channel, e)
+                by_theory = phi is not None and phi >= -2.0
+                reason = flag_reason(nonfinite=bad, sample=heavy, theory=by_theory, rare=rare)
+                if by_theory:
+                    heavy = True
+                    theory_flags[lab] = (f"tail exponent φ = {phi:.3g} ≥ −2 (Mo & Sinopoli 2012: E[(tr P)²] = ∞"
+                                         + (", E[tr P] = ∞" if phi >= -1.0 else "") + f"; {why})")
+                if r["eigen_gap"]:
+                    reason = "+".join(x for x in (reason, "eigen_gap") if x)
+                rows.append(dict(estimator=lab, quantity=q, series=NORM, M=np.nan,
+                                 value=r["value"] if bad == 0 else np.inf, stderr=r["stderr"], n=n, nonfinite=bad,
+                                 heavy_tail=bool(heavy), rare_event=rare, flag_reason=reason, source="monte_carlo",
+                                 reference="", P0=lab_cols["P0"], conventions=lab_cols["conventions"],
+                                 eigen_gap=r["gap"]))
+        for r in self.reference_rows(scenario, labs):
+            if r.get("statistic") != "norm_of_mean":
+                raise ConfigError.at("analysis.references", f"{r['reference']!r} does not give ‖E P‖ (statistic: "
+                                                            f"norm_of_mean); drop it or use statistic: mean_trace")
+            rows.append(dict(estimator=r.get("estimator", ""), quantity=r.get("quantity", qs[0]),
+                             series=r["series"], M=np.nan, value=r["value"], stderr=np.nan, n=0,
+                             nonfinite=0, heavy_tail=False, rare_event=False, flag_reason="", source="closed_form",
+                             reference=r["reference"], P0="", conventions="", eigen_gap=np.nan))
+        table = pd.DataFrame(rows, columns=COLUMNS + ["eigen_gap"])
+        return Artefact(table, meta={"runs": n, "estimators": labs, "quantities": qs, "statistic": self.statistic,
+                                     "average": self._average_text(steps),
+                                     "backends": backends(scenario, s, ests, labs, n, mc.horizon),
+                                     "references": list(self.references),
+                                     "norm_of_mean": "‖E P̄‖₂ = λ_max of the mean of the per-run packed P̄; s.e. by the "
+                                                     "delta method (gradient u uᵀ); eigen_gap column = λ1 − λ2 of the "
+                                                     f"mean, flagged when below {nm.GAP_FACTOR:g} s.e. of the (u1, ui) block",
+                                     "heavy_tail_rule": f"of tr P̄: relative s.e. of the sample variance > "
+                                                        f"{engine.HEAVY_TAIL_RSE}, any non-finite run, or (kf and the "
+                                                        f"smoother on i.i.d. or Gilbert–Elliott loss) the theoretical "
+                                                        f"tail exponent ≥ −2",
+                                     "heavy_tail_by_theory": theory_flags,
+                                     "flag_reasons": {**FLAG_REASONS, "eigen_gap": nm.EIGEN_GAP_REASON}})
 
     def finish_over(self, scenario, art: Artefact) -> Artefact:
         """The over grid's derived tables (``pairs``: MC vs MC / closed form at each point; ``trend``: along each
@@ -144,15 +239,15 @@ class TimeAverage(GenericMetric):
         t = tables["main"].copy()
         t["estimator"] = t["estimator"].fillna("").astype(str)  # a reference for every estimator: ""
         x = next(iter(self.over)) if self.over else None
-        panels = [TRACE] + ([PROB] if (t.series == PROB).any() else [])
+        main = NORM if self.statistic == "norm_of_mean" else TRACE
+        panels = [main] + ([PROB] if (t.series == PROB).any() else [])
         fig, axes = new_figure(nrows=len(panels), width=10.5, height=4.4 * len(panels))
         axes = np.atleast_1d(axes)
         flagged = 0
         for ax, series in zip(axes, panels):
             flagged += self._panel(ax, t, series, x)
-            ax.set_ylabel(r"time-averaged $\mathrm{E}[\mathrm{tr}\,P]$" if series == TRACE
-                          else r"time-averaged $\Pr[P \leq M]$")
-            if series == TRACE and self.log_y and (t[(t.series == TRACE)].value.replace(np.inf, np.nan) > 0).all():
+            ax.set_ylabel(self._ylabel(series))
+            if series == main and self.log_y and (t[(t.series == main)].value.replace(np.inf, np.nan) > 0).all():
                 ax.set_yscale("log")
             if x is not None:
                 ax.set_xlabel(self.x_label or x)
@@ -170,17 +265,28 @@ class TimeAverage(GenericMetric):
         n = int(mcr.n.max()) if len(mcr) else 0
         first = mcr[mcr[x] == mcr[x].iloc[0]] if x is not None and len(mcr) else mcr
         note = dict(zip(first.estimator, first.conventions))
-        footnote(fig, f"Monte Carlo: n = {n:,} runs, each averaged over k in (burn-in "
-                      f"{scenario.montecarlo.burn_in}, horizon {scenario.montecarlo.horizon}]; error bars ±1.96 s.e."
-                 + (f"; {flagged} unreliable means drawn hollow, off the line (CSV heavy_tail / rare_event)" if flagged else "")
+        per_run = (f"each run's P at k = {self.at}" if self.at is not None else
+                   f"each averaged over k in (burn-in {scenario.montecarlo.burn_in}, horizon {scenario.montecarlo.horizon}]")
+        footnote(fig, f"Monte Carlo: n = {n:,} runs, {per_run}; error bars ±1.96 s.e."
+                 + ("; ‖E P‖₂ = λ_max of the mean matrix, s.e. by the delta method" if main == NORM else "")
+                 + (f"; {flagged} unreliable means drawn hollow, off the line (CSV heavy_tail / rare_event / flag_reason)" if flagged else "")
                  + (f"; dashed, hollow markers on top: closed form ({', '.join(self.references)})" if self.references else "")
                  + (f"\n{math_text(mcr.P0.iloc[0])}; {conventions_note(note)}" if len(mcr) else ""))
         return fig
 
+    def _ylabel(self, series: str) -> str:
+        when = f" at $k$ = {self.at}" if self.at is not None else ""
+        avg = "" if self.at is not None else "time-averaged "
+        if series == NORM:
+            return avg + r"$\|\mathrm{E}\,P\|_2$" + when
+        if series == TRACE:
+            return avg + r"$\mathrm{E}[\mathrm{tr}\,P]$" + when
+        return avg + r"$\Pr[P \leq M]$" + when
+
     def _panel(self, ax, t, series, x) -> int:
         mc = t[(t.source == "monte_carlo") & (t.series == series)]
-        ref = t[(t.source == "closed_form") & ((t.series != PROB) if series == TRACE else (t.M.notna()))]
-        if series == TRACE:
+        ref = t[(t.source == "closed_form") & ((t.series != PROB) if series in (TRACE, NORM) else (t.M.notna()))]
+        if series in (TRACE, NORM):
             ref = ref[ref.M.isna()]
         keys = list(dict.fromkeys(zip(mc.estimator, mc.quantity, mc.M.fillna(-1))))
         colour_of = {}
@@ -192,13 +298,13 @@ class TimeAverage(GenericMetric):
             colour_of.setdefault((lab, q), colour)
             colour_of[(lab, q, m)] = colour  # a Pr[P <= M] reference takes its M's colour
             name = f"{lab} · {_sym(q)}" + ("" if m < 0 else f", M = {m:g}")
-            bad = g.heavy_tail.astype(bool).to_numpy() | g.rare_event.astype(bool).to_numpy() | ~np.isfinite(g.value.to_numpy())
+            bad = _unreliable(g)
             flagged += int(bad.sum())
             if x is None:
                 xs = np.full(len(g), i, dtype=float)
             else:
                 g = g.sort_values(x)
-                bad = g.heavy_tail.astype(bool).to_numpy() | g.rare_event.astype(bool).to_numpy() | ~np.isfinite(g.value.to_numpy())
+                bad = _unreliable(g)
                 xs = g[x].astype(float).to_numpy()
             y = np.where(bad, np.nan, g.value.to_numpy(dtype=float))
             ax.errorbar(xs, y, yerr=1.96 * np.where(bad, np.nan, g.stderr.to_numpy(dtype=float)),
@@ -235,6 +341,14 @@ class TimeAverage(GenericMetric):
 
 
 REF_MARKERS = ("D", "s", "v", "p")  # closed forms: hollow, unlike the Monte Carlo's filled MARKERS and the flagged "o"
+
+
+def _unreliable(g) -> np.ndarray:
+    """Rows not drawn on the line: heavy-tailed, rare-event dominated, non-finite, or (‖E P‖) a degenerate top
+    eigenvalue (flag_reason eigen_gap: the delta-method s.e. is invalid)."""
+    gap = g.flag_reason.fillna("").astype(str).str.contains("eigen_gap").to_numpy()
+    return (g.heavy_tail.astype(bool).to_numpy() | g.rare_event.astype(bool).to_numpy()
+            | ~np.isfinite(g.value.to_numpy()) | gap)
 
 
 def _sym(q: str) -> str:

@@ -123,8 +123,7 @@ def test_kernels_pickle_and_process_pool_equals_serial(make):
         assert np.array_equal(serial[key], par[key]), key
 
 
-@pytest.mark.parametrize("stem,extra", [("fig6", {"montecarlo": {"burn_in": 10},
-                                                 "analysis": {"over": {"channel.threshold.value": [0, 9, 16]}},
+@pytest.mark.parametrize("stem,extra", [("fig6", {"analysis": {"at": 20, "over": {"channel.threshold.value": [0, 9, 16]}},
                                                  # numpy: what is tested is the executor, not compiled code
                                                  "estimators": [{"kind": "receiver", "scenario": s, "backend": "numpy"}
                                                                 for s in (2, 3)]}),
