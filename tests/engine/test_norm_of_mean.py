@@ -224,3 +224,37 @@ def test_bad_configs_name_the_field(edits, where):
     with pytest.raises((ConfigError, ValueError)) as e:
         runner.compute(load_scenario_text(text, file="nom.yaml"), RunContext())
     assert where in str(e.value), str(e.value)
+
+
+MVT = KF.replace("analysis: {kind: time_average, statistic: norm_of_mean, at: {at}, quantities: [predicted, filtered]}",
+                 "analysis: {kind: mean_vs_time, of: {of}, quantity: predicted, every: {at}}")
+assert MVT != KF
+
+
+def test_norm_of_mean_equals_the_norm_of_mean_vs_times_entries_on_the_same_runs():
+    """Another reducer on the same traces: mean_vs_time's E P_k entries (MomentReducer), unpacked, have the same
+    λ_max; mean_vs_time's E λ_max(P_k) is ≥ it (λ_max is convex: Jensen, exactly on any sample); and time_average's
+    mean_trace at the same step is mean_vs_time's E tr P_k."""
+    k, runs, seed = 6, 3000, 21
+    norm = _kf(k, runs, seed)
+    norm = norm[(norm.source == "monte_carlo") & (norm.quantity == "predicted")].iloc[0]
+
+    def mvt(of):
+        text = MVT.replace("{of}", of).replace("{at}", str(k)).replace("{runs}", str(runs)).replace("{seed}", str(seed))
+        t = runner.compute(load_scenario_text(text.replace("{{", "{").replace("}}", "}")), RunContext()).table
+        return t[t.k == k]
+
+    ent = mvt("entries")
+    M = np.zeros((2, 2))
+    for _, r in ent.iterrows():
+        a, b = (int(x) - 1 for x in r.series[2:-1].split(","))
+        M[a, b] = M[b, a] = r.value
+    assert norm.value == pytest.approx(np.linalg.eigvalsh(M)[-1], rel=1e-12)
+    assert mvt("lambda_max").value.iloc[0] >= norm.value * (1 - 1e-12)
+    text = KF.replace("statistic: norm_of_mean", "statistic: mean_trace").replace("{at}", str(k)).replace(
+        "{runs}", str(runs)).replace("{seed}", str(seed)).replace("quantities: [predicted, filtered]", "quantity: predicted")
+    tr = runner.compute(load_scenario_text(text.replace("{{", "{").replace("}}", "}")), RunContext()).table
+    tr = tr[tr.source == "monte_carlo"].iloc[0]
+    assert tr.series == "E[tr P]"
+    assert tr.value == pytest.approx(mvt("trace").value.iloc[0], rel=1e-12)
+    assert tr.value == pytest.approx(np.trace(M), rel=1e-12)
