@@ -81,7 +81,11 @@ def test_compatible_pair_runs_every_generic_metric(samples, tmp_path, ch, es):
         name = f"{metric}-{ch}-{es}".replace("_", "-")
         p = _write(tmp_path, name, system, samples["channels"][ch], estimator, analysis)
         out = tmp_path / "out" / name
-        res = runner.invoke(app, ["run", str(p), "--out", str(out)])
+        # distribution at the default --jobs (the cores: chunks on a process pool, so every pair's kernel
+        # crosses a fork); the other two serial (--jobs 1: same numbers, tested byte-identical in
+        # tests/engine/test_executors.py) — a pool per run was a third of this file's time
+        jobs = [] if metric == "distribution" else ["--jobs", "1"]
+        res = runner.invoke(app, ["run", str(p), "--out", str(out), *jobs])
         assert res.exit_code == 0, res.output
         t = pd.read_csv(out / f"{name}.csv")
         assert len(t) > 0 and (out / f"{name}.png").stat().st_size > 1000
