@@ -20,8 +20,6 @@ yields exactly the numbers of an uninterrupted one.
 from __future__ import annotations
 
 import contextvars
-import ctypes
-import ctypes.util
 import gc
 import math
 import os
@@ -122,16 +120,6 @@ def run_chunk(kernel: Kernel, c: Chunk) -> dict:
     return stats
 
 
-def run_chunk_trimmed(kernel: Kernel, c: Chunk) -> dict:
-    """:func:`run_chunk` on a worker process, which then returns the chunk's freed arrays to the OS
-    (:func:`trim_heap`): a worker holds one chunk's working set at a time, not the high-water mark of
-    every chunk it ran."""
-    try:
-        return run_chunk(kernel, c)
-    finally:
-        trim_heap()
-
-
 def _plus_one(x):
     return x + 1.0
 
@@ -143,22 +131,6 @@ def warm_compiler() -> None:
     except ImportError:
         return
     numba.njit(cache=True)(_plus_one)(1.0)
-
-
-_LIBC: list = []
-
-
-def trim_heap() -> None:
-    """glibc ``malloc_trim(0)``: give the heap's free pages back to the OS (no-op elsewhere). numpy's
-    large arrays are mmap'ed and returned on free, but the many mid-size temporaries of a chunk stay in
-    malloc's arenas otherwise, and count as the process's resident memory."""
-    if not _LIBC:
-        try:
-            _LIBC.append(ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim)
-        except (OSError, AttributeError):
-            _LIBC.append(None)
-    if _LIBC[0] is not None:
-        _LIBC[0](0)
 
 
 @dataclass
@@ -190,7 +162,6 @@ class Execution:
             # worker). Set up here, before the fork, the workers share it and load only their own kernels.
             warm_compiler()
             gc.collect()
-            trim_heap()  # freed heap back to the OS before the fork: fewer pages to share or copy
             gc.freeze()
             self._pool = ProcessPoolExecutor(max_workers=self.jobs, **pool_kwargs())
         return self._pool
@@ -383,7 +354,7 @@ def run_chunked(
 
     def submit(c: Chunk):
         if mode == "process":
-            return ex.pool().submit(run_chunk_trimmed, kernel, c)
+            return ex.pool().submit(run_chunk, kernel, c)
         return ex.client().submit(run_chunk, kernel, c, pure=False)
 
     for c in chunks:  # consume in order; keep the window full
