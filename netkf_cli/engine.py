@@ -251,6 +251,12 @@ class PairedReducer:
         mx[i] = max(mx[i], float(np.abs(d).max()))
 
 
+FUSED_CHUNKS = "fused_chunks"
+"""Stats key: per estimator, how many chunks ran in its fused kernel (what the manifest's ``backends`` reports)."""
+
+FUSED_LABEL = "numba, fused (uniforms → arrivals → filter → reduction in one kernel: kf_fused)"
+
+
 class PairKernel:
     """Sample one trace batch and run every estimator on it; reduce with ``reducer`` (picklable)."""
 
@@ -324,6 +330,7 @@ class PairKernel:
             finish(stats)
         stats.pop("_ref", None)
         stats["n"] = np.asarray(runs)
+        stats[FUSED_CHUNKS] = np.ones(len(fzs), dtype=np.int64)
         return stats
 
     def __call__(self, rng: np.random.Generator, runs: int) -> dict:
@@ -351,6 +358,7 @@ class PairKernel:
             finish(stats)
         stats.pop("_ref", None)
         stats["n"] = np.asarray(runs)
+        stats[FUSED_CHUNKS] = np.zeros(len(self.estimators), dtype=np.int64)
         return stats
 
 

@@ -75,8 +75,11 @@ class EstimatorModel(StrictModel):
         estimator that yields per-run estimates of E[P_k]: only means may then be taken)."""
         return True
 
-    def backend_used(self, system: Any, channel: Any, runs: int, horizon: int) -> str:
-        """The recursion backend a chunk of ``runs`` × ``horizon`` runs on (recorded in the manifest)."""
+    def backend_used(self, system: Any, channel: Any, runs: int, horizon: int, steps=None, quantities=None) -> str:
+        """The recursion backend a chunk of ``runs`` × ``horizon`` runs on (recorded in the manifest).
+        ``steps``/``quantities``: what the chunk reports, for an estimator whose choice depends on them. An
+        estimator with a ``backend: auto`` field overrides this with its resolved choice (tested: no manifest
+        says "auto")."""
         return str(getattr(self, "backend", "numpy"))
 
     def conventions(self, system: Any, channel: Any) -> dict[str, str]:

@@ -69,7 +69,7 @@ class BufferedEstimator(EstimatorModel):
         """The backend a chunk of ``run_steps`` run-steps runs on (``kalman.choose_backend``)."""
         return kalman.choose_backend(self.backend, kalman.Filter.of(system, 1), run_steps)
 
-    def backend_used(self, system: LinearSystem, channel, runs: int, horizon: int) -> str:
+    def backend_used(self, system: LinearSystem, channel, runs: int, horizon: int, steps=None, quantities=None) -> str:
         """The backend a chunk of ``runs`` × ``horizon`` runs on (recorded in the manifest)."""
         return self.resolved_backend(system, runs * horizon)
 

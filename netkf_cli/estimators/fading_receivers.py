@@ -170,6 +170,11 @@ class ReceiverEstimator(EstimatorModel):
     def model(self, system, noise) -> "ReceiverModel":
         return ReceiverModel(self.scenario, system.A, system.C, system.Q, system.R, noise)
 
+    def backend_used(self, system, channel, runs: int, horizon: int, steps=None, quantities=None) -> str:
+        """The backend its :class:`Stepper` runs on (:func:`stepper_backend`; recorded in the manifest)."""
+        rm = self.model(system, NoiseFn.of(channel.noise))
+        return stepper_backend(rm, kalman.one(kalman.predict, initial_covariance(system), rm.A, rm.Q), self.backend)
+
     def _setup(self, system, trace, quantities):
         """(quantities, receiver model, Υ_T): what covariances() and estimates() read from the trace, checked."""
         qs = kalman.check_quantities(quantities, self.quantities, "receiver")
@@ -381,6 +386,17 @@ def resolve_backend(backend: str, n: int | None = None) -> str:
     return backend
 
 
+def stepper_backend(rm: ReceiverModel, P0, backend: str) -> str:
+    """The backend a :class:`Stepper` runs on (what the manifest records): :func:`resolve_backend`, and under
+    ``auto`` also numba for a scalar system whose every step needs the overflow rescue (R ≪ P: Theorem 4's
+    R = 1e-12): the numpy core's rescue is a batched SVD per step, the compiled variant runs it inline
+    (thm4, 200 000 runs × 30 steps, load ≈ 6.5, one process: numpy 12.3 s, compiled 5.5 s; same CSV)."""
+    be = resolve_backend(backend, rm.n)
+    if backend == "auto" and be == "numpy" and numba_available() and needs_rescue(rm, P0):
+        return "numba"
+    return be
+
+
 def needs_rescue(rm: ReceiverModel, P0) -> bool:
     """Scenarios 1 and 3 from a prior whose trace is above the core's rescue limit (:class:`kalman.Rescue`): the
     information-form update then runs at the first step (and, with a tiny R, at every step)."""
@@ -398,12 +414,7 @@ class Stepper:
     """
 
     def __init__(self, rm: ReceiverModel, P0, B: int, backend: str = "numpy", want_u: bool = False, U0=None):
-        self.rm, self.backend, self.want_u = rm, resolve_backend(backend, rm.n), want_u
-        if backend == "auto" and self.backend == "numpy" and numba_available() and needs_rescue(rm, P0):
-            # a scalar system whose every step needs the overflow rescue (R ≪ P: Theorem 4's R = 1e-12):
-            # the numpy core's rescue is a batched SVD per step, the compiled variant runs it inline
-            # (thm4, 200 000 runs × 30 steps, load ≈ 6.5, one process: numpy 12.3 s, compiled 5.5 s; same CSV)
-            self.backend = "numba"
+        self.rm, self.backend, self.want_u = rm, stepper_backend(rm, P0, backend), want_u
         self.state = initial_state(rm, P0, B)
         self._filtered = None
         self.U = self.Uf = None

@@ -164,7 +164,7 @@ class FusionEstimator(EstimatorModel):
     def conventions(self, system, channel) -> dict[str, str]:
         return {"fusion": self.strategies[0], "streams": "stream i = sensor i of system.sensors"}
 
-    def backend_used(self, system, channel, runs: int, horizon: int) -> str:
+    def backend_used(self, system, channel, runs: int, horizon: int, steps=None, quantities=None) -> str:
         """The backend a chunk of ``runs`` × ``horizon`` runs on (recorded in the manifest)."""
         S = channel_streams(channel)
         sens = Sensors.of(system, S, "estimator.kind") if S is not None else None

@@ -59,7 +59,7 @@ class KalmanFilterEstimator(EstimatorModel):
         backend = kalman.choose_backend(self.backend, f, trace.runs * trace.horizon)
         yield from f.run(initial_covariance(system), trace.arrival, steps, qs, backend=backend)
 
-    def backend_used(self, system, channel, runs: int, horizon: int) -> str:
+    def backend_used(self, system, channel, runs: int, horizon: int, steps=None, quantities=None) -> str:
         """The backend a chunk of ``runs`` × ``horizon`` runs on (recorded in the manifest)."""
         S = channel_streams(channel) or 1
         return kalman.choose_backend(self.backend, kalman.Filter.of(system, S), runs * horizon)

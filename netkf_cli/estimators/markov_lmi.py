@@ -479,6 +479,15 @@ class MarkovLMIEstimator(EstimatorModel):
                           "4 y_{k-1} held)",
                 "start": "y_0 = v_0 (a delayed/held first packet is noise)"}
 
+    def backend_used(self, system, channel, runs: int, horizon: int, steps=None, quantities=None) -> str:
+        """The backend :meth:`covariances` runs on (recorded in the manifest): the exact LMMSE is one closed
+        recursion for every run (numpy); the mode-aware filter with correlated noise (S ≠ 0) runs on numpy;
+        else :func:`resolve_backend`."""
+        model = self._model(system)[0]
+        if self.filter == "lmmse" or (self.filter == "mode_aware" and np.any(model.S)):
+            return "numpy"
+        return resolve_backend(self.backend, model.m)
+
     def _model(self, system):
         n = np.atleast_2d(np.asarray(system.A, float)).shape[0]
         S = None if self.S is None else np.asarray(self.S, float)

@@ -142,6 +142,16 @@ class SmootherEstimator(EstimatorModel):
             raise ConfigError.at("estimator.kind", "the smoother needs a trace with arrival indicators")
         yield from run(system, trace.arrival, steps, qs, int(self.lag), backend=self.backend)
 
+    def backend_used(self, system, channel, runs: int, horizon: int, steps=None, quantities=None) -> str:
+        """What :func:`plan` chooses for a chunk of ``runs`` runs reporting ``steps`` (default every step) of
+        ``quantities`` (default smoothed): "numba (per-run kernel)" or "<forward> forward pass, <numpy|compiled>
+        RTS" (recorded in the manifest)."""
+        f = kalman.Filter.of(system, channel_streams(channel) or 1, "estimator.kind")
+        n_steps = horizon if steps is None else len(steps)
+        N = int(self.lag) if quantities is None or "smoothed" in quantities else 0
+        how, fwd, rts = plan(f, self.backend, N, runs, horizon, n_steps)
+        return "numba (per-run kernel)" if how == "per_run" else f"{fwd} forward pass, {rts} RTS"
+
     def estimates(self, system: LinearSystem, trace, y, steps, quantities=("filtered",)):
         """Yield (k, {quantity: (x̂, P)}) (numpy path): the filter's x̂_{t|t}, P_{t|t} (``kf.filter_estimates``,
         exactly kf) and, for ``smoothed``, N Rauch–Tung–Striebel steps back from k on the core — the gain
@@ -242,14 +252,25 @@ def run(system: LinearSystem, gamma: np.ndarray, steps, quantities=("smoothed",)
         else:
             yield from _run_numpy(f, system, gamma, steps, qs, N, prior)
         return
-    few = one_stream and runs <= AUTO_NUMBA_MAX_RUNS and (backend == "numba" or N > 0)
-    if backend != "numpy" and few and resolve_backend(backend) == "numba":
+    path = plan(f, backend, N, runs, horizon, len(steps))
+    if path == ("per_run", None, None):
         yield from _run_numba(f, system, gamma, steps, qs, N, prior)  # few long runs: the per-run kernel
         return
-    # the forward pass is kf's own call (Filter.run, the backend kf would choose: its generated compiled
-    # kernel for large batches; numba: always), the backward pass the RTS pieces of every step computed
-    # once and shared by every step and lag (compiled with the forward pass). A small auto batch never
-    # imports numba (kalman.choose_backend).
+    _, fwd, rts = path
+    yield from _run_shared(f, system, gamma, steps, qs, N, fwd, rts)
+
+
+def plan(f: kalman.Filter, backend: str, N: int, runs: int, horizon: int, n_steps: int) -> tuple:
+    """How :func:`run` (P0 = P_{0|0}) computes a batch: ``("per_run", None, None)`` — the per-run compiled
+    kernel (few long runs of one stream) — or ``("shared", fwd, rts)``: the forward pass is kf's own call
+    (Filter.run on ``fwd``, the backend kf would choose: its generated compiled kernel for large batches;
+    numba: always), the backward pass the RTS pieces of every step computed once and shared by every step
+    and lag (``rts`` compiled with a compiled forward pass, or for a big auto batch). A small auto batch never
+    imports numba (kalman.choose_backend). The same choice is what the manifest records (backend_used)."""
+    one_stream = len(f.groups) == 1
+    few = one_stream and runs <= AUTO_NUMBA_MAX_RUNS and (backend == "numba" or N > 0)
+    if backend != "numpy" and few and resolve_backend(backend) == "numba":
+        return ("per_run", None, None)
     if backend == "numba":
         resolve_backend("numba")  # a ConfigError without numba
         fwd = "numba" if f.sequential else "numpy"
@@ -258,10 +279,9 @@ def run(system: LinearSystem, gamma: np.ndarray, steps, quantities=("smoothed",)
             resolve_backend(backend)  # the ConfigError naming the backends
         fwd = kalman.choose_backend("auto" if backend == "auto" else "numpy", f, runs * horizon)
     # (by the batch, not the lag: smoothers of every lag on one trace make the same choice and share its pass)
-    big = runs * len(steps) >= AUTO_MIN_RTS_RUN_STEPS
+    big = runs * n_steps >= AUTO_MIN_RTS_RUN_STEPS
     compiled = fwd == "numba" or (backend == "auto" and big and numba_available())
-    rts = "compiled" if (compiled and sc.supported(f.A.shape[0])) else "numpy"
-    yield from _run_shared(f, system, gamma, steps, qs, N, fwd, rts)
+    return ("shared", fwd, "compiled" if (compiled and sc.supported(f.A.shape[0])) else "numpy")
 
 
 def _run_core(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str):

@@ -126,13 +126,25 @@ def describe(scenario, system, ests, quantity: str) -> list[dict]:
     return [dict(quantity=quantity, P0=p0_label(system), conventions=conventions_label(system, ch, e)) for e in ests]
 
 
-def backends(scenario, system, ests, labs, runs: int, horizon: int) -> dict[str, str]:
-    """Per estimator label, the backend its chunks ran on (a last, smaller chunk may run on another)."""
+def backends(scenario, system, ests, labs, runs: int, horizon: int, stats=None, steps=None) -> dict[str, str]:
+    """Per estimator label, the backend its chunks ran on (a last, smaller chunk may run on another). Chunks the
+    engine ran in an estimator's fused kernel are counted in ``stats`` (``engine.FUSED_CHUNKS``: recorded, not
+    predicted); the others ran on ``backend_used`` (for ``steps``, the reported steps, and the analysis'
+    quantities)."""
     chunk = min(scenario.montecarlo.chunk, runs)
     sizes = [chunk] + ([runs % chunk] if runs % chunk else [])
+    count = {chunk: runs // chunk, **({runs % chunk: 1} if runs % chunk else {})}
+    q = getattr(scenario.analysis, "quantity", None)
+    qs = None if q is None else ((q,) if isinstance(q, str) else tuple(q))
+    fused = None if stats is None or engine.FUSED_CHUNKS not in stats else np.asarray(stats[engine.FUSED_CHUNKS])
     out = {}
-    for e, lab in zip(ests, labs):
-        used = {n: e.backend_used(system, scenario.channel, n, horizon) for n in sizes}
+    for j, (e, lab) in enumerate(zip(ests, labs)):
+        used = {n: e.backend_used(system, scenario.channel, n, horizon, steps=steps, quantities=qs) for n in sizes}
+        nf, total = (0 if fused is None else int(fused[j])), sum(count.values())
+        if nf == total:
+            used = {n: engine.FUSED_LABEL for n in sizes}
+        elif nf:  # chosen by the chunk's run-steps: the full-size chunks fused, the last smaller one not
+            used[sizes[0]] = engine.FUSED_LABEL if nf == count[sizes[0]] else f"{engine.FUSED_LABEL} ({nf} of {total} chunks)"
         vals = set(used.values())
         out[lab] = vals.pop() if len(vals) == 1 else ", ".join(f"{b} (chunks of {n} runs)" for n, b in used.items())
     return out

@@ -102,6 +102,8 @@ def test_psd_order_decisions_equal_the_numpy_reducer(n):
 def _sums_close(a: dict, b: dict, rtol: float) -> None:
     assert set(a) == set(b)
     for key in a:
+        if key == engine.FUSED_CHUNKS:  # which path ran (recorded for the manifest), not a statistic
+            continue
         x, y = np.asarray(a[key], float), np.asarray(b[key], float)
         if key.startswith(("count", "nonfinite", "max_nsteps")) or key == "n":
             assert np.array_equal(x, y), key
@@ -172,6 +174,7 @@ def test_fused_kf_equals_the_numpy_path(system, ch):
             ker = engine.PairKernel(s, c, ests, H, steps, red, q)
             assert (ker.fused(R) is not None) == (be == "numba")
             out.append(ker(np.random.default_rng(3), R))
+            assert out[-1][engine.FUSED_CHUNKS].tolist() == [int(be == "numba")] * len(ests)
         # the compiled filter is the numpy core's equations in another association order: rounding only
         _sums_close(out[0], out[1], rtol=1e-9)
     if system == "rescue":  # the numpy redo of flagged runs was exercised

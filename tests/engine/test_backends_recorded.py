@@ -1,0 +1,76 @@
+"""The manifest's ``backends`` says what ran (issue 20: "the manifest says which ran").
+
+* No estimator reports ``auto``: every ``backend: auto`` is resolved to what its recursion runs on.
+* The fused kf kernel is recorded by the engine (``engine.FUSED_CHUNKS``), not predicted: a run that takes it
+  says so, the same run with numba hidden says numpy, and the numbers agree.
+* The smoother's and the receivers' recorded choice is the one their recursion makes (one rule each:
+  ``smoother.plan``, ``fading_receivers.stepper_backend``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import netkf_cli
+from netkf_cli import engine, kalman
+from netkf_cli.estimators import fading_receivers as fr
+from netkf_cli.estimators import smoother as sm
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIGS = sorted(str(p.relative_to(ROOT / "configs")) for p in (ROOT / "configs").rglob("*.yaml"))
+VEHICLE = {"A": [[1, 0, 0.1, 0], [0, 1, 0, 0.1], [0, 0, 1, 0], [0, 0, 0, 1]],
+           "C": [[1, 0, 0, 0], [0, 1, 0, 0]], "Q": (0.01 * np.eye(4)).tolist(), "R": (0.1 * np.eye(2)).tolist()}
+
+
+def _scenario(system, channel, estimator, runs=400, horizon=30, chunk=400):
+    return netkf_cli.load({"name": "backends", "system": system, "channel": channel, "estimator": estimator,
+                           "analysis": {"kind": "mean_vs_time"},
+                           "montecarlo": {"runs": runs, "horizon": horizon, "seed": 1, "chunk": chunk}})
+
+
+@pytest.mark.parametrize("cfg", CONFIGS)
+def test_no_estimator_of_a_config_reports_auto(cfg):
+    sc = netkf_cli.load(ROOT / "configs" / cfg)
+    if getattr(sc, "system", None) is None or getattr(sc, "channel", None) is None or not sc.estimator_list():
+        pytest.skip("a recipe without a Monte Carlo estimator")
+    s, mc = sc.linear_system(), sc.montecarlo
+    for est in sc.estimator_list():
+        used = est.backend_used(s, sc.channel, min(mc.chunk, mc.runs), mc.horizon)
+        assert "auto" not in used and used.split()[0].rstrip(",") in ("numpy", "numba"), (est.kind, used)
+
+
+def test_fused_kernel_is_recorded_and_agrees_with_numpy(monkeypatch):
+    big = kalman.AUTO_MIN_RUN_STEPS // 30 + 1  # a chunk that `auto` runs in the fused kernel
+    sc = _scenario(VEHICLE, {"kind": "bernoulli", "arrival": 0.7}, {"kind": "kf"}, runs=big, chunk=big)
+    fused = netkf_cli.run(sc)
+    assert fused.meta["backends"] == {"kf": engine.FUSED_LABEL}
+    monkeypatch.setattr(kalman, "numba_available", lambda: False)
+    plain = netkf_cli.run(sc)
+    assert plain.meta["backends"] == {"kf": "numpy"}
+    a, b = (r.table["value"].to_numpy(float) for r in (fused, plain))
+    np.testing.assert_allclose(a, b, rtol=1e-9)  # the compiled filter's association order: rounding only
+
+
+def test_smoother_records_the_plan_its_recursion_runs():
+    sc = netkf_cli.load(ROOT / "configs" / "smoothing" / "table1.yaml")
+    s, est = sc.linear_system(), sc.estimator_list()[-1]
+    assert est.lag > 0
+    f = kalman.Filter.of(s, 1)
+    for runs, n_steps in [(10, 30), (400, 30), (200_000, 30)]:
+        how, fwd, rts = sm.plan(f, "auto", est.lag, runs, 30, n_steps)
+        want = "numba (per-run kernel)" if how == "per_run" else f"{fwd} forward pass, {rts} RTS"
+        assert est.backend_used(s, sc.channel, runs, 30, steps=range(n_steps)) == want
+    assert est.backend_used(s, sc.channel, 400, 30, quantities=("filtered",)) \
+        == "{} forward pass, {} RTS".format(*sm.plan(f, "auto", 0, 400, 30, 30)[1:])
+
+
+def test_receiver_records_the_stepper_backend():
+    sc = netkf_cli.load(ROOT / "configs" / "fading" / "thm4.yaml")  # R = 1e-12: the rescue rule decides
+    s, est = sc.linear_system(), sc.estimator_list()[0]
+    rm = est.model(s, fr.NoiseFn.of(sc.channel.noise))
+    P = kalman.one(kalman.predict, np.atleast_2d(s.P0), rm.A, rm.Q)
+    assert fr.Stepper(rm, P, 4, "auto").backend == fr.stepper_backend(rm, P, "auto")
+    assert est.backend_used(s, sc.channel, 400, 30) in ("numpy", "numba")
