@@ -25,6 +25,7 @@ findings there as ``<figure stem>.json`` (the figure-lint test reads them).
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -40,6 +41,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib import cycler  # noqa: E402  (matplotlib re-exports its cycler dependency)
 from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.mathtext import MathTextParser  # noqa: E402
 from matplotlib.text import Text  # noqa: E402
 from matplotlib.transforms import offset_copy  # noqa: E402
 
@@ -97,6 +99,50 @@ STYLE = {
 # The style is the process-wide default for netkf figures: titles, labels and legends created
 # after ``new_figure`` returns get these sizes too (an rc_context would only cover creation).
 matplotlib.rcParams.update(STYLE)
+
+#: mathtext parses kept per process (matplotlib keeps 50 per renderer, and every figure, and every dpi
+#: of a figure, gets a new renderer: a log axis' "$10^{-2}$" was parsed again by each of them)
+MATHTEXT_CACHE = 4096
+_MATHTEXT_RC = tuple(k for k in matplotlib.rcParams if k.startswith("mathtext."))
+
+
+def share_mathtext_parses() -> bool:
+    """One process-wide cache of mathtext parses instead of matplotlib's 50 per renderer.
+
+    Every figure (and the layout at ``figure.dpi`` and the save at ``savefig.dpi`` of one figure)
+    draws with a new renderer, each with its own ``MathTextParser`` whose ``_parse_cached`` is an
+    ``lru_cache(50)`` keyed on the parser: a quick reproduction parsed 1 999 strings (log-axis tick
+    labels such as ``$\\mathdefault{10^{0}}$`` 73 times) with 1 454 misses, pyparsing being most of
+    a figure's text layout. The parse depends only on the parser's output type (raster/vector),
+    the string, dpi, font properties, antialiasing, hinting and the ``mathtext.*`` rcParams, so this
+    cache keys on exactly those (the rcParams included) and returns the same objects matplotlib's own
+    cache does: the pixels are unchanged. Private API: if matplotlib moves it, its own cache stays.
+    Returns True when installed (idempotent)."""
+    current = MathTextParser.__dict__.get("_parse_cached")
+    if getattr(current, "_netkf_shared", False):
+        return True
+    per_parser = getattr(current, "__wrapped__", None)
+    if per_parser is None:  # pragma: no cover - another matplotlib
+        return False
+    parsers: dict[str, MathTextParser] = {}
+
+    @functools.lru_cache(MATHTEXT_CACHE)
+    def shared(output_type, s, dpi, prop, antialiased, load_glyph_flags, rc):
+        return per_parser(parsers[output_type], s, dpi, prop, antialiased, load_glyph_flags)
+
+    def _parse_cached(self, s, dpi, prop, antialiased, load_glyph_flags):
+        parsers.setdefault(self._output_type, self)
+        rc = tuple(matplotlib.rcParams[k] for k in _MATHTEXT_RC)
+        return shared(self._output_type, s, dpi, prop, antialiased, load_glyph_flags, rc)
+
+    _parse_cached._netkf_shared = True
+    _parse_cached.cache = shared  # cache_info() / cache_clear()
+    _parse_cached.original = current  # matplotlib's own (the tests render with both)
+    MathTextParser._parse_cached = _parse_cached
+    return True
+
+
+share_mathtext_parses()
 
 
 def series_style(i: int) -> dict:
