@@ -54,6 +54,7 @@ from pydantic import Field, ValidationError, model_validator
 from rich.table import Table
 
 from netkf_cli import golden as golden_mod
+from netkf_cli import montecarlo
 from netkf_cli.errors import ConfigError, NetkfError, Problem
 from netkf_cli.loader import line_index, load_scenario, validation_problems
 from netkf_cli.report import write_report as _write
@@ -445,6 +446,7 @@ def run_all(arts: list[Artefact], out_root: Path, quick: bool, jobs: int, on_don
                 on_done(a, results[a.name])
     else:
         order = sorted(arts, key=lambda a: -_expected_wall(a, out_root, golden_root))  # stable among equals
+        montecarlo.warm_compiler()  # numba's LLVM and typing set up once here: the forked workers inherit it
         with ProcessPoolExecutor(max_workers=min(jobs, len(arts)) or 1, **pool_kwargs()) as ex:
             futures = {ex.submit(_run_one, tasks[a.name]): a for a in order}
             for fut in as_completed(futures):
@@ -504,10 +506,11 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
         o.checks = [evaluate(c, folder, quick) for c in pub.printed if c.artefact == o.artefact.name]
         o.claims = [evaluate_claim(c, folder, quick) for c in pub.claims if c.artefact == o.artefact.name]
 
-    raw = run_all(arts, out_root, quick, jobs, done, golden_root)
-    outcomes = []
-    for a in arts:
-        name, folder, wall, error = raw[a.name]
+    judged: dict[str, ArtefactOutcome] = {}
+
+    def finished(a, r):  # judged as soon as it is written, while the pool's other workers still run
+        done(a, r)
+        name, folder, wall, error = r
         o = ArtefactOutcome(a, Path(folder) if folder else None, wall, error)
         if folder:
             judge(o, Path(folder))
@@ -519,7 +522,10 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
                     o.golden = [f"{a.name}: no committed result results/{a.name}/ to compare with "
                                 f"(run `netkf reproduce {a.topic}` at full size and commit it)"]
                 o.golden_checked = True
-        outcomes.append(o)
+        judged[a.name] = o
+
+    run_all(arts, out_root, quick, jobs, finished, golden_root)
+    outcomes = [judged[a.name] for a in arts]
     summarize(outcomes, console, quick)
     # the report covers every artefact: those not run now are read from their existing folders
     ran = {o.artefact.name for o in outcomes}
