@@ -243,15 +243,20 @@ class KeepExisting(Exception):
     """Raised inside :func:`atomic_folder` to keep the existing folder (byte-identical result)."""
 
 
-def same_files(final: Path, tmp: Path, scenario_hash: str, same: Callable[[dict], bool] | None = None) -> bool:
+def same_files(final: Path, tmp: Path, scenario_hash: str, same: Callable[[dict], bool] | None = None,
+               meta: dict | None = None) -> bool:
     """True if ``final`` is netkf's result of this scenario (its hash, or ``same(manifest)``: a result
-    written before fields were added to the schema) and every file just written in ``tmp`` is
-    byte-identical to the one there (``manifest.json`` aside, which holds times)."""
+    written before fields were added to the schema), every file just written in ``tmp`` is
+    byte-identical to the one there (``manifest.json`` aside, which holds times) and, given ``meta``, its
+    manifest's ``meta`` says the same (what ran, the rules applied: a stale statement is rewritten)."""
     final = Path(final)
     if not final.is_dir() or final.is_symlink():
         return False
     man, _ = netkf_ownership(final)
     if man is None or not (man.get("scenario_hash") == scenario_hash or (same is not None and same(man))):
+        return False
+    if meta is not None and (json.dumps(_jsonable(meta), sort_keys=True, ensure_ascii=False)
+                             != json.dumps(man.get("meta"), sort_keys=True, ensure_ascii=False)):
         return False
     new = sorted(p.name for p in Path(tmp).iterdir())
     if sorted(set(man.get("files") or ()) - {MANIFEST}) != new:

@@ -162,7 +162,7 @@ def write_result(scenario, art: Artefact, out: Path, *, force: bool, ctx: RunCon
                  overrides: list[str] | None = None, started: float | None = None,
                  info: dict | None = None) -> Path:
     """Write the result folder atomically. A rerun of the same scenario whose files come out
-    byte-identical to the folder already there leaves that folder (and its manifest) untouched,
+    byte-identical to the folder already there, with the same manifest ``meta``, leaves that folder (and its manifest) untouched,
     so reproducing a committed result leaves a clean checkout clean (``info["unchanged"]``)."""
     name = scenario.name
     h = scenario_hash(scenario, ctx.runs)
@@ -181,7 +181,7 @@ def write_result(scenario, art: Artefact, out: Path, *, force: bool, ctx: RunCon
         save(fig, tmp / f"{name}.png", dpi=scenario.output.dpi, formats=scenario.output.formats)  # <name>.<fmt>
         mc = scenario.montecarlo
         files = sorted(p.name for p in tmp.iterdir()) + ["manifest.json"]
-        if io.same_files(out, tmp, h, lambda man: same_scenario(man, scenario, ctx.runs)):
+        if io.same_files(out, tmp, h, lambda man: same_scenario(man, scenario, ctx.runs), meta=art.meta):
             unchanged = True
             raise io.KeepExisting
         manifest = {

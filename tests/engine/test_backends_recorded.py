@@ -74,3 +74,20 @@ def test_receiver_records_the_stepper_backend():
     P = kalman.one(kalman.predict, np.atleast_2d(s.P0), rm.A, rm.Q)
     assert fr.Stepper(rm, P, 4, "auto").backend == fr.stepper_backend(rm, P, "auto")
     assert est.backend_used(s, sc.channel, 400, 30) in ("numpy", "numba")
+
+
+def test_a_stale_manifest_statement_is_rewritten(tmp_path, monkeypatch):
+    """Identical files and meta leave the folder untouched; identical files with a changed ``meta`` (here the
+    fused kernel's label) rewrite it, so a committed manifest never keeps saying what no longer ran."""
+    big = kalman.AUTO_MIN_RUN_STEPS // 30 + 1
+    sc = _scenario(VEHICLE, {"kind": "bernoulli", "arrival": 0.7}, {"kind": "kf"}, runs=big, chunk=big)
+    out = tmp_path / "r"
+    netkf_cli.run(sc, out=out)
+    man = (out / "manifest.json").read_text()
+    netkf_cli.run(sc, out=out)
+    assert (out / "manifest.json").read_text() == man  # unchanged: kept, timestamps and all
+    monkeypatch.setattr(engine, "FUSED_LABEL", "numba, fused (relabelled)")
+    csv = (out / "backends.csv").read_bytes()
+    netkf_cli.run(sc, out=out)
+    assert (out / "backends.csv").read_bytes() == csv
+    assert '"numba, fused (relabelled)"' in (out / "manifest.json").read_text()
