@@ -243,6 +243,20 @@ class KeepExisting(Exception):
     """Raised inside :func:`atomic_folder` to keep the existing folder (byte-identical result)."""
 
 
+TIMING_SUFFIX = "_seconds"
+"""A meta key ending so is a measured time (e.g. markov_lmi's ``solve_seconds``), not a statement about the
+result: it may differ between two runs of the same scenario and does not make a folder stale."""
+
+
+def _statements(meta) -> str:
+    """``meta`` as canonical JSON without its timings (keys ending in :data:`TIMING_SUFFIX`)."""
+    def drop(x):
+        if isinstance(x, dict):
+            return {k: drop(v) for k, v in x.items() if not str(k).endswith(TIMING_SUFFIX)}
+        return [drop(v) for v in x] if isinstance(x, list) else x
+    return json.dumps(drop(meta), sort_keys=True, ensure_ascii=False)
+
+
 def same_files(final: Path, tmp: Path, scenario_hash: str, same: Callable[[dict], bool] | None = None,
                meta: dict | None = None) -> bool:
     """True if ``final`` is netkf's result of this scenario (its hash, or ``same(manifest)``: a result
@@ -255,8 +269,7 @@ def same_files(final: Path, tmp: Path, scenario_hash: str, same: Callable[[dict]
     man, _ = netkf_ownership(final)
     if man is None or not (man.get("scenario_hash") == scenario_hash or (same is not None and same(man))):
         return False
-    if meta is not None and (json.dumps(_jsonable(meta), sort_keys=True, ensure_ascii=False)
-                             != json.dumps(man.get("meta"), sort_keys=True, ensure_ascii=False)):
+    if meta is not None and _statements(_jsonable(meta)) != _statements(man.get("meta")):
         return False
     new = sorted(p.name for p in Path(tmp).iterdir())
     if sorted(set(man.get("files") or ()) - {MANIFEST}) != new:
