@@ -108,7 +108,9 @@ def main() -> None:
             flag = "ok" if r["pss"] <= TARGET_MB else f"OVER {TARGET_MB:.0f} MB"
             print(f"{name:42s} {r['pss']:7.0f} MB {r['rss']:7.0f} MB {r['procs']:5d} {r['wall']:6.1f}s {r['compute']:7.1f}s  {flag}",
                   flush=True)
-    print(f"largest peak PSS {worst:.0f} MB (target {TARGET_MB:.0f} MB)")
+    with open("/proc/loadavg") as f:
+        load = f.read().split()[0]
+    print(f"largest peak PSS {worst:.0f} MB (target {TARGET_MB:.0f} MB); load average {load} at the end")
 
 
 if __name__ == "__main__":
