@@ -17,6 +17,6 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 # the fork-safe threading layers (tbb, workqueue) do not. A user's own setting wins.
 _os.environ.setdefault("NUMBA_THREADING_LAYER", "forksafe")
 
-from netkf_cli._version import __version__  # noqa: E402,F401
+from netkf_cli.core._version import __version__  # noqa: E402,F401
 
-from netkf_cli.api import load, run  # noqa: E402,F401  (the public API: netkf_cli.load / netkf_cli.run)
+from netkf_cli.app.api import load, run  # noqa: E402,F401  (the public API: netkf_cli.load / netkf_cli.run)

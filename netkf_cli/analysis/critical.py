@@ -67,9 +67,9 @@ import cvxpy as cp
 import numpy as np
 import scipy.linalg
 
-from netkf_cli import kalman
+from netkf_cli.linalg import kalman
 from netkf_cli.analysis.delay_bounds import max_kept_delay
-from netkf_cli.errors import NetkfError
+from netkf_cli.core.errors import NetkfError
 
 RHO_TOL = 1e-9
 """|σ| within this of 1 counts as "on the unit circle"."""

@@ -21,9 +21,9 @@ from typing import Literal
 
 import numpy as np
 
-from netkf_cli import riccati
-from netkf_cli.errors import TheoremConditionError
-from netkf_cli.system import LinearSystem
+from netkf_cli.linalg import riccati
+from netkf_cli.core.errors import TheoremConditionError
+from netkf_cli.core.system import LinearSystem
 
 Convention = Literal["delay_le_D", "delay_lt_D"]
 DEFAULT_CONVENTION: Convention = "delay_le_D"

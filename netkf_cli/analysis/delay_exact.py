@@ -49,11 +49,11 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from netkf_cli import riccati
+from netkf_cli.linalg import riccati
 from netkf_cli.analysis.delay_bounds import max_kept_delay
-from netkf_cli.errors import ConfigError
-from netkf_cli.system import LinearSystem
-from netkf_cli.tolerances import PSD_TOL
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.core.system import LinearSystem
+from netkf_cli.core.tolerances import PSD_TOL
 
 DEFAULT_TOL = 1e-6
 
@@ -115,7 +115,7 @@ def _open_loop_bound(s: LinearSystem) -> np.ndarray | None:
 
 
 def leq_threshold(M: np.ndarray) -> np.ndarray:
-    """λ_max(P) ≤ threshold ⇔ P ≤ M·I in :func:`netkf_cli.riccati.psd_leq`'s tolerance."""
+    """λ_max(P) ≤ threshold ⇔ P ≤ M·I in :func:`netkf_cli.linalg.riccati.psd_leq`'s tolerance."""
     M = np.asarray(M, dtype=float)
     return M + PSD_TOL * np.maximum(1.0, np.abs(M))
 

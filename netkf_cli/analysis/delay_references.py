@@ -18,7 +18,7 @@ from scipy import stats
 
 from netkf_cli.analysis import delay_bounds as db
 from netkf_cli.analysis import delay_exact as dx
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 
 UPDATES = "E[MKF runs per step], closed form (Prop. 3.1)"
 EXACT = "exact Pr[P_k <= M] (certified)"

@@ -30,8 +30,8 @@ import numpy as np
 import scipy.linalg
 from scipy import stats
 
-from netkf_cli import kalman
-from netkf_cli.errors import ConfigError
+from netkf_cli.linalg import kalman
+from netkf_cli.core.errors import ConfigError
 
 
 def _sym(X: np.ndarray) -> np.ndarray:

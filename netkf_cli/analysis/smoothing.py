@@ -41,10 +41,10 @@ from fractions import Fraction
 import numpy as np
 import scipy.linalg
 
-from netkf_cli import kalman, riccati
-from netkf_cli.errors import ConfigError, TheoremConditionError
-from netkf_cli.system import LinearSystem
-from netkf_cli.tolerances import EXACT_PSD_TOL
+from netkf_cli.linalg import kalman, riccati
+from netkf_cli.core.errors import ConfigError, TheoremConditionError
+from netkf_cli.core.system import LinearSystem
+from netkf_cli.core.tolerances import EXACT_PSD_TOL
 
 K_MAX = 100_000
 MAX_EXACT_LAG = 8

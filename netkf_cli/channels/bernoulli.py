@@ -12,8 +12,8 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from netkf_cli.spec import ChannelModel, PositiveInt, Probability
-from netkf_cli.trace import Trace
+from netkf_cli.core.spec import ChannelModel, PositiveInt, Probability
+from netkf_cli.core.trace import Trace
 
 
 def sample_arrivals(rng: np.random.Generator, runs: int, horizon: int, arrival: float) -> np.ndarray:
@@ -54,7 +54,7 @@ class BernoulliChannel(ChannelModel):
 
     def arrival_law(self) -> tuple[str, tuple[float, ...]]:
         """("bernoulli", (γ,)): γ_t = u_t < γ (:meth:`arrivals_from_uniforms`; a compiled kernel that forms
-        the arrivals from :meth:`uniforms` itself, :mod:`netkf_cli.kf_fused`, makes the same comparison)."""
+        the arrivals from :meth:`uniforms` itself, :mod:`netkf_cli.linalg.kf_fused`, makes the same comparison)."""
         return "bernoulli", (float(self.arrival),)
 
     def arrivals_from_uniforms(self, u: np.ndarray) -> np.ndarray:

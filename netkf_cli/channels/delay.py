@@ -20,9 +20,9 @@ from scipy import stats
 
 # the buffer rule is the paper's (closed forms use it too): defined with them, one layer down
 from netkf_cli.analysis.delay_bounds import CONVENTION_HELP, DEFAULT_CONVENTION, Convention, max_kept_delay  # noqa: F401
-from netkf_cli.kalman import AUTO_MIN_RUN_STEPS
-from netkf_cli.spec import ChannelModel, NonNegFloat, PositiveInt, Probability, StrictModel
-from netkf_cli.trace import LOST, Trace  # LOST: the delay of a packet that never arrives
+from netkf_cli.linalg.kalman import AUTO_MIN_RUN_STEPS
+from netkf_cli.core.spec import ChannelModel, NonNegFloat, PositiveInt, Probability, StrictModel
+from netkf_cli.core.trace import LOST, Trace  # LOST: the delay of a packet that never arrives
 
 
 
@@ -123,7 +123,7 @@ class DelayChannel(ChannelModel):
         return delay_pmf(self, n)
 
     def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
-        """A :class:`~netkf_cli.trace.Trace` with ``delay`` (1, horizon, runs) and ``arrival`` = [d = 0].
+        """A :class:`~netkf_cli.core.trace.Trace` with ``delay`` (1, horizon, runs) and ``arrival`` = [d = 0].
 
         One uniform per packet, time-major (``rng.random((horizon, runs))``), inverted through the
         cdf (exact for the pmf of eq. 3, see :func:`delays_from_uniforms`): the same uniforms, in the

@@ -30,8 +30,8 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from netkf_cli.analysis import fading as fa
-from netkf_cli.spec import ChannelModel, FiniteFloat, NonNegFloat, PositiveFloat, PositiveInt, StrictModel
-from netkf_cli.trace import Trace
+from netkf_cli.core.spec import ChannelModel, FiniteFloat, NonNegFloat, PositiveFloat, PositiveInt, StrictModel
+from netkf_cli.core.trace import Trace
 
 
 class Snr(StrictModel):

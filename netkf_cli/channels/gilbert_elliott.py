@@ -30,9 +30,9 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from netkf_cli.channels.bernoulli import BernoulliChannel, sample_arrivals
-from netkf_cli.errors import ConfigError
-from netkf_cli.spec import ChannelModel
-from netkf_cli.trace import Trace
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.core.spec import ChannelModel
+from netkf_cli.core.trace import Trace
 
 
 def sample_gilbert_elliott_tm(
@@ -157,7 +157,7 @@ class GilbertElliottChannel(ChannelModel):
 
     def arrival_law(self) -> tuple[str, tuple[float, ...]]:
         """("gilbert_elliott", (p_gb, p_bg, π_good)): the comparisons of :func:`gilbert_elliott_from_uniforms`
-        (a compiled kernel that forms the arrivals from :meth:`uniforms` itself, :mod:`netkf_cli.kf_fused`,
+        (a compiled kernel that forms the arrivals from :meth:`uniforms` itself, :mod:`netkf_cli.linalg.kf_fused`,
         makes the same ones)."""
         p_gb, p_bg = self.transition
         return "gilbert_elliott", (float(p_gb), float(p_bg), float(pi_good_of(p_gb, p_bg)))

@@ -29,9 +29,9 @@ from typing import ClassVar, Literal, Union
 import numpy as np
 from pydantic import Field, model_validator
 
-from netkf_cli.errors import ConfigError, Problem
-from netkf_cli.spec import ChannelModel, Matrix, Probability
-from netkf_cli.trace import Trace
+from netkf_cli.core.errors import ConfigError, Problem
+from netkf_cli.core.spec import ChannelModel, Matrix, Probability
+from netkf_cli.core.trace import Trace
 
 MODE_NAMES = ("ok", "delay", "missing", "dropout")
 N_MODES = 4

@@ -22,7 +22,7 @@ another stream with the same statistics (tested within 5 s.e.). MF with identica
 tested within 5 s.e.) — what IBF/OLPEF need at ⅛ of per_sensor's draws. per_sensor stays the default (the
 committed results are on it).
 
-What a stream carries (the one sensor model, :func:`netkf_cli.kalman.stream_rows`): stream i is
+What a stream carries (the one sensor model, :func:`netkf_cli.linalg.kalman.stream_rows`): stream i is
 sensor i's WHOLE measurement y_k^i = C_i x_k + v_k^i, sensor i of ``system.sensors`` — so the
 channel's ``sensors`` must equal the system's number of sensors (``system.sensors: N`` for N
 identical sensors each measuring C x with noise R; a list of {C, R} for sensors of their own;
@@ -38,10 +38,10 @@ import numpy as np
 import scipy.stats
 from pydantic import Field, ValidationInfo, field_validator
 
-from netkf_cli import kalman
-from netkf_cli import kalman_codegen as kc
-from netkf_cli.spec import ChannelModel, PositiveInt, Probability
-from netkf_cli.trace import Trace
+from netkf_cli.linalg import kalman
+from netkf_cli.linalg import kalman_codegen as kc
+from netkf_cli.core.spec import ChannelModel, PositiveInt, Probability
+from netkf_cli.core.trace import Trace
 
 
 def sample_multi_arrivals(
@@ -171,7 +171,7 @@ def arrivals_given_counts(rng: np.random.Generator, counts: np.ndarray, N: int, 
     random subset of that size (selection sampling: sensor i arrives with probability r/(N − i), r the
     arrivals still to place; one raw draw per sensor, step and run, exact on the 2⁵³ grid).
     Given ℓ ~ Binomial(N, p), this IS the law of N independent Bernoulli(p) links. ``compiled`` (default):
-    the per-sensor pass through :func:`netkf_cli.kalman_codegen.kernel_select` where numba imports (the
+    the per-sensor pass through :func:`netkf_cli.linalg.kalman_codegen.kernel_select` where numba imports (the
     same bits as the numpy passes, tested)."""
     T, runs = counts.shape
     out = np.empty((N, T, runs), dtype=bool)

@@ -20,8 +20,8 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from netkf_cli.spec import ChannelModel, NonNegInt, Probability
-from netkf_cli.trace import Trace
+from netkf_cli.core.spec import ChannelModel, NonNegInt, Probability
+from netkf_cli.core.trace import Trace
 
 MAX_BUDGET = 50
 

@@ -25,9 +25,9 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field, PrivateAttr, ValidationInfo, field_validator, model_validator
 
-from netkf_cli.errors import ConfigError
-from netkf_cli.spec import ChannelModel, NonNegInt
-from netkf_cli.trace import LOST, Trace
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.core.spec import ChannelModel, NonNegInt
+from netkf_cli.core.trace import LOST, Trace
 
 MAX_ROWS = 10_000_000
 

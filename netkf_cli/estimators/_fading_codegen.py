@@ -2,10 +2,10 @@
 
 The same recursion as :mod:`netkf_cli.estimators._fading_numba` (one run at a time, scalar code LLVM
 does not vectorise), written out as scalar expressions with the system's numbers as constants (zeros
-skipped, ones dropped; :func:`netkf_cli.kalman_codegen._lin`) over the upper triangle of each covariance,
+skipped, ones dropped; :func:`netkf_cli.linalg.kalman_codegen._lin`) over the upper triangle of each covariance,
 one contiguous array per entry with the runs innermost, and a loop over runs without data-dependent
 control flow (a dropped packet selects P_{k|k−1} instead of the kept update) — the layout of
-:mod:`netkf_cli.kalman_codegen`. About 2× the scalar kernel per run-step (fig6's receivers, 3 states).
+:mod:`netkf_cli.linalg.kalman_codegen`. About 2× the scalar kernel per run-step (fig6's receivers, 3 states).
 NOT vectorised by LLVM (checked on the assembly: no packed vmulpd): the loop reads and writes 24–30 rows
 (P, F, U, U_{k|k}, P_f), more pointers than LLVM's runtime alias checks admit (a toy loop of the same form
 vectorises with 12 rows, not with 24; one state array X[row, run] does not help, the row stride being
@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli.kalman_codegen import _lin, _load, _num, cholesky_correction, gain_correction
+from netkf_cli.linalg.kalman_codegen import _lin, _load, _num, cholesky_correction, gain_correction
 
 MAX_N = 6
 MAX_M = 4

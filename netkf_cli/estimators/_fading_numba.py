@@ -1,7 +1,7 @@
 """Compiled (numba) recursion of the fading receivers (Mostofi & Murray 2009) — imported only on demand.
 
 The same recursion as :func:`netkf_cli.estimators.fading_receivers.correct` / ``predict`` (numpy
-reference), written ONLY with the Kalman core's compiled primitives (:mod:`netkf_cli.kalman_numba`,
+reference), written ONLY with the Kalman core's compiled primitives (:mod:`netkf_cli.linalg.kalman_numba`,
 inlined): no gain or update of its own. One call advances every run through a block of T steps,
 runs outside and time inside, each run's matrices held in small work arrays (design.md's compiled
 layout); the keep decisions and σ_n² values are computed by numpy and passed in (same random numbers).
@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from netkf_cli import kalman_numba as kn
+from netkf_cli.linalg import kalman_numba as kn
 
 _opts = dict(cache=True, nogil=True, error_model="numpy")
 

@@ -14,14 +14,14 @@ C_{t,q} M C_{t,q}ᵀ + L_f J_q Σ J_qᵀ L_fᵀ before the step, P_{k+1|k} = C_p
 round-off guard (∞ where ε·‖C‖_F²·tr M > FIXED_GAIN_PRECISION·tr P) are written the same way. The same
 equations as the numpy path, in another floating-point order: equal to rounding
 (``tests/markov/test_fast_paths.py``). Compiled and cached on disk by source hash through
-``netkf_cli.kalman_codegen._load`` (numba compiles each system once per machine).
+``netkf_cli.linalg.kalman_codegen._load`` (numba compiles each system once per machine).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli import kalman_codegen
+from netkf_cli.linalg import kalman_codegen
 
 
 MAX_DIM = 10

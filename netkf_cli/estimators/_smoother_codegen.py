@@ -1,6 +1,6 @@
 """The smoother's backward pass compiled per system: generated numba kernels of the Rauch–Tung–Striebel step.
 
-The RTS step of :class:`netkf_cli.kalman.SmoothStep` splits into a part that depends only on the filtered
+The RTS step of :class:`netkf_cli.linalg.kalman.SmoothStep` splits into a part that depends only on the filtered
 P_{t|t} and an affine map applied to P_{t+1|k}:
 
     prepare  U = P_{t|t} Aᵀ,  S = A U + Q,  X = S⁻¹ Uᵀ,  J_t = Xᵀ,  C_t = sym(P_{t|t} − U X)
@@ -14,7 +14,7 @@ Cholesky factor for 3 ≤ n ≤ :data:`kalman_codegen.MAX_N`, equal to rounding)
 ``(rows, n, n, runs)``, run axis innermost. ``rts_prepare`` flags an entry (t, r) whose P_{t|t} has
 tr ≥ the rescue limit of ``Rescue.of(A, Q)`` or is non-finite, or whose result is non-finite: the caller
 redoes those entries on the numpy core (the rescue policy stays the core's). Kernels are generated,
-written and cached by :mod:`netkf_cli.kalman_codegen`'s loader (one file per source hash, numba's disk
+written and cached by :mod:`netkf_cli.linalg.kalman_codegen`'s loader (one file per source hash, numba's disk
 cache), depend only on (A, Q, limit) and are compiled once per machine.
 """
 
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli import kalman_codegen as kc
+from netkf_cli.linalg import kalman_codegen as kc
 
 MAX_N = kc.MAX_N
 """Largest state dimension a kernel is generated for."""

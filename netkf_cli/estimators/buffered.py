@@ -8,9 +8,9 @@ modified Kalman filter (MKF, Sec. 3.1) from the oldest newly arrived packet (Pro
 
 i.e. P_{k|k} is the MKF run over the *time-k view* of the arrival pattern γ_t^{(k)} (Lemma 3.7's
 composition, footnote 2): the Kalman filter with intermittent observations
-(:class:`netkf_cli.kalman.Filter`, the same one ``kf`` runs) fed with the time-k availabilities.
+(:class:`netkf_cli.linalg.kalman.Filter`, the same one ``kf`` runs) fed with the time-k availabilities.
 On a zero-delay (pure-loss) trace it IS ``kf``, step for step. P_{0|0} =
-:func:`netkf_cli.riccati.initial_covariance` (``system.P0``; unset = P̄); step k is the time of the
+:func:`netkf_cli.linalg.riccati.initial_covariance` (``system.P0``; unset = P̄); step k is the time of the
 newest measurement y_k; quantities ``filtered`` P_{k|k} and ``predicted`` P_{k+1|k} = h(P_{k|k}).
 
 Packets (``packet``):
@@ -19,7 +19,7 @@ Packets (``packet``):
   y_t is available at time k iff packet t or packet t + 1 is kept by k;
 * ``auto`` — ``measurement`` if C is invertible, else ``pair`` when [C; CA] is.
 
-Overflow is the core's one policy (:class:`netkf_cli.kalman.Rescue`, via ``Filter``): a run whose
+Overflow is the core's one policy (:class:`netkf_cli.linalg.kalman.Rescue`, via ``Filter``): a run whose
 prior is nearly overflowed is updated in information form; a non-finite run is ∞ (P ≰ M).
 """
 
@@ -30,14 +30,14 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from netkf_cli import kalman
+from netkf_cli.linalg import kalman
 from netkf_cli.channels.delay import (CONVENTION_HELP, DEFAULT_CONVENTION, LOST, delay_label, kept_at, kept_by,
                                       max_kept_delay, trace_delays, trace_max_kept_delay)
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.kf import channel_streams, filter_estimates
-from netkf_cli.riccati import initial_covariance
-from netkf_cli.spec import EstimatorModel
-from netkf_cli.system import LinearSystem
+from netkf_cli.linalg.riccati import initial_covariance
+from netkf_cli.core.spec import EstimatorModel
+from netkf_cli.core.system import LinearSystem
 
 PacketKind = Literal["auto", "measurement", "pair"]
 BackendKind = Literal["numpy", "numba", "auto"]
@@ -239,7 +239,7 @@ def buffered_covariances(s: LinearSystem, trace, steps, span: int = 1, quantitie
                          backend: str = "numpy"):
     """Generator of (k, {quantity: P_k}) for ``BufferedEstimator.covariances`` (see there).
 
-    ``backend`` (numpy | numba | auto, :func:`netkf_cli.kalman.choose_backend`) is the core filter's:
+    ``backend`` (numpy | numba | auto, :func:`netkf_cli.linalg.kalman.choose_backend`) is the core filter's:
     every MKF pass is ``kalman.Filter.run`` (:func:`mkf`).
     """
     T, runs = trace.horizon, trace.runs

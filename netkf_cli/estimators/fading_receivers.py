@@ -1,7 +1,7 @@
 """Receivers of Mostofi & Murray 2009: scenario 1 (eqs 7–8), 2 (eqs 10–13) and 3 (eqs 27–28).
 
 A packet carries all of y_k (one arrival stream); it is kept iff Υ[k] ≥ Υ_T (eq. 5). Every recursion
-is written on the Kalman core (:mod:`netkf_cli.kalman`): a dropped packet is γ = 0 (the correction
+is written on the Kalman core (:mod:`netkf_cli.linalg.kalman`): a dropped packet is γ = 0 (the correction
 is multiplied by γ), the communication noise of a kept packet is the core's per-run ``extra_R``
 = σ_n²(Υ) I, a suboptimal receiver's true error covariance is :func:`kalman.joseph` of its gain, and
 every step goes through the one overflow policy (:class:`kalman.Rescue`; non-finite ⇒ ``inf``):
@@ -22,7 +22,7 @@ which its figures plot. (The paper-figure analyses ``fading_*`` keep the paper's
 P[0] = P0 is the prior of the first packet; their kernels drive :class:`Stepper` from that prior.)
 
 All recursions are batched over runs (``(n, n, B)``, run axis innermost); the compiled backend
-(:mod:`netkf_cli.estimators._fading_numba`) runs the same primitives from :mod:`netkf_cli.kalman_numba`.
+(:mod:`netkf_cli.estimators._fading_numba`) runs the same primitives from :mod:`netkf_cli.linalg.kalman_numba`.
 
 Two Monte Carlo estimators of E P[k]:
 
@@ -51,13 +51,13 @@ import numpy as np
 from pydantic import Field
 from scipy import special
 
-from netkf_cli import kalman
+from netkf_cli.linalg import kalman
 from netkf_cli.analysis import fading as fa
 from netkf_cli.channels.fading import IidCorrelation, NoiseFn, Snr, sample_gain, snr_given_kept  # noqa: F401
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators import _fading_codegen as fcg
-from netkf_cli.riccati import initial_covariance
-from netkf_cli.spec import EstimatorModel
+from netkf_cli.linalg.riccati import initial_covariance
+from netkf_cli.core.spec import EstimatorModel
 
 BackendKind = Literal["auto", "numpy", "numba"]
 RECORD_BYTES = 64e6
@@ -240,7 +240,7 @@ class ReceiverEstimator(EstimatorModel):
         (:func:`correct` / :func:`predict`, as :meth:`covariances`) with the state, x̂_{0|0} = 0 — the gain of a
         kept packet from that recursion: scenario 1 ``kalman.gain``(P, C, R), scenario 3 with ``extra_R`` =
         σ_n²(Υ) I, scenario 2 C⁻¹ or ``kalman.gain`` of the receiver's own P_f with zero noise. ``y`` (m,
-        horizon+1, runs): the packets as received (:func:`netkf_cli.state.received`: y_k plus the channel's
+        horizon+1, runs): the packets as received (:func:`netkf_cli.engine.state.received`: y_k plus the channel's
         communication noise). Scenario 1's P assumes kept packets are noise-free (eq. 7, S₁ = 0): on a link
         with communication noise it is NOT the error covariance (a NEES check detects it); 2 and 3 report the
         true one."""

@@ -1,6 +1,6 @@
 """MF, IBF and OLPEF at a fusion centre fed by N lossy links (Chiuso & Schenato, Sec. II), on the Kalman core.
 
-The sensors are the system's (``system.sensors``; :func:`netkf_cli.kalman.stream_rows`): arrival stream
+The sensors are the system's (``system.sensors``; :func:`netkf_cli.linalg.kalman.stream_rows`): arrival stream
 i of a ``multi`` channel carries sensor i's whole measurement y_k^i = C_i x_k + v_k^i; a channel with one
 stream carries all of y_k in one packet (one "sensor"). ``system.sensors: N`` = N identical sensors
 (C, R copied N times). Every error covariance depends on the arrival trace only (covariance-only mode),
@@ -9,7 +9,7 @@ batched over runs (loop over time, run axis innermost).
 Time base (netkf's one): P0 = P_{0|0} = ``riccati.initial_covariance(system)`` (``system.P0``; unset =
 P̄ of the stacked system, i.e. P_{1|0} = P_m, the all-sensors steady state of the paper); step k = 1 …
 horizon is the time of the newest measurement y_k (trace step k − 1); quantities ``filtered`` P_{k|k}
-and ``predicted`` P_{k+1|k} = A P_{k|k} Aᵀ + Q (:func:`netkf_cli.kalman.report`).
+and ``predicted`` P_{k+1|k} = A P_{k|k} Aᵀ + Q (:func:`netkf_cli.linalg.kalman.report`).
 
 * MF (eqs (6)–(9)): the Kalman filter with the sensors that arrived at step k — ``kalman.Filter``
   itself (so MF with one sensor, or with N sensors, IS ``kf`` on the same trace); with N identical
@@ -36,15 +36,15 @@ import numpy as np
 import scipy.linalg
 from pydantic import Field
 
-from netkf_cli import kalman
-from netkf_cli import kalman_codegen as kc
+from netkf_cli.linalg import kalman
+from netkf_cli.linalg import kalman_codegen as kc
 from netkf_cli.analysis.fusion_bounds import _as2d, p_m
 from netkf_cli.channels.multi import block_steps
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.kf import channel_streams, filter_estimates
-from netkf_cli.riccati import initial_covariance
-from netkf_cli.spec import EstimatorModel
-from netkf_cli.system import LinearSystem
+from netkf_cli.linalg.riccati import initial_covariance
+from netkf_cli.core.spec import EstimatorModel
+from netkf_cli.core.system import LinearSystem
 
 Strategy = Literal["mf", "ibf", "olpef"]
 STRATEGIES: tuple[str, ...] = ("mf", "ibf", "olpef")
@@ -61,7 +61,7 @@ def identical_sensors(A, C, Q, R, N: int, P0=None) -> LinearSystem:
 
 @dataclass(frozen=True)
 class Sensors:
-    """The fusion centre's sensors: the core's :class:`~netkf_cli.kalman.Filter` over the channel's
+    """The fusion centre's sensors: the core's :class:`~netkf_cli.linalg.kalman.Filter` over the channel's
     streams, and (C1, R1) of one sensor when all N are identical and independent (else ``None``)."""
 
     filt: kalman.Filter
@@ -278,7 +278,7 @@ def _mf_run(sens: Sensors, P0: np.ndarray, trace, want, qs, backend: str = "nump
     The count ℓ is all MF reads (:func:`trace_counts`; a :class:`~netkf_cli.channels.multi.CountTrace`
     never draws its per-sensor pattern here), and the Rescue is the count form
     (:meth:`Sensors.correct_counts`). ``backend`` numba: the generated kernel
-    (:func:`netkf_cli.kalman_codegen.kernel_counts`) advances the upper triangle of P between reported
+    (:func:`netkf_cli.linalg.kalman_codegen.kernel_counts`) advances the upper triangle of P between reported
     steps; flagged runs are redone on the numpy count update from P0, as :meth:`kalman.Filter.run` does."""
     runs = trace.runs
     counts = trace_counts(trace, sens.N)
@@ -342,7 +342,7 @@ def _unpack(T: np.ndarray, n: int) -> np.ndarray:
 
 def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
     """IBF / OLPEF with N identical sensors on the generated kernels (:func:`kalman_codegen.source_ibf`,
-    :func:`~netkf_cli.kalman_codegen.source_olpef`): per reported step, each run's τ from the last
+    :func:`~netkf_cli.linalg.kalman_codegen.source_olpef`): per reported step, each run's τ from the last
     arrivals (N, runs) and the evaluation in one compiled pass (IBF: K count steps from the
     full-information P; OLPEF: the quadratic form in the τ histogram). IBF runs flagged by the Rescue
     test are redone on the numpy :class:`IBF`."""

@@ -3,7 +3,7 @@
     P_{k|k−1} = A P_{k−1|k−1} Aᵀ + Q,
     P_{k|k}   = P_{k|k−1} − γ_k P_{k|k−1} Cᵀ (C P_{k|k−1} Cᵀ + R)⁻¹ C P_{k|k−1},
 
-with γ_k ∈ {0, 1} the arrival of y_k. The recursion is the Kalman core's :class:`netkf_cli.kalman.Filter`:
+with γ_k ∈ {0, 1} the arrival of y_k. The recursion is the Kalman core's :class:`netkf_cli.linalg.kalman.Filter`:
 a channel with one arrival stream carries all of y_k in one packet; a channel with S streams carries
 the S sensors of ``system.sensors`` (default: one sensor per output row), each with its own γ.
 P0 = P_{0|0} (``system.P0``; unset = P̄). Quantities: ``filtered`` P_{k|k}, ``predicted`` P_{k+1|k}.
@@ -16,10 +16,10 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from netkf_cli import kalman, kf_fused
-from netkf_cli.errors import ConfigError
-from netkf_cli.riccati import initial_covariance
-from netkf_cli.spec import EstimatorModel
+from netkf_cli.linalg import kalman, kf_fused
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.linalg.riccati import initial_covariance
+from netkf_cli.core.spec import EstimatorModel
 
 
 def channel_streams(channel) -> int | None:
@@ -65,7 +65,7 @@ class KalmanFilterEstimator(EstimatorModel):
         return kalman.choose_backend(self.backend, kalman.Filter.of(system, S), runs * horizon)
 
     def fused(self, system, channel, run_steps: int) -> "kf_fused.FusedFilter | None":
-        """The fused kernel (:mod:`netkf_cli.kf_fused`: the channel's uniforms → arrivals → generated filter
+        """The fused kernel (:mod:`netkf_cli.linalg.kf_fused`: the channel's uniforms → arrivals → generated filter
         step, reduced by the engine in the same pass) where it applies: the channel has an ``arrival_law``
         (bernoulli, gilbert_elliott), the backend is numba (``auto``: :func:`kalman.choose_backend`) and the
         system has a generated kernel with one arrival stream; else None (the trace → covariances path)."""
@@ -81,7 +81,7 @@ class KalmanFilterEstimator(EstimatorModel):
     def estimates(self, system, trace, y, steps, quantities=("filtered",)):
         """Yield (k, {quantity: (x̂ (n, runs), P (n, n, runs))}): the state estimate beside the covariance of
         :meth:`covariances` (the same recursion: :func:`filter_estimates`; numpy path). ``y`` (m, horizon+1,
-        runs) is what the receiver sees at each step (:mod:`netkf_cli.state`), x̂_{0|0} = 0."""
+        runs) is what the receiver sees at each step (:mod:`netkf_cli.engine.state`), x̂_{0|0} = 0."""
         qs = kalman.check_quantities(quantities, self.quantities, "kf")
         f = kalman.Filter.of(system, trace.arrival.shape[0], "estimator.kind")
         yield from filter_estimates(f, initial_covariance(system), trace.arrival, y, steps, qs)

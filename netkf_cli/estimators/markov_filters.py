@@ -59,10 +59,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from netkf_cli import batched, kalman
-from netkf_cli.errors import ConfigError
+from netkf_cli.linalg import batched, kalman
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators import _markov_codegen
-from netkf_cli.tolerances import FIXED_GAIN_PRECISION, PSD_INPUT_TOL, ZERO_INNOVATION_RTOL
+from netkf_cli.core.tolerances import FIXED_GAIN_PRECISION, PSD_INPUT_TOL, ZERO_INNOVATION_RTOL
 
 N_MODES = 4
 
@@ -544,7 +544,7 @@ class ModeAwareKFTr:
 def _resolved(P: np.ndarray, C: np.ndarray, M: np.ndarray) -> np.ndarray:
     """P = C M Cᵀ (+ noise) per run, or ``inf`` where round-off can have cancelled its digits:
     ε_mach·‖C‖_F²·tr M > FIXED_GAIN_PRECISION·tr P (an unstable plant's second moment M grows without
-    bound; :data:`netkf_cli.tolerances.FIXED_GAIN_PRECISION`)."""
+    bound; :data:`netkf_cli.core.tolerances.FIXED_GAIN_PRECISION`)."""
     with np.errstate(over="ignore", invalid="ignore"):
         noise = np.finfo(float).eps * float(np.sum(C * C)) * batched.trace(M)
         lost = ~(noise <= FIXED_GAIN_PRECISION * batched.trace(P))
@@ -646,7 +646,7 @@ def _numba_kernel():
         return _NB_KERNEL
     import numba  # optional (netkf[fast]): imported only when the compiled backend runs
 
-    from netkf_cli import kalman_numba as kn  # needs numba: the compiled primitives
+    from netkf_cli.linalg import kalman_numba as kn  # needs numba: the compiled primitives
 
     @numba.njit(cache=True, nogil=True)
     def run(P, modes, t0, t1, H, Rq, rowptr, cols, vals, Qb, scale, rtol, n, limit, Pfx, flag):  # pragma: no cover - compiled

@@ -57,8 +57,8 @@ import cvxpy as cp
 import numpy as np
 from pydantic import Field
 
-from netkf_cli import kalman
-from netkf_cli.errors import ConfigError
+from netkf_cli.linalg import kalman
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators import _markov_codegen
 from netkf_cli.estimators.kf import channel_streams
 from netkf_cli.estimators.markov_filters import (
@@ -76,8 +76,8 @@ from netkf_cli.estimators.markov_filters import (
     psd_sqrt,
     resolve_backend,
 )
-from netkf_cli.riccati import initial_covariance
-from netkf_cli.spec import EstimatorModel, Matrix, NonNegFloat, NonNegInt, PositiveFloat
+from netkf_cli.linalg.riccati import initial_covariance
+from netkf_cli.core.spec import EstimatorModel, Matrix, NonNegFloat, NonNegInt, PositiveFloat
 
 
 def design_weights(rho: np.ndarray, precedence: bool = True) -> np.ndarray:
@@ -526,7 +526,7 @@ class MarkovLMIEstimator(EstimatorModel):
     def estimates(self, system, trace, y, steps, quantities=("filtered",)):
         """Yield (k, {quantity: (x̂ (n, runs), P (n, n, runs))}): the estimate of ``filter`` beside the P of
         :meth:`covariances` (numpy path; x̂ from the same gains). ``y`` (m, horizon+1, runs) is what the
-        receiver sees (:func:`netkf_cli.state.received`: the mode's packet). Every P here is the filter's
+        receiver sees (:func:`netkf_cli.engine.state.received`: the mode's packet). Every P here is the filter's
         error covariance given the mode path (the naive KF's own Riccati P, which assumes mode 1, is not
         reported), so a NEES check passes for every ``filter``."""
         qs = kalman.check_quantities(quantities, self.quantities, "markov_lmi")

@@ -7,7 +7,7 @@ received and kept, and predicts it forward:
     N_k = min{t ≥ 0 : γ^{(k)}_{k−t} = 1}   (eq. 7; N_k = k when no packet is kept by k),
     x̂_{k|k} = A^{N_k} x̂^s_{k−N_k},
 
-so, exactly (on the one time base, from P_{0|0} = :func:`netkf_cli.riccati.initial_covariance`),
+so, exactly (on the one time base, from P_{0|0} = :func:`netkf_cli.linalg.riccati.initial_covariance`),
 
     filtered   P_{k|k}   = h^{N_k}(P^s_{k−N_k}),     P^s_0 = P_{0|0},  P^s_t = g̃(h(P^s_{t−1}))  (the sensor's KF),
     predicted  P_{k+1|k} = h(P_{k|k}) = h^{N_k+1}(P^s_{k−N_k}),
@@ -26,13 +26,13 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from netkf_cli import kalman
+from netkf_cli.linalg import kalman
 from netkf_cli.channels.delay import kept_by, trace_delays, trace_max_kept_delay
 from netkf_cli.estimators.buffered import delay_conventions, single_link
 from netkf_cli.estimators.kf import filter_estimates
-from netkf_cli.riccati import initial_covariance
-from netkf_cli.spec import EstimatorModel
-from netkf_cli.system import LinearSystem
+from netkf_cli.linalg.riccati import initial_covariance
+from netkf_cli.core.spec import EstimatorModel
+from netkf_cli.core.system import LinearSystem
 
 
 class SmartSensorEstimator(EstimatorModel):
@@ -64,7 +64,7 @@ class SmartSensorEstimator(EstimatorModel):
     def estimates(self, system: LinearSystem, trace, y, steps, quantities=("filtered",)):
         """Yield (k, {quantity: (x̂, P)}): x̂_{k|k} = A^{N_k} x̂^s_{k−N_k} beside the P of :meth:`covariances`
         (numpy path). x̂^s is the sensor's Kalman filter on every y_t (``kf.filter_estimates``, every γ = 1,
-        x̂^s_0 = 0); ``y`` (m, horizon+1, runs) the sensor's measurements (:mod:`netkf_cli.state`)."""
+        x̂^s_0 = 0); ``y`` (m, horizon+1, runs) the sensor's measurements (:mod:`netkf_cli.engine.state`)."""
         qs = kalman.check_quantities(quantities, self.quantities, "smart_sensor")
         want = sorted({int(k) for k in steps})
         if not want:

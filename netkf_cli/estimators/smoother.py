@@ -1,12 +1,12 @@
 """Kalman fixed-lag smoother with random packet loss (Leong, Dey & Evans 2008, Sec. II), on the Kalman core.
 
-Forward pass: :class:`netkf_cli.kalman.Filter` (the Kalman filter with intermittent observations,
-every step through the one rescue policy :class:`netkf_cli.kalman.Rescue`), so ``filtered`` and
+Forward pass: :class:`netkf_cli.linalg.kalman.Filter` (the Kalman filter with intermittent observations,
+every step through the one rescue policy :class:`netkf_cli.linalg.kalman.Rescue`), so ``filtered`` and
 ``predicted`` are exactly those of ``kind: kf``. Backward pass: N Rauch–Tung–Striebel steps from
 P_{k|k} back to the target time k − N, t = k−1 … k−N:
 
     P_{t|k} = P_{t|t} + J_t (P_{t+1|k} − P_{t+1|t}) J_tᵀ,   J_t = P_{t|t} Aᵀ P_{t+1|t}⁻¹
-            = P_{t|t, x_{t+1}} + J_t P_{t+1|k} J_tᵀ          (:class:`netkf_cli.kalman.SmoothStep`)
+            = P_{t|t, x_{t+1}} + J_t P_{t+1|k} J_tᵀ          (:class:`netkf_cli.linalg.kalman.SmoothStep`)
 
 with P_{t|t, x_{t+1}} = P_{t|t} − J_t A P_{t|t} the core's ``update`` of P_{t|t} by x_{t+1} = A x_t + w_t
 (C = A, R = Q; its gain is J_t), through the rescue ``Rescue.of(A, Q)``: the first form subtracts
@@ -24,7 +24,7 @@ filtered array itself. Overflow: a run whose forward pass is non-finite (inf by 
 is inf in every quantity, never NaN.
 
 Sensors: a channel with one arrival stream carries all of y_k; S streams carry the S sensors of
-``system.sensors`` (:func:`netkf_cli.kalman.stream_rows`).
+``system.sensors`` (:func:`netkf_cli.linalg.kalman.stream_rows`).
 
 Backends. The batched pass (:func:`_run_shared`): the forward pass is kf's own call (``Filter.run``
 with the backend kf chooses, :func:`kalman.choose_backend`: the generated compiled kernel for large
@@ -38,7 +38,7 @@ to rounding for n ≥ 3), also after kf's numpy forward pass for batches of ≥ 
 smoothers that differ only in lag share the forward pass, the RTS pieces and the chain (P_{k−4|k}
 continues from P_{k−2|k}): the same numbers as separate passes (a test). ``numba``: the batched pass with
 the compiled forward and backward passes; for at most :data:`AUTO_NUMBA_MAX_RUNS` runs and one arrival
-stream, the per-run kernel built from :mod:`netkf_cli.kalman_numba`'s inlined primitives (predict,
+stream, the per-run kernel built from :mod:`netkf_cli.linalg.kalman_numba`'s inlined primitives (predict,
 update, the rescue's information update, gain, the RTS step ``smooth``; equal to rounding, a test), which
 ``auto`` also takes for lag ≥ 1 there (long runs of few columns, the paper's-way run of Table I).
 
@@ -58,14 +58,14 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from netkf_cli import batched, kalman
-from netkf_cli import kalman_codegen as kc
+from netkf_cli.linalg import batched, kalman
+from netkf_cli.linalg import kalman_codegen as kc
 from netkf_cli.estimators import _smoother_codegen as sc
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.kf import channel_streams, filter_estimates
-from netkf_cli.riccati import initial_covariance
-from netkf_cli.spec import EstimatorModel, NonNegInt
-from netkf_cli.system import LinearSystem
+from netkf_cli.linalg.riccati import initial_covariance
+from netkf_cli.core.spec import EstimatorModel, NonNegInt
+from netkf_cli.core.system import LinearSystem
 
 MAX_LAG = 64
 """Largest smoothing lag accepted (the work per step grows linearly with the lag)."""
@@ -625,7 +625,7 @@ def _inf_if_bad(P: np.ndarray) -> np.ndarray:
 
 
 kn = None
-"""netkf_cli.kalman_numba, bound when the kernel is first compiled (numba is optional)."""
+"""netkf_cli.linalg.kalman_numba, bound when the kernel is first compiled (numba is optional)."""
 
 _JIT: dict[str, object] = {}
 
@@ -751,7 +751,7 @@ def _kernel():
     if f is None:
         import numba as nb  # optional (netkf[fast]): imported only when the compiled backend runs
 
-        from netkf_cli import kalman_numba  # needs numba: the compiled primitives
+        from netkf_cli.linalg import kalman_numba  # needs numba: the compiled primitives
 
         opts = dict(cache=True, nogil=True, error_model="numpy")
         g = globals()

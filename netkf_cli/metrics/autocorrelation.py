@@ -20,12 +20,12 @@ import numpy as np
 import pandas as pd
 from pydantic import Field
 
-from netkf_cli.artefact import Artefact, RunContext
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.artefact import Artefact, RunContext
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.metrics.common import needs, PaperRef
-from netkf_cli.montecarlo import run_chunked
-from netkf_cli.plotting import PALETTE, footnote, new_figure, paper_title
-from netkf_cli.spec import AnalysisModel, PositiveInt
+from netkf_cli.runtime.montecarlo import run_chunked
+from netkf_cli.runtime.plotting import PALETTE, footnote, new_figure, paper_title
+from netkf_cli.core.spec import AnalysisModel, PositiveInt
 
 COLUMNS = ["series", "lag", "value", "stderr", "n", "z", "source"]
 

@@ -37,14 +37,14 @@ import numpy as np
 import pandas as pd
 from pydantic import Field
 
-from netkf_cli.artefact import Artefact, RunContext
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.artefact import Artefact, RunContext
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.fading_receivers import BurstSMCKernel
 from netkf_cli.metrics import derived
 from netkf_cli.metrics.common import LABEL_COLUMNS, describe, GenericMetric, labels, math_text, needs, PaperRef
-from netkf_cli.montecarlo import run_chunked
-from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
-from netkf_cli.spec import PositiveInt
+from netkf_cli.runtime.montecarlo import run_chunked
+from netkf_cli.runtime.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
+from netkf_cli.core.spec import PositiveInt
 
 RELIABLE_REL_SE = 0.05
 """A mean is flagged unreliable (not drawn) above 5 % relative standard error or with an overflowed run."""

@@ -7,11 +7,12 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from netkf_cli import engine, kalman
+from netkf_cli import engine
+from netkf_cli.linalg import kalman
 from netkf_cli.analysis import critical as cr
 from netkf_cli.analysis import references
-from netkf_cli.errors import ConfigError
-from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt, StrictModel
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.core.spec import AnalysisModel, PositiveFloat, PositiveInt, StrictModel
 
 Quantity = Literal["filtered", "predicted", "smoothed"]
 LABEL_COLUMNS = ["quantity", "P0", "conventions"]
@@ -173,7 +174,7 @@ def conventions_note(labels_by_estimator: dict[str, str]) -> str:
 
 def quantity_text(quantity: str, what: str = "P_k") -> str:
     """Mathtext for a quantity: ``filtered`` → P_{k \\mid k} (a figure label: mathtext's STIX sans draws a bare ``|``
-    in a subscript like an l, "klk"; CSV text keeps P_{k|k}, :data:`netkf_cli.kalman.SYMBOL`)."""
+    in a subscript like an l, "klk"; CSV text keeps P_{k|k}, :data:`netkf_cli.linalg.kalman.SYMBOL`)."""
     sub = {"filtered": r"k \mid k", "predicted": r"k+1 \mid k", "smoothed": r"k-N \mid k"}[quantity]
     return what.replace("P_k", f"P_{{{sub}}}")
 

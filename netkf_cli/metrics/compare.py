@@ -21,10 +21,10 @@ from pydantic import Field
 from netkf_cli import engine
 from netkf_cli.metrics.common import (fold_over, LABEL_COLUMNS, backends, channel_words, describe, GenericMetric, horizon_of,
                                       labels, math_text, n_runs_of, PaperRef, quantity_text, step_of)
-from netkf_cli.stats import mean_se, proportion_stderr, wilson_interval
-from netkf_cli.plotting import footnote, new_figure, paper_title, series_style
-from netkf_cli.artefact import Artefact, RunContext
-from netkf_cli.spec import PositiveFloat, PositiveInt
+from netkf_cli.core.stats import mean_se, proportion_stderr, wilson_interval
+from netkf_cli.runtime.plotting import footnote, new_figure, paper_title, series_style
+from netkf_cli.core.artefact import Artefact, RunContext
+from netkf_cli.core.spec import PositiveFloat, PositiveInt
 
 COLUMNS = ["estimator", "statistic", "M", "value", "stderr", "ci_low", "ci_high", "n", "heavy_tail", "k"] + LABEL_COLUMNS
 

@@ -32,12 +32,12 @@ from pydantic import Field, model_validator
 
 from netkf_cli.analysis import critical as cr
 from netkf_cli.channels.bernoulli import BernoulliChannel
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.metrics.tail import kf_for, time_average_mean
-from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
-from netkf_cli.artefact import Artefact, RunContext
-from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt, Probability, StrictModel
-from netkf_cli.system import LinearSystem
+from netkf_cli.runtime.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
+from netkf_cli.core.artefact import Artefact, RunContext
+from netkf_cli.core.spec import AnalysisModel, PositiveFloat, PositiveInt, Probability, StrictModel
+from netkf_cli.core.system import LinearSystem
 
 TOPIC = "critical"
 PAPER = "Sinopoli et al. 2004"
@@ -256,7 +256,7 @@ def critical_answer(*, config: Path | None = None, scenario=None, locate=None, a
     """
     channel = None
     if config is not None and scenario is None:
-        raise TypeError("critical_answer: load the scenario first (netkf_cli.loader.load_scenario) and pass scenario=")
+        raise TypeError("critical_answer: load the scenario first (netkf_cli.config.loader.load_scenario) and pass scenario=")
     if scenario is not None:
         sc = scenario
         try:

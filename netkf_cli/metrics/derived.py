@@ -10,7 +10,7 @@ point against another — read these derived tables, written beside the main tab
   ``ratio`` = a / b, ``stderr`` = √(se_a² + se_b²) (a closed form has none; for two Monte Carlo rows of
   the same traces this is conservative: the paired error is smaller) and ``z`` = diff / max(stderr,
   PSD_TOL · max(|a|, |b|)) (a deterministic Monte Carlo, e.g. on a loss-free channel, differs from its
-  closed form by round-off only: :data:`netkf_cli.tolerances.PSD_TOL` relative).
+  closed form by round-off only: :data:`netkf_cli.core.tolerances.PSD_TOL` relative).
 * ``trend`` — along each over path p, for every two grid points that differ only in p (``from`` <
   ``to`` in grid order), every row present at both: ``diff`` = value(to) − value(from).
 
@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from netkf_cli.tolerances import PSD_TOL
+from netkf_cli.core.tolerances import PSD_TOL
 
 KEYS = ["estimator", "series", "source"]
 

@@ -27,18 +27,19 @@ import numpy as np
 import pandas as pd
 from pydantic import Field, model_validator
 
-from netkf_cli import engine, riccati
+from netkf_cli import engine
+from netkf_cli.linalg import riccati
 from netkf_cli.analysis import delay_bounds as db
 from netkf_cli.analysis import delay_exact as dx
 from netkf_cli.channels.delay import delay_label
 from netkf_cli.estimators.buffered import packet_span
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.metrics.common import (fold_over, LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels, m_values,
                                       math_text, MGrid, n_runs_of, needs, PaperRef, quantity_text, step_of)
-from netkf_cli.stats import mean_se, proportion_stderr, wilson_interval
-from netkf_cli.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
-from netkf_cli.artefact import Artefact, RunContext
-from netkf_cli.spec import PositiveFloat, PositiveInt
+from netkf_cli.core.stats import mean_se, proportion_stderr, wilson_interval
+from netkf_cli.runtime.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
+from netkf_cli.core.artefact import Artefact, RunContext
+from netkf_cli.core.spec import PositiveFloat, PositiveInt
 
 COLUMNS = ["M", "estimator", "series", "value", "stderr", "ci_low", "ci_high", "n", "err", "k"] + LABEL_COLUMNS
 K_JUMPS = 2000

@@ -19,12 +19,12 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine
-from netkf_cli.stats import FLAG_REASONS, flag_reason
+from netkf_cli.core.stats import FLAG_REASONS, flag_reason
 from netkf_cli.metrics.common import (fold_over, LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels,
                                       math_text, n_runs_of, PaperRef, quantity_text)
-from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
-from netkf_cli.artefact import Artefact, RunContext
-from netkf_cli.spec import PositiveInt
+from netkf_cli.runtime.plotting import footnote, legend_outside, new_figure, paper_title, series_style
+from netkf_cli.core.artefact import Artefact, RunContext
+from netkf_cli.core.spec import PositiveInt
 
 ONE = {"trace": r"$\mathrm{tr}\,P_k$", "lambda_max": r"$\lambda_{\max}(P_k)$", "entries": r"$P_k$ entries"}
 COLUMNS = ["k", "estimator", "series", "value", "stderr", "n", "nonfinite", "heavy_tail", "rare_event",

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli.stats import EPS
+from netkf_cli.core.stats import EPS
 
 GAP_FACTOR = 5.0
 """λ₁ − λ_i of M̂ must exceed this many standard errors s_i of the (u, u_i) block for the delta-method s.e."""
@@ -33,7 +33,7 @@ EIGEN_GAP_REASON = ("the top eigenvalue of the mean is (near-)degenerate: λ1 �
 
 ROUNDOFF = 100.0 * EPS
 """A per-run variance below ROUNDOFF · ‖M̂‖² is rounding (every run the same number, e.g. scenario 2 with an invertible
-C, exact per run): the s.e. is 0, as :func:`netkf_cli.stats.mean_se` rules for a scalar mean."""
+C, exact per run): the s.e. is 0, as :func:`netkf_cli.core.stats.mean_se` rules for a scalar mean."""
 
 _TRIU: dict = {}
 

@@ -1,6 +1,6 @@
 """``kind: state_error`` — the estimators' actual errors beside the covariances they report (NEES), and trajectories.
 
-The engine simulates the true state behind every channel trace (:mod:`netkf_cli.state`:
+The engine simulates the true state behind every channel trace (:mod:`netkf_cli.engine.state`:
 x_0 ~ N(0, P_{0|0}), x_{k+1} = A x_k + w_k, y_k = C x_k + v_k, the receiver's signal per the channel's
 packet model) and runs every estimator's ``estimates`` on the same runs (common random numbers). Per
 estimator and step k it reports
@@ -36,14 +36,14 @@ import numpy as np
 import pandas as pd
 from pydantic import Field
 
-from netkf_cli import state
-from netkf_cli.artefact import Artefact, RunContext
-from netkf_cli.errors import ConfigError
+from netkf_cli.engine import state
+from netkf_cli.core.artefact import Artefact, RunContext
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.metrics.common import (LABEL_COLUMNS, GenericMetric, PaperRef, Quantity, conventions_note, describe, labels,
                                       math_text, needs, quantity_text)
-from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
-from netkf_cli.spec import Matrix, NonNegInt, PositiveInt
-from netkf_cli.stats import mean_se
+from netkf_cli.runtime.plotting import footnote, legend_outside, new_figure, paper_title, series_style
+from netkf_cli.core.spec import Matrix, NonNegInt, PositiveInt
+from netkf_cli.core.stats import mean_se
 
 Z = 5.0  # consistency tolerance in standard errors (a two-sided 5σ event has p ≈ 6e-7 per step)
 TRAJECTORY_STREAM = 2**30  # trajectories: stream TRAJECTORY_STREAM + s, reserved (no Monte Carlo stream reaches 2³⁰)

@@ -44,13 +44,13 @@ from pydantic import Field, model_validator
 from scipy import stats as sps
 
 from netkf_cli.analysis import critical as cr
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.metrics.common import kf_tail_exponent, loss_burst_law, MGrid, PaperRef, labels, m_values, needs
-from netkf_cli.montecarlo import run_chunked, wilson_interval
-from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
-from netkf_cli.artefact import Artefact, RunContext
-from netkf_cli.spec import AnalysisModel, PositiveInt
+from netkf_cli.runtime.montecarlo import run_chunked, wilson_interval
+from netkf_cli.runtime.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
+from netkf_cli.core.artefact import Artefact, RunContext
+from netkf_cli.core.spec import AnalysisModel, PositiveInt
 
 QUANTITY = {"filtered": "P_{k|k}", "predicted": "P_{k+1|k}", "smoothed": "P_{k-N|k}"}
 MIN_CONTRIBUTORS = 30

@@ -26,16 +26,17 @@ import numpy as np
 import pandas as pd
 from pydantic import Field, model_validator
 
-from netkf_cli import engine, kalman
-from netkf_cli.artefact import Artefact, RunContext
-from netkf_cli.errors import ConfigError
+from netkf_cli import engine
+from netkf_cli.linalg import kalman
+from netkf_cli.core.artefact import Artefact, RunContext
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.metrics import derived
 from netkf_cli.metrics import norm_of_mean as nm
 from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric,
                                       kf_tail_exponent, labels, math_text, PaperRef, Quantity)
-from netkf_cli.spec import PositiveInt
-from netkf_cli.plotting import LINESTYLES, MARKERS, MIN_FONT_PT, PALETTE, footnote, legend_outside, new_figure, paper_title
-from netkf_cli.stats import FLAG_REASONS, flag_reason, heavy_tail_flag, mean_se, rare_event_flag
+from netkf_cli.core.spec import PositiveInt
+from netkf_cli.runtime.plotting import LINESTYLES, MARKERS, MIN_FONT_PT, PALETTE, footnote, legend_outside, new_figure, paper_title
+from netkf_cli.core.stats import FLAG_REASONS, flag_reason, heavy_tail_flag, mean_se, rare_event_flag
 
 TRACE, PROB, NORM = "E[tr P]", "Pr[P<=M]", "‖E P‖"
 M4_ROUNDING = 1e-3
@@ -348,7 +349,7 @@ REF_MARKERS = ("D", "s", "v", "p")  # closed forms: hollow, unlike the Monte Car
 def _unreliable(g) -> np.ndarray:
     """Rows not drawn on the line: heavy-tailed, rare-event dominated, non-finite, or (‖E P‖) a degenerate top
     eigenvalue (flag_reason eigen_gap: the delta-method s.e. is invalid)."""
-    gap = g.flag_reason.fillna("").astype(str).str.contains("eigen_gap").to_numpy()
+    gap = g.flag_reason.astype(str).str.contains("eigen_gap").to_numpy()
     return (g.heavy_tail.astype(bool).to_numpy() | g.rare_event.astype(bool).to_numpy()
             | ~np.isfinite(g.value.to_numpy()) | gap)
 

@@ -22,14 +22,14 @@ import numpy as np
 import pandas as pd
 from pydantic import Field
 
-from netkf_cli.artefact import Artefact, RunContext
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.artefact import Artefact, RunContext
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.metrics import derived
 from netkf_cli.metrics.common import GenericMetric, conventions_label, labels, math_text, needs, p0_label, PaperRef
-from netkf_cli.montecarlo import run_chunked
-from netkf_cli.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
-from netkf_cli.spec import PositiveFloat
-from netkf_cli.stats import heavy_tail_flag, mean_se, rare_event_flag
+from netkf_cli.runtime.montecarlo import run_chunked
+from netkf_cli.runtime.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
+from netkf_cli.core.spec import PositiveFloat
+from netkf_cli.core.stats import heavy_tail_flag, mean_se, rare_event_flag
 
 SERIES = "E[updates per step]"
 COLUMNS = ["estimator", "quantity", "series", "M", "value", "stderr", "n", "nonfinite", "heavy_tail", "rare_event",

@@ -1,5 +1,5 @@
-"""What every artefact recipe receives and returns: :mod:`netkf_cli.artefact` (re-exported here)."""
+"""What every artefact recipe receives and returns: :mod:`netkf_cli.core.artefact` (re-exported here)."""
 
-from netkf_cli.artefact import Artefact, RunContext
+from netkf_cli.core.artefact import Artefact, RunContext
 
 __all__ = ["Artefact", "RunContext"]

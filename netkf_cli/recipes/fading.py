@@ -21,10 +21,10 @@ from pydantic import Field, model_validator
 
 from netkf_cli.analysis import fading as fa
 from netkf_cli.channels.fading import Snr
-from netkf_cli.errors import ConfigError
-from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.runtime.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
-from netkf_cli.spec import AnalysisModel, FiniteFloat, PositiveInt, StrictModel
+from netkf_cli.core.spec import AnalysisModel, FiniteFloat, PositiveInt, StrictModel
 
 class Grid(StrictModel):
     """A grid of SNR values with its unit: ``{unit: linear, values: [...]}`` or ``{unit, start, stop, num}``."""

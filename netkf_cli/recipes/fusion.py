@@ -20,10 +20,10 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli.analysis import fusion_bounds as fb
-from netkf_cli.errors import ConfigError
-from netkf_cli.plotting import footnote, legend_outside, new_figure, paper_title, series_style
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.runtime.plotting import footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
-from netkf_cli.spec import AnalysisModel, NonNegInt, PositiveFloat, PositiveInt
+from netkf_cli.core.spec import AnalysisModel, NonNegInt, PositiveFloat, PositiveInt
 
 CONVENTIONS = {
     "P": "prediction error variance P (the argument of the Riccati filtering map)",

@@ -27,12 +27,12 @@ import pandas as pd
 from pydantic import Field
 
 from netkf_cli.channels.markov_modes import MODE_NAMES, N_MODES
-from netkf_cli.errors import ConfigError, Problem
+from netkf_cli.core.errors import ConfigError, Problem
 from netkf_cli.estimators.markov_filters import exact_mse, lmmse_filter, naive_filter
 from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator, lmi_design
-from netkf_cli.plotting import LINESTYLES, PALETTE, footnote, legend_outside, new_figure, paper_title
+from netkf_cli.runtime.plotting import LINESTYLES, PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.recipes.base import Artefact, RunContext
-from netkf_cli.spec import AnalysisModel
+from netkf_cli.core.spec import AnalysisModel
 
 FILTERS = ("lmmse", "lmi", "naive_kf")
 LABELS = {"lmmse": "exact LMMSE (modes unobserved)", "lmi": "LMI filter (paper)", "naive_kf": "naive KF (ignores modes)"}

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli import riccati
-from netkf_cli.errors import ConfigError
+from netkf_cli.linalg import riccati
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.buffered import packet_span
 from netkf_cli.metrics.common import MGrid, m_values  # noqa: F401 - re-exported for older imports
 

@@ -14,9 +14,9 @@ from pydantic import Field
 
 from netkf_cli.analysis import delay_bounds as db
 from netkf_cli.channels.delay import CONVENTION_HELP, delay_label  # noqa: F401 - delay_label re-exported
-from netkf_cli.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title
+from netkf_cli.runtime.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.recipes.base import Artefact, RunContext
-from netkf_cli.spec import AnalysisModel, PositiveFloat, PositiveInt
+from netkf_cli.core.spec import AnalysisModel, PositiveFloat, PositiveInt
 
 
 class ThetaVsBuffer(AnalysisModel):

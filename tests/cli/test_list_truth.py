@@ -9,10 +9,10 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from netkf_cli.cli import app
-from netkf_cli.errors import ConfigError
-from netkf_cli.compat import _examples, _variants, compatibility
-from netkf_cli.loader import validate_data
+from netkf_cli.app.cli import app
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.config.compat import _examples, _variants, compatibility
+from netkf_cli.config.loader import validate_data
 
 runner = CliRunner()
 

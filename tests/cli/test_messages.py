@@ -12,7 +12,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from netkf_cli.cli import app
+from netkf_cli.app.cli import app
 
 ROOT = Path(__file__).resolve().parents[2]
 runner = CliRunner()

@@ -14,8 +14,8 @@ import pytest
 from typer.testing import CliRunner
 
 from netkf_cli import load, run
-from netkf_cli.cli import app
-from netkf_cli.errors import ConfigError
+from netkf_cli.app.cli import app
+from netkf_cli.core.errors import ConfigError
 
 runner = CliRunner()
 
@@ -86,7 +86,7 @@ def test_overrides_cli_api_validate_equal_the_written_scenario(tmp_path, files):
 
 
 def test_interrupt_hint_repeats_the_overrides(tmp_path, files, monkeypatch):
-    import netkf_cli.runner as runner_mod
+    import netkf_cli.app.runner as runner_mod
 
     def stop(*a, **k):
         raise KeyboardInterrupt
@@ -191,7 +191,7 @@ def test_dry_run_makes_the_pre_run_checks(tmp_path, files):
 
 
 def test_the_api_plans_like_the_dry_run(tmp_path, files):
-    from netkf_cli.api import plan
+    from netkf_cli.app.api import plan
 
     base = files[0]
     r = invoke("run", base, "channel.arrival=0.6", "--out", tmp_path / "o", "--dry-run", "--json", "-j", 1)

@@ -7,8 +7,8 @@ import re
 
 from typer.testing import CliRunner
 
-from netkf_cli.cli import app
-from netkf_cli.reproduce import discover
+from netkf_cli.app.cli import app
+from netkf_cli.app.reproduce import discover
 from tests.conftest import ROOT
 
 

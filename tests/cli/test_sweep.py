@@ -5,7 +5,7 @@ import textwrap
 import pandas as pd
 from typer.testing import CliRunner
 
-from netkf_cli.cli import app
+from netkf_cli.app.cli import app
 
 runner = CliRunner()
 

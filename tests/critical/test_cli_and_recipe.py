@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from netkf_cli.cli import app
-from netkf_cli.loader import load_scenario
+from netkf_cli.app.cli import app
+from netkf_cli.config.loader import load_scenario
 from netkf_cli.recipes.base import RunContext
 
 runner = CliRunner()
@@ -109,7 +109,7 @@ def test_recipe_small_run_claims_hold(root):
     ge = art.extra_tables["ge"]
     assert np.allclose(ge.q_exact, 0.36) and (ge.q_sufficient >= 0.36 - 1e-9).all()
     fig = sc.analysis.plot({"main": t, "rates": rates, "ge": ge}, sc)
-    from netkf_cli import plotting
+    from netkf_cli.runtime import plotting
 
     plotting._layout(fig)
     assert plotting.lint(fig) == []

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from netkf_cli.analysis import critical as cr
 from netkf_cli.analysis import smoothing as sm
 from netkf_cli.channels.delay import DelayChannel
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.system import LinearSystem
 
 VEHICLE_A = np.array([[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1.0]])
 VEHICLE_C = np.array([[1, 0, 0, 0], [0, 1, 0, 0.0]])

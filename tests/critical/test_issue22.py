@@ -188,7 +188,7 @@ def test_tail_exponent_scalar_within_its_interval_and_is_equals_plain():
     from netkf_cli.channels.bernoulli import BernoulliChannel
     from netkf_cli.metrics.tail import TailMetric, kf_for
     from netkf_cli.recipes.base import RunContext
-    from netkf_cli.system import LinearSystem
+    from netkf_cli.core.system import LinearSystem
 
     # a scenario built from its parts (no loader: only the tail metric, the channel, the kf estimator are involved)
     s = LinearSystem.create(1.3, 1.0, 1.0, 1.0)
@@ -209,7 +209,7 @@ def test_tail_exponent_scalar_within_its_interval_and_is_equals_plain():
     assert (imp.value.diff().dropna() <= 1e-12).all()          # an exceedance probability decreases in M
     assert imp.value.min() < 1e-6                               # and the tail is sampled far beyond 1/n
     fig = sc.analysis.plot({"main": t, "fit": art.extra_tables["fit"]}, sc)
-    from netkf_cli import plotting
+    from netkf_cli.runtime import plotting
 
     plotting._layout(fig)
     assert plotting.lint(fig) == []
@@ -280,7 +280,7 @@ def test_ge_region_of_the_parity_system_derived_and_enumerated():
 
 def test_critical_figure_never_draws_a_mean_below_the_proven_bound_as_a_result(tmp_path):
     """Issue 19, item 4, end to end: near λ_min the sample mean falls far below tr S̄ — flagged, drawn hollow."""
-    from netkf_cli.loader import load_scenario
+    from netkf_cli.config.loader import load_scenario
     from netkf_cli.recipes.base import RunContext
 
     cfg = tmp_path / "i19.yaml"
@@ -307,7 +307,7 @@ def test_tail_exponent_of_the_degenerate_parity_system():
     from netkf_cli.channels.bernoulli import BernoulliChannel
     from netkf_cli.metrics.tail import TailMetric, kf_for
     from netkf_cli.recipes.base import RunContext
-    from netkf_cli.system import LinearSystem
+    from netkf_cli.core.system import LinearSystem
 
     s = LinearSystem.create(np.diag([2.0, -2.0]), np.array([[1.0, 1.0]]), np.eye(2), np.eye(1))
     an = TailMetric(kind="tail", M={"start": 10, "stop": 1e8, "num": 22})

@@ -43,8 +43,8 @@ def candidate_systems() -> list[dict]:
 
 
 def sample_estimators() -> dict[str, dict]:
-    from netkf_cli.scenario import kinds
-    from netkf_cli.spec import EstimatorModel
+    from netkf_cli.config.scenario import kinds
+    from netkf_cli.core.spec import EstimatorModel
 
     from_configs = {"fusion": _block("fusion/fig1.yaml", "estimators"), "markov_lmi": _block("markov/example2_exact.yaml", "estimator")}
     special = {"buffered": {"kind": "buffered", "packet": "measurement"}, "smoother": {"kind": "smoother", "lag": 1},

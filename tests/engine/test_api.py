@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from netkf_cli import load, run
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 
 README = Path(__file__).resolve().parents[2] / "README.md"
 

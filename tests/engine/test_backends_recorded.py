@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 import netkf_cli
-from netkf_cli import engine, kalman
+from netkf_cli import engine
+from netkf_cli.linalg import kalman
 from netkf_cli.estimators import fading_receivers as fr
 from netkf_cli.estimators import smoother as sm
 

@@ -9,9 +9,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from netkf_cli import load, riccati, run
+from netkf_cli import load, run
+from netkf_cli.linalg import riccati
 from netkf_cli.metrics.distribution import Z_CLAIM
-from netkf_cli.montecarlo import wilson_interval
+from netkf_cli.runtime.montecarlo import wilson_interval
 
 ROOT = Path(__file__).resolve().parents[2]
 SHI = ["fig5", "fig6", "fig7", "fig8", "fig9"]

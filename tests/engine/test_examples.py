@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from netkf_cli.cli import app
+from netkf_cli.app.cli import app
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "experiments" / "engine"
 

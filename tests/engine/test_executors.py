@@ -8,11 +8,11 @@ import json
 import pytest
 import yaml
 
-from netkf_cli import montecarlo
-from netkf_cli.compat import compatible_channels
-from netkf_cli.runner import run_scenario_file
-from netkf_cli.scenario import kinds
-from netkf_cli.spec import EstimatorModel
+from netkf_cli.runtime import montecarlo
+from netkf_cli.config.compat import compatible_channels
+from netkf_cli.app.runner import run_scenario_file
+from netkf_cli.config.scenario import kinds
+from netkf_cli.core.spec import EstimatorModel
 
 from .conftest import SCALAR, sample_estimators
 

@@ -8,8 +8,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from netkf_cli import golden, load, run
-from netkf_cli.stats import FLAG_REASONS, flag_reason
+from netkf_cli.app import golden
+from netkf_cli import load, run
+from netkf_cli.core.stats import FLAG_REASONS, flag_reason
 
 
 def test_codes():

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from netkf_cli import load, run
-from netkf_cli.stats import heavy_tail_flag, mean_se, rare_event_flag
+from netkf_cli.core.stats import heavy_tail_flag, mean_se, rare_event_flag
 
 
 def _sums(x):
@@ -52,7 +52,7 @@ def test_rare_event_and_heavy_tail_rules_in_both_directions():
 
 
 def test_a_means_only_estimator_is_refused_where_each_runs_covariance_is_needed():
-    from netkf_cli.errors import ConfigError
+    from netkf_cli.core.errors import ConfigError
 
     base = {"name": "vr", "system": {"A": 2, "C": 1, "Q": 0.001, "R": 1e-8},
             "channel": {"kind": "fading", "snr_avg": {"value": 20, "unit": "dB"},

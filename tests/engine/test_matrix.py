@@ -10,10 +10,10 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from netkf_cli.cli import app
-from netkf_cli.compat import compatible_channels
-from netkf_cli.scenario import kinds
-from netkf_cli.spec import ChannelModel, EstimatorModel
+from netkf_cli.app.cli import app
+from netkf_cli.config.compat import compatible_channels
+from netkf_cli.config.scenario import kinds
+from netkf_cli.core.spec import ChannelModel, EstimatorModel
 
 METRICS = {
     "distribution": {"kind": "distribution", "M": [1.0, 5.0, 50.0]},

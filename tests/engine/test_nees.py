@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from netkf_cli import state
+from netkf_cli.engine import state
 from netkf_cli.channels.delay import DelayChannel
 from netkf_cli.channels.fading import FadingChannel
 from netkf_cli.channels.markov_modes import MarkovModesChannel
@@ -24,9 +24,9 @@ from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator
 from netkf_cli.estimators.smart_sensor import SmartSensorEstimator
 from netkf_cli.estimators.smoother import SmootherEstimator
-from netkf_cli.stats import mean_se
-from netkf_cli.system import LinearSystem
-from netkf_cli.trace import Trace
+from netkf_cli.core.stats import mean_se
+from netkf_cli.core.system import LinearSystem
+from netkf_cli.core.trace import Trace
 
 Z = 5.0
 RUNS, HORIZON = 4000, 12
@@ -202,8 +202,8 @@ def test_received_signal_follows_the_markov_packet_model():
 
 
 def test_every_estimator_kind_has_state_level_estimates():
-    from netkf_cli.scenario import kinds
-    from netkf_cli.spec import EstimatorModel
+    from netkf_cli.config.scenario import kinds
+    from netkf_cli.core.spec import EstimatorModel
 
     missing = [k for k, c in kinds(EstimatorModel).items() if not callable(getattr(c, "estimates", None))]
     assert not missing, missing
@@ -217,7 +217,7 @@ def test_state_error_through_the_cli(tmp_path):
     import yaml
     from typer.testing import CliRunner
 
-    from netkf_cli.cli import app
+    from netkf_cli.app.cli import app
 
     doc = {"name": "se", "system": {"A": [[1.1, 0.2], [0, 0.9]], "C": [[1, 0], [0, 1]], "Q": [[0.3, 0], [0, 0.3]],
                                     "R": [[0.5, 0], [0, 0.8]]},
@@ -246,7 +246,7 @@ def test_state_error_over_a_grid(tmp_path):
     import yaml
     from typer.testing import CliRunner
 
-    from netkf_cli.cli import app
+    from netkf_cli.app.cli import app
 
     doc = {"name": "so", "system": {"A": 0.9, "C": 1, "Q": 1, "R": 1}, "channel": {"kind": "bernoulli", "arrival": 0.5},
            "estimator": {"kind": "kf"}, "analysis": {"kind": "state_error", "over": {"channel.arrival": [0.3, 0.9]}},

@@ -12,12 +12,12 @@ import itertools
 import numpy as np
 import pytest
 
-from netkf_cli import runner
-from netkf_cli.artefact import RunContext
-from netkf_cli.errors import ConfigError
-from netkf_cli.loader import load_scenario_text
+from netkf_cli.app import runner
+from netkf_cli.core.artefact import RunContext
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.config.loader import load_scenario_text
 from netkf_cli.metrics import norm_of_mean as nm
-from netkf_cli.montecarlo import add_stats
+from netkf_cli.runtime.montecarlo import add_stats
 
 A = [[1.25, 0.3], [0.0, 0.8]]
 C = [[1.0, 0.5]]

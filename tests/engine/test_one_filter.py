@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 
 from netkf_cli import load, run
-from netkf_cli.riccati import initial_covariance
-from netkf_cli.scenario import kinds
-from netkf_cli.spec import EstimatorModel
-from netkf_cli.system import LinearSystem
-from netkf_cli.trace import LOST, Trace
+from netkf_cli.linalg.riccati import initial_covariance
+from netkf_cli.config.scenario import kinds
+from netkf_cli.core.spec import EstimatorModel
+from netkf_cli.core.system import LinearSystem
+from netkf_cli.core.trace import LOST, Trace
 
 RTOL = 1e-12
 """Same primitives in the same order give the same bits; 1e-12 leaves room for a reordered sum."""

@@ -11,10 +11,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from netkf_cli import engine, runner
-from netkf_cli.artefact import RunContext
-from netkf_cli.errors import ConfigError
-from netkf_cli.loader import load_scenario_text
+from netkf_cli import engine
+from netkf_cli.app import runner
+from netkf_cli.core.artefact import RunContext
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.config.loader import load_scenario_text
 
 BASE = """
 name: ov

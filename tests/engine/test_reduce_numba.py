@@ -1,7 +1,7 @@
 """The compiled reductions and the fused kf kernel (issue 20) against the numpy references.
 
-λ_max (netkf_cli._reduce_numba) equals eigvalsh to 1e-12 relative, the generated PSD-order decisions
-(netkf_cli.reduce_codegen) equal the numpy reducers' exactly (including thresholds within rounding of
+λ_max (netkf_cli.linalg._reduce_numba) equals eigvalsh to 1e-12 relative, the generated PSD-order decisions
+(netkf_cli.linalg.reduce_codegen) equal the numpy reducers' exactly (including thresholds within rounding of
 λ_max, near-degenerate and non-finite P), every reducer's compiled update equals its numpy update (counts
 exactly, sums to rounding), and the fused kf kernel (uniforms → arrivals → generated filter → reduction)
 equals the numpy path: the same uniforms give the same trace, counts are equal, sums agree to rounding.
@@ -12,16 +12,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from netkf_cli import batched, engine, kalman
-from netkf_cli import kalman_codegen as kc
+from netkf_cli.linalg import batched, kalman
+from netkf_cli import engine
+from netkf_cli.linalg import kalman_codegen as kc
 from netkf_cli.channels.bernoulli import BernoulliChannel
 from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
 from netkf_cli.estimators.kf import KalmanFilterEstimator
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.system import LinearSystem
 
 numba = pytest.importorskip("numba")
-from netkf_cli import _reduce_numba as rn  # noqa: E402  (needs numba)
-from netkf_cli import reduce_codegen as rc  # noqa: E402
+from netkf_cli.linalg import _reduce_numba as rn  # noqa: E402  (needs numba)
+from netkf_cli.linalg import reduce_codegen as rc  # noqa: E402
 
 
 def _batch(n: int, runs: int, seed: int = 0) -> np.ndarray:

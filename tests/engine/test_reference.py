@@ -17,10 +17,10 @@ from hypothesis import strategies as st
 
 from netkf_cli.channels.trace_file import TraceChannel
 from netkf_cli.estimators.kf import KalmanFilterEstimator
-from netkf_cli.scenario import kinds
-from netkf_cli.spec import EstimatorModel
-from netkf_cli.system import LinearSystem
-from netkf_cli.trace import Trace
+from netkf_cli.config.scenario import kinds
+from netkf_cli.core.spec import EstimatorModel
+from netkf_cli.core.system import LinearSystem
+from netkf_cli.core.trace import Trace
 
 from .conftest import sample_estimators
 
@@ -36,8 +36,8 @@ def _sample_channel(kind: str):
     import tempfile
     from pathlib import Path
 
-    from netkf_cli.compat import compatible_channels
-    from netkf_cli.spec import ChannelModel
+    from netkf_cli.config.compat import compatible_channels
+    from netkf_cli.core.spec import ChannelModel
 
     from .conftest import sample_channels
 
@@ -84,7 +84,7 @@ SYSTEMS = {
 
 
 def _estimator(kind: str):
-    from netkf_cli.scenario import kinds as _k
+    from netkf_cli.config.scenario import kinds as _k
 
     return _k(EstimatorModel)[kind].model_validate(sample_estimators()[kind])
 
@@ -221,7 +221,7 @@ def test_trace_channel_reproduces_hand_computed_sequence(tmp_path):
 
 
 def test_trace_channel_once_mode_refuses_a_short_recording(tmp_path):
-    from netkf_cli.errors import ConfigError
+    from netkf_cli.core.errors import ConfigError
 
     f = tmp_path / "rec.csv"
     f.write_text("1\n0\n", encoding="utf-8")

@@ -1,6 +1,6 @@
 """`netkf list` / `netkf schema` explain every field: no schema property without a description."""
 
-from netkf_cli.scenario import json_schema
+from netkf_cli.config.scenario import json_schema
 
 
 def test_every_schema_field_has_a_description():

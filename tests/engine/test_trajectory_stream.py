@@ -14,8 +14,9 @@ import pandas as pd
 import yaml
 from typer.testing import CliRunner
 
-from netkf_cli import api, state
-from netkf_cli.cli import app
+from netkf_cli.app import api
+from netkf_cli.engine import state
+from netkf_cli.app.cli import app
 from netkf_cli.metrics.common import needs
 from netkf_cli.metrics.state_error import TRAJECTORY_STREAM
 

@@ -7,7 +7,7 @@ import pytest
 from netkf_cli.channels.fading import FadingChannel
 from netkf_cli.estimators import fading_receivers as fr
 from netkf_cli.estimators.fading_receivers import ReceiverEstimator
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.system import LinearSystem
 
 needs_numba = pytest.mark.skipif(not fr.numba_available(), reason="numba not installed")
 A5 = np.array([[2, 0.3, 0.45], [0.4, 0.2, 0.5], [1.5, 0.6, 0.34]])

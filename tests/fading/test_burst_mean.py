@@ -6,9 +6,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from netkf_cli.errors import ConfigError
-from netkf_cli.loader import load_scenario
-from netkf_cli.runner import run_scenario_file
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.config.loader import load_scenario
+from netkf_cli.app.runner import run_scenario_file
 
 ROOT = Path(__file__).resolve().parents[2]
 FIG7 = ROOT / "configs" / "fading" / "fig7.yaml"

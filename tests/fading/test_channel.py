@@ -55,8 +55,8 @@ def test_bad_noise_rejected(noise):
 
 
 def test_cli_error_names_the_field(tmp_path):
-    from netkf_cli.errors import ConfigError
-    from netkf_cli.runner import run_scenario_file
+    from netkf_cli.core.errors import ConfigError
+    from netkf_cli.app.runner import run_scenario_file
 
     p = tmp_path / "bad.yaml"
     p.write_text("name: bad\nchannel:\n  kind: fading\n  snr_avg: {value: 20, unit: db}\n"

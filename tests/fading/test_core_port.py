@@ -9,15 +9,16 @@ import numpy as np
 import pytest
 from scipy import special
 
-from netkf_cli import engine, kalman
+from netkf_cli import engine
+from netkf_cli.linalg import kalman
 from netkf_cli.analysis import fading as fa
 from netkf_cli.channels.fading import FadingChannel, NoiseFn, snr_given_kept
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators import fading_receivers as fr
 from netkf_cli.estimators.fading_receivers import ReceiverEstimator
 from netkf_cli.estimators.kf import KalmanFilterEstimator
-from netkf_cli.system import LinearSystem
-from netkf_cli.trace import Trace
+from netkf_cli.core.system import LinearSystem
+from netkf_cli.core.trace import Trace
 
 needs_numba = pytest.mark.skipif(not fr.numba_available(), reason="numba not installed")
 BACKENDS = ["numpy", pytest.param("numba", marks=needs_numba)]
@@ -279,7 +280,7 @@ def test_rescue_noisy_is_the_information_form_per_run():
 @needs_numba
 def test_kalman_numba_gain_equals_the_core_gain():
     """kalman_numba.gain (appended) against kalman.gain and the textbook P Cᵀ (C P Cᵀ + R)⁻¹, m = 1, 2, 3."""
-    from netkf_cli import kalman_numba as kn
+    from netkf_cli.linalg import kalman_numba as kn
 
     rng = np.random.default_rng(1)
     for m in (1, 2, 3):

@@ -12,8 +12,8 @@ from netkf_cli import engine
 from netkf_cli.analysis import fading as fa
 from netkf_cli.channels.fading import FadingChannel, jakes_factor
 from netkf_cli.estimators import fading_receivers as fr
-from netkf_cli.montecarlo import execution, mean_and_stderr, run_chunked
-from netkf_cli.system import LinearSystem
+from netkf_cli.runtime.montecarlo import execution, mean_and_stderr, run_chunked
+from netkf_cli.core.system import LinearSystem
 
 A5 = np.array([[2, 0.3, 0.45], [0.4, 0.2, 0.5], [1.5, 0.6, 0.34]])
 Q5 = 1e-3 * np.eye(3)
@@ -94,7 +94,7 @@ def test_backend_auto_picks_numba_when_importable_and_numpy_when_hidden(monkeypa
         assert fr.resolve_backend("auto") == "numba"
     monkeypatch.setitem(sys.modules, "numba", None)  # import numba now raises ImportError
     assert fr.resolve_backend("auto") == "numpy"
-    from netkf_cli.errors import ConfigError
+    from netkf_cli.core.errors import ConfigError
 
     with pytest.raises(ConfigError) as e:
         fr.resolve_backend("numba")
@@ -133,7 +133,7 @@ def test_jobs2_csv_equals_serial_byte_for_byte(tmp_path, stem, extra):
     thread count: the Jakes generator and the SMC's conditional means use einsum)."""
     from pathlib import Path
 
-    from netkf_cli.runner import run_scenario_file
+    from netkf_cli.app.runner import run_scenario_file
 
     cfg = Path(__file__).resolve().parents[2] / "configs" / "fading" / f"{stem}.yaml"
     ov = {**extra, "montecarlo": {"horizon": 20, "chunk": 10, **extra.get("montecarlo", {})}}
@@ -183,7 +183,7 @@ def test_estimator_covariances_equal_the_reference_recursion(sc):
 
 
 def test_estimator_check_refuses_bad_pairs():
-    from netkf_cli.errors import ConfigError
+    from netkf_cli.core.errors import ConfigError
     from netkf_cli.estimators.fading_receivers import ReceiverEstimator
 
     s = LinearSystem.create(A5, 2 * np.eye(3), Q5, 1e-8 * np.eye(3), np.eye(3))

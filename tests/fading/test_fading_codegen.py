@@ -10,7 +10,7 @@ from netkf_cli.channels.fading import FadingChannel
 from netkf_cli.estimators import _fading_codegen as fcg
 from netkf_cli.estimators import fading_receivers as fr
 from netkf_cli.estimators.fading_receivers import ReceiverEstimator
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.system import LinearSystem
 
 pytestmark = pytest.mark.skipif(not fr.numba_available(), reason="numba not installed")
 

@@ -17,10 +17,10 @@ import pytest
 
 from netkf_cli.analysis import fading as fa
 from netkf_cli.analysis import references
-from netkf_cli.errors import ConfigError
-from netkf_cli.loader import load_scenario
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.config.loader import load_scenario
 from netkf_cli.metrics.common import labels
-from netkf_cli.runner import run_scenario_file
+from netkf_cli.app.runner import run_scenario_file
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = ROOT / "configs" / "fading"

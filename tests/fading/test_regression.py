@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from netkf_cli.runner import run_scenario_file
+from netkf_cli.app.runner import run_scenario_file
 
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN = Path(__file__).parent / "golden"

@@ -5,9 +5,9 @@ import textwrap
 
 import pytest
 
-from netkf_cli.errors import ConfigError
-from netkf_cli.loader import load_scenario
-from netkf_cli.runner import run_scenario_file
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.config.loader import load_scenario
+from netkf_cli.app.runner import run_scenario_file
 
 SCENARIO = textwrap.dedent(
     """\

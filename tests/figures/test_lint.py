@@ -11,7 +11,7 @@ import json
 import pytest
 import yaml
 
-from netkf_cli.plotting import PAPERS
+from netkf_cli.runtime.plotting import PAPERS
 from tests.conftest import ROOT
 from tests.reproduce._quick import quick_reproduction
 

@@ -8,7 +8,7 @@ import matplotlib
 from matplotlib.mathtext import MathTextParser
 from PIL import Image
 
-from netkf_cli import plotting as P
+from netkf_cli.runtime import plotting as P
 
 
 def _png(default: str | None = None) -> np.ndarray:

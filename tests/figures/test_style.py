@@ -1,9 +1,9 @@
-"""The shared figure style (netkf_cli/plotting.py): titles, palette, formats and the lint itself."""
+"""The shared figure style (netkf_cli/runtime/plotting.py): titles, palette, formats and the lint itself."""
 
 import numpy as np
 import pytest
 
-from netkf_cli import plotting as P
+from netkf_cli.runtime import plotting as P
 
 
 def test_paper_titles():

@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli import batched, engine
+from netkf_cli.linalg import batched
+from netkf_cli import engine
 from netkf_cli.estimators.fusion import FusionEstimator, identical_sensors
-from netkf_cli.trace import Trace
+from netkf_cli.core.trace import Trace
 
 
 def run_averages(gamma: np.ndarray, A, C, Q, R, P0, burn_in: int, strategies=("mf", "ibf")) -> dict[str, np.ndarray]:

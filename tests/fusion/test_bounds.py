@@ -12,7 +12,7 @@ from scipy import stats
 
 from netkf_cli.analysis import fusion_bounds as fb
 from netkf_cli.channels.multi import sample_multi_arrivals
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 
 from ._run_averages import run_averages
 

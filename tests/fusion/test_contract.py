@@ -9,15 +9,16 @@ import scipy.linalg
 import yaml
 from typer.testing import CliRunner
 
-from netkf_cli import engine, kalman, kalman_codegen
+from netkf_cli import engine
+from netkf_cli.linalg import kalman, kalman_codegen
 from netkf_cli.channels.multi import (MultiChannel, _raw_threshold, sample_multi_trace_arrivals, times_since_arrival,
                                       times_since_arrival_tr)
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.fusion import FusionEstimator, OLPEFTables, Sensors, identical_sensors
 from netkf_cli.estimators.kf import KalmanFilterEstimator
-from netkf_cli.riccati import initial_covariance
-from netkf_cli.system import LinearSystem
-from netkf_cli.trace import Trace
+from netkf_cli.linalg.riccati import initial_covariance
+from netkf_cli.core.system import LinearSystem
+from netkf_cli.core.trace import Trace
 
 A2, C2, Q2, R2 = [[0.9, 0.2], [0.0, 0.7]], [[1.0, 0.5]], [[0.3, 0.05], [0.05, 0.2]], [[1.0]]
 SYS2 = LinearSystem.create(A2, C2, Q2, R2)
@@ -266,7 +267,7 @@ def test_stream_count_must_be_the_systems_sensors():
 
 
 def test_netkf_validate_refuses_a_multi_channel_without_the_sensors(tmp_path):
-    from netkf_cli.cli import app
+    from netkf_cli.app.cli import app
 
     doc = {"name": "multi_check", "system": {"A": 0.9, "C": 1, "Q": 1, "R": 1},
            "channel": {"kind": "multi", "sensors": 2, "loss": 0.0},

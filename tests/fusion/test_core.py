@@ -13,7 +13,7 @@ from netkf_cli.channels.multi import MultiChannel, sample_multi_arrivals, times_
 from netkf_cli.estimators import fusion as fe
 
 from ._run_averages import run_averages
-from netkf_cli.trace import Trace
+from netkf_cli.core.trace import Trace
 
 SYS1 = dict(A=[[0.9]], C=[[1.0]], Q=[[0.3]], R=[[2.0]])
 SYS2 = dict(A=[[0.8, 0.3], [-0.2, 0.7]], C=[[1.0, 0.5]], Q=[[0.4, 0.1], [0.1, 0.2]], R=[[1.5]])
@@ -218,7 +218,7 @@ def test_olpef_matches_state_level_simulation(sysd):
 
 
 def test_olpef_unstable_A_is_a_clear_error():
-    from netkf_cli.errors import ConfigError
+    from netkf_cli.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="system.A"):
         fe.OLPEFTables([[1.1]], [[1.0]], [[1.0]], [[1.0]], 3)

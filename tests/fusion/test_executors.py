@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from netkf_cli import montecarlo
-from netkf_cli.runner import run_scenario_file
+from netkf_cli.runtime import montecarlo
+from netkf_cli.app.runner import run_scenario_file
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = ROOT / "configs" / "fusion" / "fig3.yaml"

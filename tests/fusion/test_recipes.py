@@ -13,9 +13,9 @@ import pytest
 
 import yaml
 
-from netkf_cli.errors import ConfigError
-from netkf_cli.reproduce import Published, evaluate_claim
-from netkf_cli.runner import run_scenario_file
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.app.reproduce import Published, evaluate_claim
+from netkf_cli.app.runner import run_scenario_file
 
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN = Path(__file__).parent / "golden"

@@ -14,11 +14,11 @@ import yaml
 
 from netkf_cli.analysis import delay_exact as dx
 from netkf_cli.channels.delay import DelayChannel
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.buffered import BufferedEstimator, mkf_runs
-from netkf_cli.runner import run_scenario_file
-from netkf_cli.system import LinearSystem
-from netkf_cli.trace import LOST, Trace
+from netkf_cli.app.runner import run_scenario_file
+from netkf_cli.core.system import LinearSystem
+from netkf_cli.core.trace import LOST, Trace
 
 ROOT = Path(__file__).resolve().parents[2]
 SYS = LinearSystem.create(1.4, 1, 0.2, 0.5)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from netkf_cli.loader import load_scenario
+from netkf_cli.config.loader import load_scenario
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "markov"
 PRINTED_RHO = {"example1": [0.8, 0.02, 0.09, 0.09], "example2": [0.7, 0.045, 0.085, 0.17]}

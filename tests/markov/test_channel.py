@@ -14,8 +14,8 @@ from netkf_cli.channels.markov_modes import (
     stationary_distribution,
     validate_transition,
 )
-from netkf_cli.errors import ConfigError
-from netkf_cli.loader import load_scenario_text
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.config.loader import load_scenario_text
 
 from .conftest import CONFIGS, PRINTED_RHO
 

@@ -7,7 +7,7 @@ import pytest
 import scipy.linalg
 
 from netkf_cli.channels.markov_modes import MarkovModesChannel
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.markov_filters import (
     AugmentedModel,
@@ -18,9 +18,9 @@ from netkf_cli.estimators.markov_filters import (
     pinv_psd,
 )
 from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator, lmi_design
-from netkf_cli.loader import load_scenario_text
-from netkf_cli.trace import Trace
-from netkf_cli.system import LinearSystem
+from netkf_cli.config.loader import load_scenario_text
+from netkf_cli.core.trace import Trace
+from netkf_cli.core.system import LinearSystem
 
 from .conftest import CONFIGS
 

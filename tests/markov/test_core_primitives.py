@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from netkf_cli import kalman
+from netkf_cli.linalg import kalman
 
 
 def _psd(rng, n, rank=None):
@@ -75,7 +75,7 @@ def test_compiled_update_pinv_equals_numpy(m):
     pytest.importorskip("numba")
     import numba
 
-    from netkf_cli import kalman_numba as kn
+    from netkf_cli.linalg import kalman_numba as kn
 
     @numba.njit
     def call(P, C, R, floor, e):
@@ -104,7 +104,7 @@ def test_compiled_sparse_predict_equals_the_dense_predict():
     pytest.importorskip("numba")
     import numba
 
-    from netkf_cli import kalman_numba as kn
+    from netkf_cli.linalg import kalman_numba as kn
     from netkf_cli.estimators.markov_filters import _csr
 
     @numba.njit

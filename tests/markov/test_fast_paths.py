@@ -8,11 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from netkf_cli import kalman, state
+from netkf_cli.linalg import kalman
+from netkf_cli.engine import state
 from netkf_cli.channels.markov_modes import MarkovModesChannel
 from netkf_cli.estimators.markov_filters import AugmentedModel, numba_available
 from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.system import LinearSystem
 
 EPS = np.finfo(float).eps
 

@@ -21,7 +21,7 @@ from netkf_cli.estimators.markov_lmi import lmi_design
 
 
 # the augmented plant run directly (ξ(k+1) = F_q ξ + G_q ε): the reference these tests check the filters and the
-# mode matrices against (netkf's simulation, netkf_cli.state, draws x, w, v and applies the packet model itself)
+# mode matrices against (netkf's simulation, netkf_cli.engine.state, draws x, w, v and applies the packet model itself)
 def draw_initial(model: AugmentedModel, rng: np.random.Generator, runs: int, x0, P0) -> np.ndarray:
     """ξ(0) for ``runs`` runs, shape (runs, d): x(0) ~ N(x0, P0), x(−1) = x(0), y(−1) = v(−1) (eq. 35)."""
     n, m = model.n, model.m

@@ -1,5 +1,5 @@
 """Monte Carlo against the exact second moments, and the ordering of the four filters — on the generic
-state path (:func:`netkf_cli.state.simulate_errors`: the plant behind the channel's mode trace, every
+state path (:func:`netkf_cli.engine.state.simulate_errors`: the plant behind the channel's mode trace, every
 ``markov_lmi`` filter's ``estimates`` on the same runs), netkf's time base (P0 = P_{0|0}, first measurement y_1)."""
 
 from __future__ import annotations
@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from netkf_cli import state
+from netkf_cli.engine import state
 from netkf_cli.estimators.markov_filters import exact_mse, lmmse_filter, naive_filter
 from netkf_cli.estimators.markov_lmi import lmi_design
-from netkf_cli.stats import mean_se
+from netkf_cli.core.stats import mean_se
 
 from .conftest import setup_of
 

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from netkf_cli.runner import run_scenario_file
+from netkf_cli.app.runner import run_scenario_file
 
 from .conftest import CONFIGS
 

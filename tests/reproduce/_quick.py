@@ -17,7 +17,7 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from netkf_cli.cli import app
+from netkf_cli.app.cli import app
 from tests.conftest import ROOT
 
 try:
@@ -29,7 +29,7 @@ except ImportError:  # not POSIX: no lock (run in-process there: -n 0)
 @dataclass
 class QuickRun:
     out: Path        # the artefact folders and REPORT.md
-    lint: Path       # one <figure>.json per saved figure (netkf_cli.plotting.lint findings)
+    lint: Path       # one <figure>.json per saved figure (netkf_cli.runtime.plotting.lint findings)
     exit_code: int
     output: str
 

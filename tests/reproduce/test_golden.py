@@ -1,10 +1,10 @@
-"""The golden comparison (netkf_cli/golden.py): per-kind tolerances that can fail, never vacuous."""
+"""The golden comparison (netkf_cli/app/golden.py): per-kind tolerances that can fail, never vacuous."""
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from netkf_cli import golden as G
+from netkf_cli.app import golden as G
 
 ROWS = 40
 
@@ -156,7 +156,7 @@ def test_every_topic_declares_valid_rules_on_existing_columns(root):
     """The `golden:` blocks parse, and every rule names columns its committed golden CSV has."""
     import yaml
 
-    from netkf_cli.reproduce import Published
+    from netkf_cli.app.reproduce import Published
 
     for pub in sorted((root / "experiments").glob("*/published.yaml")):
         p = Published.model_validate(yaml.safe_load(pub.read_text(encoding="utf-8")))

@@ -2,12 +2,12 @@
 
 A change that moves a figure fails here with a message naming the artefact and the number:
 either a printed number or claim that is expected to hold, or a committed full-size golden CSV
-under results/ that the fresh quick run no longer matches (netkf_cli/golden.py: Monte Carlo rows
+under results/ that the fresh quick run no longer matches (netkf_cli/app/golden.py: Monte Carlo rows
 within 5 combined standard errors, closed forms 1e-9·scale + 1e-7 relative, optimizer outputs at
 the optimizer's tolerance as declared in experiments/<topic>/published.yaml).
 """
 
-from netkf_cli.report import MAX_BYTES
+from netkf_cli.app.report import MAX_BYTES
 from tests.reproduce._quick import quick_reproduction
 
 

@@ -4,7 +4,7 @@ import gc
 import os
 from pathlib import Path
 
-from netkf_cli import reproduce as R
+from netkf_cli.app import reproduce as R
 
 
 def _report(args):

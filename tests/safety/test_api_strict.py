@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from netkf_cli import load, run
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from tests.safety.test_bad_input import CASES, CONFIGS, FILE_CASES, R
 
 SC = {"name": "api", "system": {"A": 1.2, "C": 1, "Q": 1, "R": 1},
@@ -66,8 +66,8 @@ def test_good_arrivals_and_delays_are_replayed(sc):
 
 
 def test_two_recordings_are_two_scenarios(sc):
-    from netkf_cli.api import recorded_channel
-    from netkf_cli.runner import scenario_hash
+    from netkf_cli.app.api import recorded_channel
+    from netkf_cli.app.runner import scenario_hash
 
     a = sc.model_copy(update={"channel": recorded_channel(np.ones(20), 20)})
     b = sc.model_copy(update={"channel": recorded_channel(np.r_[np.ones(19), 0], 20)})
@@ -146,7 +146,7 @@ def test_every_cli_bad_input_case_is_refused_by_the_api(tmp_path, case):
     if cmd != R:  # the same problem as a dict (what a Python caller builds: NaN and inf included)
         import yaml
 
-        from netkf_cli.loader import _LineLoader
+        from netkf_cli.config.loader import _LineLoader
 
         try:
             data = yaml.load(text, Loader=_LineLoader)  # noqa: S506 - netkf's safe loader, without the finite check

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from netkf_cli.cli import app
+from netkf_cli.app.cli import app
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
@@ -240,7 +240,7 @@ def test_yaml_12_exponent_floats_are_numbers(tmp_path, q):
 
 
 def test_integral_floats_are_exact_integers(tmp_path):
-    from netkf_cli.loader import load_scenario
+    from netkf_cli.config.loader import load_scenario
 
     cfg = tmp_path / "s.yaml"
     cfg.write_text(FIG5.replace("runs: 200000,", "runs: 2e5,").replace("buffer: 10", "buffer: 10.0"))
@@ -288,7 +288,7 @@ def test_huge_sweep_is_refused_quickly(tmp_path):
     cfg = tmp_path / "s.yaml"
     cfg.write_text(FIG5 + "sweep: {channel.buffer: {from: 1, to: 1e9}}\n")
     try:
-        r = subprocess.run([sys.executable, "-m", "netkf_cli.cli", "validate", str(cfg)], capture_output=True,
+        r = subprocess.run([sys.executable, "-m", "netkf_cli.app.cli", "validate", str(cfg)], capture_output=True,
                            text=True, timeout=10, preexec_fn=_limit_memory)
     except subprocess.TimeoutExpired:
         pytest.fail("validate did not refuse a 1e9-point sweep within 10 s")

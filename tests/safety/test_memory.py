@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from netkf_cli.montecarlo import execution, run_chunked, usable_cores
+from netkf_cli.runtime.montecarlo import execution, run_chunked, usable_cores
 from tests.safety.test_outputs import default_sigint
 
 pytestmark = pytest.mark.skipif(not Path("/proc/self/smaps_rollup").exists(), reason="needs Linux /proc smaps_rollup")
@@ -61,7 +61,7 @@ def _children(pid: int) -> list[int]:
 def test_a_trillion_runs_with_many_jobs_stays_under_500_mb(tmp_path):
     cfg = tmp_path / "huge.yaml"
     cfg.write_text(CFG, encoding="utf-8")
-    proc = subprocess.Popen([sys.executable, "-m", "netkf_cli.cli", "run", str(cfg), "--out", str(tmp_path / "o"),
+    proc = subprocess.Popen([sys.executable, "-m", "netkf_cli.app.cli", "run", str(cfg), "--out", str(tmp_path / "o"),
                              "--jobs", "32"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=default_sigint)  # stopped by SIGINT below: it must not start ignoring it
     lines: list[str] = []

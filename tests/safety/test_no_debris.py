@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from netkf_cli import montecarlo
-from netkf_cli.cli import app
+from netkf_cli.runtime import montecarlo
+from netkf_cli.app.cli import app
 
 runner = CliRunner()
 _real_run_chunk = montecarlo.run_chunk
@@ -92,7 +92,7 @@ def test_a_torn_chunk_file_is_removed_where_it_was_written(tmp_path, monkeypatch
 
 
 def test_full_disk_while_writing_the_result_leaves_nothing(tmp_path, cfg, monkeypatch):
-    import netkf_cli.io as io_mod
+    import netkf_cli.runtime.io as io_mod
 
     def full(obj, path):
         Path(path).write_text("{")
@@ -242,7 +242,7 @@ def test_resume_reuses_only_the_identical_scenario(tmp_path, cfg, monkeypatch):
 
 def test_the_cache_belongs_to_the_result_folder(tmp_path):
     from netkf_cli import load
-    from netkf_cli.runner import result_paths
+    from netkf_cli.app.runner import result_paths
 
     sc = load(MC)
     (a, ca), (b, cb) = result_paths(sc, tmp_path / "a"), result_paths(sc, tmp_path / "b")

@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from netkf_cli import io
-from netkf_cli.cli import app
+from netkf_cli.runtime import io
+from netkf_cli.app.cli import app
 
 ROOT = Path(__file__).resolve().parents[2]
 runner = CliRunner()
@@ -279,7 +279,7 @@ def default_sigint() -> None:
 
 
 def _start_long_run(cfg: Path, out: Path, extra=()) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "netkf_cli.cli", "run", str(cfg), "--out", str(out),
+    return subprocess.Popen([sys.executable, "-m", "netkf_cli.app.cli", "run", str(cfg), "--out", str(out),
                              "--jobs", "1", "-q", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True, preexec_fn=default_sigint)
 
@@ -359,7 +359,7 @@ def test_interrupt_is_one_line_with_resume_hint(tmp_path, how):
 # ---- the error layer -----------------------------------------------------------------------------
 
 def test_internal_error_is_one_line_and_debug_shows_it(tmp_path, theta, monkeypatch):
-    import netkf_cli.runner as runner_mod
+    import netkf_cli.app.runner as runner_mod
 
     def boom(*a, **k):
         raise TypeError("simulated bug")
@@ -373,7 +373,7 @@ def test_internal_error_is_one_line_and_debug_shows_it(tmp_path, theta, monkeypa
 
 
 def test_debug_reraises_user_errors(tmp_path):
-    from netkf_cli.errors import ConfigError
+    from netkf_cli.core.errors import ConfigError
 
     bad = tmp_path / "b.yaml"
     bad.write_text("name: [")
@@ -382,7 +382,7 @@ def test_debug_reraises_user_errors(tmp_path):
 
 
 def test_large_run_announces_eta_before_starting(tmp_path, monkeypatch):
-    import netkf_cli.runner as runner_mod
+    import netkf_cli.app.runner as runner_mod
 
     cfg = tmp_path / "big.yaml"
     cfg.write_text(mc_config(runs=10**12))
@@ -402,8 +402,8 @@ def test_large_run_announces_eta_before_starting(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("config", ["fig5.yaml", "smoothing/retransmission.yaml", "fading/thm4.yaml"])
 def test_progress_total_is_counted_once(tmp_path, config):
-    from netkf_cli.loader import load_scenario
-    from netkf_cli.runner import ProgressTotals, run_scenario
+    from netkf_cli.config.loader import load_scenario
+    from netkf_cli.app.runner import ProgressTotals, run_scenario
 
     sc = load_scenario(ROOT / "configs" / config)
     done = [0]
@@ -415,7 +415,7 @@ def test_progress_total_is_counted_once(tmp_path, config):
 
 
 def test_wrote_in_is_the_whole_command(tmp_path, theta, monkeypatch):
-    import netkf_cli.loader as loader_mod
+    import netkf_cli.config.loader as loader_mod
 
     real = loader_mod.load_scenario
 

@@ -1,7 +1,7 @@
 """Worker processes die with their parent (issue 14.6) and leave Ctrl-C to it.
 
 Subprocesses are the point here: a parent is SIGKILLed and its workers must be gone within a
-few seconds. The first tests exercise :mod:`netkf_cli.workers` directly; the last one needs the
+few seconds. The first tests exercise :mod:`netkf_cli.runtime.workers` directly; the last one needs the
 lead's wiring of ``workers.pool_kwargs()`` into ``montecarlo.py`` (marked below).
 """
 
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from netkf_cli import montecarlo
+from netkf_cli.runtime import montecarlo
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux process semantics")
 
@@ -25,7 +25,7 @@ PARENT = textwrap.dedent(
     """\
     import os, sys, time
     from concurrent.futures import ProcessPoolExecutor
-    from netkf_cli import workers
+    from netkf_cli.runtime import workers
 
     def work(_):
         time.sleep(60)
@@ -92,7 +92,7 @@ def test_init_worker_ignores_sigint_in_the_worker(tmp_path):
     code = textwrap.dedent(
         """\
         import os, signal
-        from netkf_cli import workers
+        from netkf_cli.runtime import workers
         workers.init_worker(os.getppid())
         print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN)
         """
@@ -102,7 +102,7 @@ def test_init_worker_ignores_sigint_in_the_worker(tmp_path):
 
 
 def test_pool_kwargs_shape():
-    from netkf_cli import workers
+    from netkf_cli.runtime import workers
 
     kw = workers.pool_kwargs()
     assert kw["initializer"] is workers.init_worker and kw["initargs"] == (os.getpid(), True)
@@ -126,7 +126,7 @@ def test_netkf_run_workers_die_after_sigkill(tmp_path):
         analysis: {kind: prob_vs_M, M: [50, 150]}
         montecarlo: {runs: 200000000, horizon: 200, burn_in: 100, seed: 0, chunk: 20000}
         """))
-    proc = subprocess.Popen([sys.executable, "-m", "netkf_cli.cli", "run", str(cfg), "--out", str(tmp_path / "o"),
+    proc = subprocess.Popen([sys.executable, "-m", "netkf_cli.app.cli", "run", str(cfg), "--out", str(tmp_path / "o"),
                              "--jobs", "2", "-q"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     try:

@@ -5,9 +5,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from netkf_cli import montecarlo
-from netkf_cli.errors import NetkfError
-from netkf_cli.runner import run_scenario_file
+from netkf_cli.runtime import montecarlo
+from netkf_cli.core.errors import NetkfError
+from netkf_cli.app.runner import run_scenario_file
 
 SCENARIO = textwrap.dedent(
     """\

@@ -4,7 +4,7 @@ import numpy as np
 
 from netkf_cli.channels.bernoulli import BernoulliChannel
 from netkf_cli.channels.delay import DelayChannel
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.system import LinearSystem
 
 
 def scalar_system() -> LinearSystem:

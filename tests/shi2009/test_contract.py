@@ -16,15 +16,15 @@ import warnings
 import numpy as np
 import pytest
 
-from netkf_cli import riccati
+from netkf_cli.linalg import riccati
 from netkf_cli.channels.delay import kept_at, max_kept_delay
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.buffered import BufferedEstimator, availability, packet_span
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.smart_sensor import SmartSensorEstimator
-from netkf_cli.riccati import initial_covariance
-from netkf_cli.system import LinearSystem
-from netkf_cli.trace import LOST, Trace
+from netkf_cli.linalg.riccati import initial_covariance
+from netkf_cli.core.system import LinearSystem
+from netkf_cli.core.trace import LOST, Trace
 
 from ._systems import bernoulli, pmf, poisson, scalar_system, vehicle_system
 
@@ -254,7 +254,7 @@ def test_any_C_simulates_with_measurement_packets():
 
 
 def test_check_refuses_an_unusable_backend(monkeypatch):
-    from netkf_cli import kalman
+    from netkf_cli.linalg import kalman
 
     monkeypatch.setattr(kalman, "numba_available", lambda: False)
     s = scalar_system()
@@ -424,7 +424,7 @@ def test_overflow_scenario_end_to_end(tmp_path):
     import pandas as pd
     import yaml
 
-    from netkf_cli.runner import run_scenario_file
+    from netkf_cli.app.runner import run_scenario_file
 
     doc = {"name": "overflow", "system": {"A": [[1e6, 0], [0, 0.5]], "C": [[1, 0], [0, 1]], "Q": [[1, 0], [0, 1]],
                                           "R": [[1, 0], [0, 1]]},

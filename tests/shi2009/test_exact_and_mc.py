@@ -10,8 +10,8 @@ from netkf_cli.analysis.delay_exact import (brute_force_probability, exact_proba
 from netkf_cli import engine
 from netkf_cli.estimators.buffered import BufferedEstimator
 from netkf_cli.estimators.smart_sensor import SmartSensorEstimator
-from netkf_cli.montecarlo import mean_and_stderr, run_chunked
-from netkf_cli.system import LinearSystem
+from netkf_cli.runtime.montecarlo import mean_and_stderr, run_chunked
+from netkf_cli.core.system import LinearSystem
 
 from ._systems import bernoulli, pmf, poisson, scalar_system, vehicle_system
 

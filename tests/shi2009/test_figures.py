@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from netkf_cli.runner import run_scenario_file
+from netkf_cli.app.runner import run_scenario_file
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -31,7 +31,7 @@ def test_fig3_draws_the_csv(tmp_path):
     import matplotlib
 
     matplotlib.use("Agg")
-    from netkf_cli.loader import load_scenario
+    from netkf_cli.config.loader import load_scenario
 
     out = run_scenario_file(ROOT / "configs" / "fig3.yaml", out_dir=tmp_path / "fig3", force=True)
     t = pd.read_csv(out / "fig3.csv")

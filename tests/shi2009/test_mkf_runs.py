@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from netkf_cli.estimators import buffered
-from netkf_cli.trace import LOST, Trace
+from netkf_cli.core.trace import LOST, Trace
 
 
 def _trace(rng, T, runs, D, convention):

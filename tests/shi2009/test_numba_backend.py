@@ -13,10 +13,11 @@ import pytest
 
 pytest.importorskip("numba")
 
-from netkf_cli import engine, kalman  # noqa: E402
+from netkf_cli import engine
+from netkf_cli.linalg import kalman  # noqa: E402
 from netkf_cli.estimators.buffered import BufferedEstimator, availability, mkf  # noqa: E402
-from netkf_cli.montecarlo import execution  # noqa: E402
-from netkf_cli.system import LinearSystem  # noqa: E402
+from netkf_cli.runtime.montecarlo import execution  # noqa: E402
+from netkf_cli.core.system import LinearSystem  # noqa: E402
 
 from ._systems import bernoulli, poisson, scalar_system, vehicle_system  # noqa: E402
 

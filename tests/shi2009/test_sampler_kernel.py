@@ -6,12 +6,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from netkf_cli import riccati
+from netkf_cli.linalg import riccati
 from netkf_cli.channels.delay import (LOST, arrivals_now, cdf_table, delays_from_uniforms, kept_at,  # noqa: F401
                                       kept_thresholds, sample_capped_delays)
-from netkf_cli import kalman
+from netkf_cli.linalg import kalman
 from netkf_cli.estimators.buffered import BufferedEstimator, availability, covariance_from_kept, mkf
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.system import LinearSystem
 
 from ._systems import bernoulli, pmf, poisson, scalar_system, vehicle_system
 
@@ -113,7 +113,7 @@ def test_overflow_is_counted_not_nan():
     """An unstable run with no packets overflows to ∞ (the core's Rescue policy: the variances of the
     unknown directions are ∞, their decoupled covariances stay 0, nothing is NaN): λ_max = ∞, counted as
     P ≰ M; a run that keeps receiving stays finite."""
-    from netkf_cli import batched
+    from netkf_cli.linalg import batched
 
     s = LinearSystem.create(np.diag([3.0, 2.0]), np.eye(2), np.eye(2), np.eye(2))
     with np.errstate(all="ignore"):

@@ -12,12 +12,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from netkf_cli import riccati
+from netkf_cli.linalg import riccati
 from netkf_cli.analysis import smoothing as sm
 from netkf_cli.channels.retransmission import RetransmissionChannel
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.smoother import fixed_lag_smoother
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.system import LinearSystem
 
 S = LinearSystem.create(1.3, 1, 0.5, 1)
 PRINTED_LAMBDA = [0.776, 0.632, 0.527, 0.451, 0.393, 0.348]  # Table I, second row

@@ -8,10 +8,10 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from netkf_cli import runner
-from netkf_cli.artefact import RunContext
-from netkf_cli.cli import app
-from netkf_cli.loader import load_scenario_text
+from netkf_cli.app import runner
+from netkf_cli.core.artefact import RunContext
+from netkf_cli.app.cli import app
+from netkf_cli.config.loader import load_scenario_text
 
 BASE = "name: bad\nsystem: {A: 1.3, C: 1, Q: 0.5, R: 1}\nmontecarlo: {runs: 100, burn_in: 10, horizon: 30}\n"
 TA = "analysis: {kind: time_average, M: 6.25, references: [leong_exact]}\nestimator: {kind: smoother, lag: 1}\n"

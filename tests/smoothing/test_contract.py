@@ -10,17 +10,18 @@ import sys
 import numpy as np
 import pytest
 
-from netkf_cli import engine, kalman
-from netkf_cli import riccati
+from netkf_cli import engine
+from netkf_cli.linalg import kalman
+from netkf_cli.linalg import riccati
 from netkf_cli.analysis.smoothing import batch_posterior_covariance
 from netkf_cli.channels.bernoulli import BernoulliChannel
 from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
-from netkf_cli.errors import ConfigError
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators import smoother as sm_est
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.estimators.smoother import SmootherEstimator
-from netkf_cli.system import LinearSystem
-from netkf_cli.trace import Trace
+from netkf_cli.core.system import LinearSystem
+from netkf_cli.core.trace import Trace
 
 numba_missing = not sm_est.numba_available()
 
@@ -310,7 +311,7 @@ def test_smooth_step_in_conditioning_form_is_rts_and_survives_huge_priors():
 def test_compiled_primitives_equal_the_numpy_core():
     """kalman_numba.smooth and .information_update (appended for the smoother) against
     kalman.SmoothStep and kalman.information_update on random PD matrices (one run), and the huge case."""
-    from netkf_cli import kalman_numba as kn
+    from netkf_cli.linalg import kalman_numba as kn
 
     rng = np.random.default_rng(9)
     for n in (1, 2, 3, 4):

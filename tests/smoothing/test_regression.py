@@ -17,10 +17,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from netkf_cli import runner
-from netkf_cli.artefact import RunContext
-from netkf_cli.loader import load_scenario
-from netkf_cli.runner import run_scenario_file
+from netkf_cli.app import runner
+from netkf_cli.core.artefact import RunContext
+from netkf_cli.config.loader import load_scenario
+from netkf_cli.app.runner import run_scenario_file
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs" / "smoothing"

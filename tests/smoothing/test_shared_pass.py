@@ -9,11 +9,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from netkf_cli import engine, kalman
+from netkf_cli import engine
+from netkf_cli.linalg import kalman
 from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
 from netkf_cli.estimators import smoother as sm
 from netkf_cli.estimators.smoother import SmootherEstimator
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.system import LinearSystem
 
 numba_missing = not sm.numba_available()
 QS = ("filtered", "predicted", "smoothed")

@@ -10,10 +10,10 @@ import scipy.linalg
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from netkf_cli import riccati
+from netkf_cli.linalg import riccati
 from netkf_cli.analysis.smoothing import batch_posterior_covariance
 from netkf_cli.estimators.smoother import fixed_lag_smoother
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.system import LinearSystem
 
 
 def random_system(rng, n, m):

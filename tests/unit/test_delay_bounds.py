@@ -8,8 +8,8 @@ from hypothesis import given, settings, strategies as st
 
 from netkf_cli.analysis import delay_bounds as db
 from netkf_cli.channels.delay import GeometricDelay, PmfDelay, PoissonDelay
-from netkf_cli.errors import TheoremConditionError
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.errors import TheoremConditionError
+from netkf_cli.core.system import LinearSystem
 
 EX = LinearSystem.create(1.4, 1, 0.2, 0.5)
 D5 = PoissonDelay(mean=5).cdf

@@ -18,8 +18,8 @@ import scipy.linalg as sl
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from netkf_cli import kalman
-from netkf_cli.system import LinearSystem
+from netkf_cli.linalg import kalman
+from netkf_cli.core.system import LinearSystem
 
 
 def _spd(rng, n, eps=0.2):
@@ -125,7 +125,7 @@ def test_rescue_sets_overflowed_runs_to_inf_never_nan():
 
 
 def test_stream_rows_names_the_fix():
-    from netkf_cli.errors import ConfigError
+    from netkf_cli.core.errors import ConfigError
 
     s = LinearSystem.create(1.0, [[1.0], [1.0]], 1.0, np.eye(2))
     assert kalman.stream_rows(s, 1) == ((0, 1),)
@@ -136,7 +136,7 @@ def test_stream_rows_names_the_fix():
 
 def test_compiled_primitives_equal_the_numpy_core():
     nb = pytest.importorskip("numba")
-    from netkf_cli import kalman_numba as kn
+    from netkf_cli.linalg import kalman_numba as kn
 
     @nb.njit(cache=False)
     def step(P, A, C, Q, R, gamma):
@@ -210,7 +210,7 @@ def test_auto_backend_picks_compiled_with_numba_and_numpy_without(monkeypatch):
         assert est.backend_used(s, ch, big, 1) == "numba"
     monkeypatch.setattr(kalman, "numba_available", lambda: False)
     assert est.backend_used(s, ch, big, 1) == "numpy"
-    from netkf_cli.errors import ConfigError
+    from netkf_cli.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="backend numba needs numba"):
         KalmanFilterEstimator(kind="kf", backend="numba").backend_used(s, ch, big, 1)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from netkf_cli.loader import load_scenario
+from netkf_cli.config.loader import load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = ROOT / "netkf_cli" / "recipes"
@@ -20,7 +20,7 @@ MAX_RECIPE_LINES = 1500
 
 MC_NAMES = {"run_chunked", "simulate", "sample_trace", "default_rng", "SeedSequence", "PairKernel", "Generator",
             "mean_covariance", "time_average_mean"}
-MC_MODULES = {"netkf_cli.montecarlo", "netkf_cli.engine", "netkf_cli.workers", "netkf_cli.state"}
+MC_MODULES = {"netkf_cli.runtime.montecarlo", "netkf_cli.engine", "netkf_cli.runtime.workers", "netkf_cli.engine.state"}
 """Modules that run Monte Carlo. A recipe may read a channel module's labels and distributions (paper
 arithmetic) but never builds a channel: no ``…Channel`` class is named."""
 

@@ -5,9 +5,9 @@ import pytest
 import scipy.linalg
 from hypothesis import given, settings, strategies as st
 
-from netkf_cli import riccati
-from netkf_cli.errors import ConfigError
-from netkf_cli.system import LinearSystem
+from netkf_cli.linalg import riccati
+from netkf_cli.core.errors import ConfigError
+from netkf_cli.core.system import LinearSystem
 
 
 def random_system(seed: int, n: int, m: int, unstable: bool) -> LinearSystem:

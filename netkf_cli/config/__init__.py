@@ -1,0 +1,2 @@
+"""YAML → Scenario: the pydantic scenario, its cross-block checks, sweeps, and what `netkf list`
+shows. Built on recipes/, metrics/ and every layer below."""

@@ -1,0 +1,80 @@
+"""What ``netkf list`` shows: every kind with its fields (name, type, default, meaning) and what composes."""
+
+from __future__ import annotations
+
+from types import UnionType
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
+
+from pydantic.fields import PydanticUndefined
+
+from netkf_cli.linalg.kalman import MEANING
+from netkf_cli.config.scenario import kinds
+from netkf_cli.core.spec import AnalysisModel, ChannelModel, EstimatorModel
+
+GENERIC_METRICS = ("distribution", "mean_vs_time", "compare", "tail", "time_average", "state_error", "updates",
+                   "burst_mean", "autocorrelation")
+
+
+def _type_name(ann: Any) -> str:
+    """A short readable type: ``list[float] | MGrid``, ``'log' | 'linear'``, ``int``."""
+    origin, args = get_origin(ann), get_args(ann)
+    if origin is Annotated:
+        return _type_name(args[0])
+    if origin is Literal:
+        return " | ".join(repr(a) for a in args)
+    if origin in (Union, UnionType):
+        return " | ".join(_type_name(a) for a in args)
+    if origin in (list, tuple, dict):
+        return f"{origin.__name__}[{', '.join(_type_name(a) for a in args)}]"
+    if ann is type(None):
+        return "None"
+    return getattr(ann, "__name__", str(ann))
+
+
+def fields_of(cls) -> list[dict]:
+    """Name, type, default and description of every field except ``kind``."""
+    out = []
+    for name, f in cls.model_fields.items():
+        if name == "kind":
+            continue
+        default = "required" if f.default is PydanticUndefined and f.default_factory is None else (
+            repr(f.default) if f.default_factory is None else repr(f.default_factory()))
+        out.append({"name": f.alias or name, "type": _type_name(f.annotation), "default": default,
+                    "description": f.description or ""})
+    return out
+
+
+def describe(compat: dict | None = None) -> dict[str, dict[str, dict]]:
+    """{family: {kind: {doc, fields, …compatibility}}} for channel, estimator and analysis.
+
+    ``compat`` is :func:`netkf_cli.config.compat.compatibility` (what `netkf validate` accepts, computed;
+    passed in because compat sits beside this module): without it no pair is listed."""
+    compat = compat or {}
+    out: dict[str, dict[str, dict]] = {}
+    for family, base in (("channel", ChannelModel), ("estimator", EstimatorModel), ("analysis", AnalysisModel)):
+        fam = {}
+        for k, cls in sorted(kinds(base).items()):
+            doc = (cls.__doc__ or "").strip().splitlines()[0].replace("``", "") if cls.__doc__ else ""
+            entry: dict[str, Any] = {"doc": doc, "fields": fields_of(cls)}
+            if family == "channel":
+                entry["trace"] = sorted(getattr(cls, "trace_kinds", ()))
+                row = compat.get(k, {})
+                entry["estimators"] = sorted(e for e, v in row.items() if v["status"] != "no")
+                entry["conditions"] = {e: v["condition"] for e, v in row.items() if v["status"] == "conditional"}
+            elif family == "estimator":
+                entry["accepts"] = sorted(getattr(cls, "accepts", ()))
+                col = {c: row[k] for c, row in compat.items() if k in row}
+                entry["channels"] = sorted(c for c, v in col.items() if v["status"] != "no")
+                entry["conditions"] = {c: v["condition"] for c, v in col.items() if v["status"] == "conditional"}
+
+                entry["quantities"] = {q: MEANING[q] for q in getattr(cls, "quantities", ("filtered",))}
+                entry["state_estimates"] = ("numpy path (state_error: x̂ beside P)" if callable(getattr(cls, "estimates", None))
+                                            else "none")
+            else:
+                entry["generic"] = k in GENERIC_METRICS
+                if k in GENERIC_METRICS:
+                    entry["works_with"] = getattr(cls, "works_with", None) or \
+                        "any channel with any estimator it is compatible with (see the estimators)"
+            fam[k] = entry
+        out[family] = fam
+    return out
