@@ -37,13 +37,14 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from netkf_cli import batched, engine, kalman  # noqa: E402
+from netkf_cli.linalg import batched, kalman
+from netkf_cli import engine  # noqa: E402
 from netkf_cli.channels.delay import DelayChannel, kept_by, trace_delays, trace_max_kept_delay  # noqa: E402
 from netkf_cli.estimators.buffered import BufferedEstimator, availability  # noqa: E402
 from netkf_cli.estimators.smart_sensor import SmartSensorEstimator  # noqa: E402
-from netkf_cli.montecarlo import execution  # noqa: E402
-from netkf_cli.riccati import initial_covariance  # noqa: E402
-from netkf_cli.system import LinearSystem  # noqa: E402
+from netkf_cli.runtime.montecarlo import execution  # noqa: E402
+from netkf_cli.linalg.riccati import initial_covariance  # noqa: E402
+from netkf_cli.core.system import LinearSystem  # noqa: E402
 
 
 def workloads():

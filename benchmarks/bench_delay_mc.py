@@ -36,10 +36,11 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from netkf_cli import engine, riccati  # noqa: E402
+from netkf_cli import engine
+from netkf_cli.linalg import riccati  # noqa: E402
 from netkf_cli.channels.delay import DelayChannel  # noqa: E402
 from netkf_cli.estimators.buffered import BufferedEstimator, availability, covariance_from_kept  # noqa: E402
-from netkf_cli.system import LinearSystem  # noqa: E402
+from netkf_cli.core.system import LinearSystem  # noqa: E402
 
 
 def workloads():
@@ -141,7 +142,7 @@ def main(argv=None):
     for cfg in ("fig5", "fig9"):
         with tempfile.TemporaryDirectory() as tmp:
             t = time.perf_counter()
-            subprocess.run([sys.executable, "-c", "from netkf_cli.cli import app; app()", "run",
+            subprocess.run([sys.executable, "-c", "from netkf_cli.app.cli import app; app()", "run",
                             str(ROOT / "configs" / f"{cfg}.yaml"), "--out", str(Path(tmp) / cfg), "--force"],
                            check=True, cwd=ROOT, capture_output=True)
             print(f"end to end: netkf run configs/{cfg}.yaml (default size): {time.perf_counter() - t:.2f} s")

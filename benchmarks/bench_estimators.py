@@ -35,7 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from netkf_cli import montecarlo  # noqa: E402
+from netkf_cli.runtime import montecarlo  # noqa: E402
 from benchmarks.bench_memory import TARGET_MB, measure  # noqa: E402
 
 TARGET = {"numpy": 2e7, "compiled": 1e8}

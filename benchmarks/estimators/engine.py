@@ -19,7 +19,7 @@ from netkf_cli.channels.bernoulli import BernoulliChannel
 from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
 from netkf_cli.engine import DistributionReducer, MomentReducer, PairKernel, StationaryReducer
 from netkf_cli.estimators.kf import KalmanFilterEstimator
-from netkf_cli.kalman import numba_available
+from netkf_cli.linalg.kalman import numba_available
 
 from benchmarks.estimators.shi2009 import systems
 

@@ -22,7 +22,7 @@ import numpy as np
 from netkf_cli.channels.fading import FadingChannel
 from netkf_cli.engine import PairKernel, TimeAverageReducer
 from netkf_cli.estimators import fading_receivers as fr
-from netkf_cli.system import LinearSystem
+from netkf_cli.core.system import LinearSystem
 
 HORIZON = 100
 RUNS = {"numpy": 4_000, "numba": 20_000}

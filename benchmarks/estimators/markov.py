@@ -4,8 +4,8 @@
 "system": ..., "backend": "numpy" | "numba", "threads": None | 1, "make": callable() -> (kernel, runs, horizon)}``
 (``numba`` rows listed only when numba imports).
 The kernel is the one ``netkf run`` builds for the artefacts' ``analysis.kind: state_error`` (the generic
-state path :class:`netkf_cli.state.StateErrorKernel`) with one ``markov_lmi`` estimator: it samples the mode
-chain (``channel.sample_trace``), the plant and its noise (:func:`netkf_cli.state.simulate`), runs the
+state path :class:`netkf_cli.engine.state.StateErrorKernel`) with one ``markov_lmi`` estimator: it samples the mode
+chain (``channel.sample_trace``), the plant and its noise (:func:`netkf_cli.engine.state.simulate`), runs the
 filter's ``estimates`` and reduces squared errors, tr P and NEES per step (filtered, every step; window = the
 second half). One run advanced one step is one run-step. Gains are designed once per process (closed form).
 ``backend: numba`` is what ``auto`` runs: the fixed-gain filters' per-run covariances (LMI, naive) and the
@@ -35,8 +35,8 @@ from netkf_cli.channels.markov_modes import MarkovModesChannel
 from netkf_cli.engine import PairKernel, TimeAverageReducer
 from netkf_cli.estimators.markov_filters import numba_available
 from netkf_cli.estimators.markov_lmi import MarkovLMIEstimator
-from netkf_cli.state import StateErrorKernel
-from netkf_cli.system import LinearSystem
+from netkf_cli.engine.state import StateErrorKernel
+from netkf_cli.core.system import LinearSystem
 
 HORIZON = 100
 RUNS = 5_000

@@ -30,8 +30,8 @@ import numpy as np
 
 from netkf_cli.channels.bernoulli import BernoulliChannel
 from netkf_cli.channels.delay import DelayChannel
-from netkf_cli.kalman import numba_available
-from netkf_cli.system import LinearSystem
+from netkf_cli.linalg.kalman import numba_available
+from netkf_cli.core.system import LinearSystem
 
 HORIZON = 100
 RUNS = 20_000  # one chunk of the artefacts' default layout

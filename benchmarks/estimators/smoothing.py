@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from netkf_cli import kalman
+from netkf_cli.linalg import kalman
 from netkf_cli.channels.bernoulli import BernoulliChannel
 from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
 from netkf_cli.engine import DistributionReducer, PairKernel, StationaryReducer
