@@ -118,36 +118,25 @@ class TimeAverage(GenericMetric):
         labs = labels(ests)
         n = int(st["n"])
         rows, theory_flags = [], {}
-        for j, (e, lab) in enumerate(zip(ests, labs)):
-            for qi, q in enumerate(qs):
-                c = engine.column(j, qi, len(qs))
-                if f"sum_avg_{c}" not in st:
-                    continue  # this estimator does not report q
-                lab_cols = describe(scenario, s, [e], q)[0]
-                bad = int(st[f"nonfinite_{c}"])
-                m_ok = max(n - bad, 1)
-                c0 = shift.get(c, 0.0)  # the sums are of (a − c0): shift-invariant variance and 4th moment
-                dmean, se = (float(x) for x in mean_se(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], m_ok))
-                mean = c0 + dmean
-                _, _, heavy = heavy_tail_flag(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], st[f"sum3_avg_{c}"],
-                                              st[f"sum4_avg_{c}"], m_ok, bad)
-                rare = bool(rare_event_flag(st[f"sum_avg_{c}"] + m_ok * c0, st[f"max_avg_{c}"], m_ok))
-                base = dict(estimator=lab, quantity=q, n=n, nonfinite=bad, source="monte_carlo", reference="",
-                            P0=lab_cols["P0"], conventions=lab_cols["conventions"])
-                phi, why = kf_tail_exponent(s, scenario.channel, e)
-                by_theory = phi is not None and phi >= -2.0
-                reason = flag_reason(nonfinite=bad, sample=heavy, theory=by_theory, rare=rare)
-                if by_theory:  # E[(tr P)²] = ∞: the sample's variance (and s.e.) mean nothing
-                    heavy = True
-                    theory_flags[lab] = (f"tail exponent φ = {phi:.3g} ≥ −2 (Mo & Sinopoli 2012: E[(tr P)²] = ∞"
-                                         + (", E[tr P] = ∞" if phi >= -1.0 else "") + f"; {why})")
-                rows.append(dict(base, series=TRACE, M=np.nan, value=mean if bad == 0 else np.inf, stderr=se,
-                                 heavy_tail=bool(heavy), rare_event=rare, flag_reason=reason))
-                if Ms is not None:  # a non-finite run counts as not ≤ M: the probability is over every run
-                    pm, pse = mean_se(st[f"sum_ind_{c}"], st[f"sumsq_ind_{c}"], n)
-                    for i, m in enumerate(Ms):
-                        rows.append(dict(base, series=PROB, M=float(m), value=float(pm[i]), stderr=float(pse[i]),
-                                         heavy_tail=False, rare_event=False, flag_reason=""))
+        for e, lab, q, c, lab_cols, bad, m_ok in _cells(scenario, s, ests, st, qs, "sum_avg"):
+            c0 = shift.get(c, 0.0)  # the sums are of (a − c0): shift-invariant variance and 4th moment
+            dmean, se = (float(x) for x in mean_se(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], m_ok))
+            mean = c0 + dmean
+            _, _, heavy = heavy_tail_flag(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], st[f"sum3_avg_{c}"],
+                                          st[f"sum4_avg_{c}"], m_ok, bad)
+            rare = bool(rare_event_flag(st[f"sum_avg_{c}"] + m_ok * c0, st[f"max_avg_{c}"], m_ok))
+            base = dict(estimator=lab, quantity=q, n=n, nonfinite=bad, source="monte_carlo", reference="",
+                        P0=lab_cols["P0"], conventions=lab_cols["conventions"])
+            by_theory = _heavy_by_theory(s, scenario.channel, e, lab, theory_flags)
+            reason = flag_reason(nonfinite=bad, sample=heavy, theory=by_theory, rare=rare)
+            heavy = heavy or by_theory  # E[(tr P)²] = ∞: the sample's variance (and s.e.) mean nothing
+            rows.append(dict(base, series=TRACE, M=np.nan, value=mean if bad == 0 else np.inf, stderr=se,
+                             heavy_tail=bool(heavy), rare_event=rare, flag_reason=reason))
+            if Ms is not None:  # a non-finite run counts as not ≤ M: the probability is over every run
+                pm, pse = mean_se(st[f"sum_ind_{c}"], st[f"sumsq_ind_{c}"], n)
+                for i, m in enumerate(Ms):
+                    rows.append(dict(base, series=PROB, M=float(m), value=float(pm[i]), stderr=float(pse[i]),
+                                     heavy_tail=False, rare_event=False, flag_reason=""))
         for r in self.reference_rows(scenario, labs):
             rows.append(dict(estimator=r.get("estimator", ""), quantity=r.get("quantity", qs[0]),
                              series=r["series"], M=r.get("M", np.nan), value=r["value"], stderr=np.nan, n=0,
@@ -181,33 +170,22 @@ class TimeAverage(GenericMetric):
         labs = labels(ests)
         n = int(st["n"])
         rows, theory_flags = [], {}
-        for j, (e, lab) in enumerate(zip(ests, labs)):
-            for qi, q in enumerate(qs):
-                c = engine.column(j, qi, len(qs))
-                if f"sum_T_{c}" not in st:
-                    continue  # this estimator does not report q
-                lab_cols = describe(scenario, s, [e], q)[0]
-                bad = int(st[f"nonfinite_{c}"])
-                m_ok = max(n - bad, 1)
-                r = nm.norm_of_mean(st, c, shift)
-                _, _, heavy = heavy_tail_flag(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], st[f"sum3_avg_{c}"],
-                                              st[f"sum4_avg_{c}"], m_ok, bad)
-                tr0 = float(np.trace(nm.unpack(shift[c], int(st[f"max_dim_{c}"])))) if c in shift else 0.0
-                rare = bool(rare_event_flag(st[f"sum_avg_{c}"] + m_ok * tr0, st[f"max_avg_{c}"], m_ok))
-                phi, why = kf_tail_exponent(s, scenario.channel, e)
-                by_theory = phi is not None and phi >= -2.0
-                reason = flag_reason(nonfinite=bad, sample=heavy, theory=by_theory, rare=rare)
-                if by_theory:
-                    heavy = True
-                    theory_flags[lab] = (f"tail exponent φ = {phi:.3g} ≥ −2 (Mo & Sinopoli 2012: E[(tr P)²] = ∞"
-                                         + (", E[tr P] = ∞" if phi >= -1.0 else "") + f"; {why})")
-                if r["eigen_gap"]:
-                    reason = "+".join(x for x in (reason, "eigen_gap") if x)
-                rows.append(dict(estimator=lab, quantity=q, series=NORM, M=np.nan,
-                                 value=r["value"] if bad == 0 else np.inf, stderr=r["stderr"], n=n, nonfinite=bad,
-                                 heavy_tail=bool(heavy), rare_event=rare, flag_reason=reason, source="monte_carlo",
-                                 reference="", P0=lab_cols["P0"], conventions=lab_cols["conventions"],
-                                 eigen_gap=r["gap"]))
+        for e, lab, q, c, lab_cols, bad, m_ok in _cells(scenario, s, ests, st, qs, "sum_T"):
+            r = nm.norm_of_mean(st, c, shift)
+            _, _, heavy = heavy_tail_flag(st[f"sum_avg_{c}"], st[f"sumsq_avg_{c}"], st[f"sum3_avg_{c}"],
+                                          st[f"sum4_avg_{c}"], m_ok, bad)
+            tr0 = float(np.trace(nm.unpack(shift[c], int(st[f"max_dim_{c}"])))) if c in shift else 0.0
+            rare = bool(rare_event_flag(st[f"sum_avg_{c}"] + m_ok * tr0, st[f"max_avg_{c}"], m_ok))
+            by_theory = _heavy_by_theory(s, scenario.channel, e, lab, theory_flags)
+            reason = flag_reason(nonfinite=bad, sample=heavy, theory=by_theory, rare=rare)
+            heavy = heavy or by_theory  # E[(tr P)²] = ∞: the sample's variance (and s.e.) mean nothing
+            if r["eigen_gap"]:
+                reason = "+".join(x for x in (reason, "eigen_gap") if x)
+            rows.append(dict(estimator=lab, quantity=q, series=NORM, M=np.nan,
+                             value=r["value"] if bad == 0 else np.inf, stderr=r["stderr"], n=n, nonfinite=bad,
+                             heavy_tail=bool(heavy), rare_event=rare, flag_reason=reason, source="monte_carlo",
+                             reference="", P0=lab_cols["P0"], conventions=lab_cols["conventions"],
+                             eigen_gap=r["gap"]))
         for r in self.reference_rows(scenario, labs):
             if r.get("statistic") != "norm_of_mean":
                 raise ConfigError.at("analysis.references", f"{r['reference']!r} does not give ‖E P‖ (statistic: "
@@ -363,6 +341,30 @@ def _constant(st: dict, c: int) -> bool:
     m = max(int(st["n"]) - int(st[f"nonfinite_{c}"]), 1)
     mu = float(st[f"sum_avg_{c}"]) / m
     return float(st[f"sumsq_avg_{c}"]) / m - mu * mu <= nm.ROUNDOFF * mu * mu
+
+
+def _heavy_by_theory(system, channel, est, lab: str, theory_flags: dict) -> bool:
+    """True where the theoretical tail exponent φ ≥ −2 (kf and the smoother on i.i.d. or Gilbert–Elliott loss,
+    Mo & Sinopoli 2012: E[(tr P)²] = ∞); why is recorded in ``theory_flags[lab]`` (the manifest)."""
+    phi, why = kf_tail_exponent(system, channel, est)
+    if phi is None or phi < -2.0:
+        return False
+    theory_flags[lab] = (f"tail exponent φ = {phi:.3g} ≥ −2 (Mo & Sinopoli 2012: E[(tr P)²] = ∞"
+                         + (", E[tr P] = ∞" if phi >= -1.0 else "") + f"; {why})")
+    return True
+
+
+def _cells(scenario, system, ests, st, qs, key: str):
+    """Every reported (estimator, quantity) column of a pass: (estimator, label, quantity, column, its label
+    columns, non-finite runs, finite runs ≥ 1). A column without ``<key>_<column>`` is a quantity the
+    estimator does not report."""
+    n = int(st["n"])
+    for j, (e, lab) in enumerate(zip(ests, labels(ests))):
+        for qi, q in enumerate(qs):
+            c = engine.column(j, qi, len(qs))
+            if f"{key}_{c}" in st:
+                bad = int(st[f"nonfinite_{c}"])
+                yield e, lab, q, c, describe(scenario, system, [e], q)[0], bad, max(n - bad, 1)
 
 
 def _cancelling(st: dict) -> dict:
