@@ -135,6 +135,15 @@ def share_mathtext_parses() -> bool:
         rc = tuple(matplotlib.rcParams[k] for k in _MATHTEXT_RC)
         return shared(self._output_type, s, dpi, prop, antialiased, load_glyph_flags, rc)
 
+    def forget():  # a forked child must not draw with the parent's fonts: their open files share one offset
+        shared.cache_clear()
+        parsers.clear()
+
+    # matplotlib clears its font cache (font_manager._get_font) in a forked child for the same reason; a parse
+    # kept here holds the parent's FT2Font objects, and two workers reading glyphs through one inherited file
+    # offset fail with "FT_Load_Glyph … invalid outline" (seen in a quick reproduction run from a process that
+    # had drawn figures before forking)
+    os.register_at_fork(after_in_child=forget)
     _parse_cached._netkf_shared = True
     _parse_cached.cache = shared  # cache_info() / cache_clear()
     _parse_cached.original = current  # matplotlib's own (the tests render with both)

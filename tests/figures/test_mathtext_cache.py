@@ -57,3 +57,28 @@ def test_idempotent():
     assert P.share_mathtext_parses() is True
     assert getattr(MathTextParser._parse_cached, "_netkf_shared", False)
     assert not getattr(MathTextParser._parse_cached.original, "_netkf_shared", False)
+
+
+def _shared_parses_in_child(_=None) -> int:
+    from matplotlib.mathtext import MathTextParser
+    return MathTextParser._parse_cached.cache.cache_info().currsize
+
+
+def test_a_forked_child_starts_without_the_parents_parses():
+    """A kept parse holds the parent's FT2Font objects, whose open font files a forked child shares (one file
+    offset): two workers drawing glyphs through them failed with FT_Load_Glyph 'invalid outline'. The child
+    starts with an empty shared cache (as matplotlib's own font cache: font_manager clears it at fork)."""
+    import multiprocessing as mp
+
+    import matplotlib.pyplot as plt
+    from matplotlib.mathtext import MathTextParser
+
+    fig, ax = plt.subplots()
+    ax.set_yscale("log")
+    ax.plot([1, 2], [1e-3, 1e2])
+    ax.set_title(r"$\mathrm{E}\,P_{k|k-1}$")
+    fig.canvas.draw()
+    plt.close(fig)
+    assert MathTextParser._parse_cached.cache.cache_info().currsize > 0  # the parent keeps parses
+    with mp.get_context("fork").Pool(1) as pool:
+        assert pool.apply(_shared_parses_in_child) == 0
