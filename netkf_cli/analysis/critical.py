@@ -70,15 +70,7 @@ import scipy.linalg
 from netkf_cli.linalg import kalman
 from netkf_cli.analysis.delay_bounds import max_kept_delay
 from netkf_cli.core.errors import NetkfError
-
-RHO_TOL = 1e-9
-"""|σ| within this of 1 counts as "on the unit circle"."""
-
-MARGIN_TOL = 1e-9
-"""An LMI solution certifies feasibility when the smallest eigenvalue of the (numerically
-re-evaluated) block matrix and of Y exceeds this (both are normalised by Y ≤ I)."""
-
-DEFAULT_BISECTION_TOL = 1e-5
+from netkf_cli.core.tolerances import CRITICAL_BISECTION_TOL, CRITICAL_MARGIN_TOL, CRITICAL_RANK_TOL, CRITICAL_RHO_TOL
 
 
 class CriticalRateError(NetkfError):
@@ -124,7 +116,7 @@ def is_detectable(A: np.ndarray, C: np.ndarray, tol: float = 1e-9) -> bool:
     n = A.shape[0]
     cn = max(np.linalg.norm(C, 2), np.finfo(float).tiny)
     for sig in np.linalg.eigvals(A):
-        if abs(sig) < 1 - RHO_TOL:
+        if abs(sig) < 1 - CRITICAL_RHO_TOL:
             continue
         _, sv, Vh = np.linalg.svd(A - sig * np.eye(n))
         null = Vh[(sv <= tol * max(1.0, sv[0])), :].conj().T if sv.size else np.eye(n)
@@ -137,9 +129,9 @@ def is_detectable(A: np.ndarray, C: np.ndarray, tol: float = 1e-9) -> bool:
 
 
 def unstable_eigenvalues(A: np.ndarray) -> np.ndarray:
-    """Eigenvalues with |σ| ≥ 1 (within :data:`RHO_TOL`), with algebraic multiplicity."""
+    """Eigenvalues with |σ| ≥ 1 (within :data:`CRITICAL_RHO_TOL`), with algebraic multiplicity."""
     ev = np.linalg.eigvals(A)
-    return ev[np.abs(ev) >= 1 - RHO_TOL]
+    return ev[np.abs(ev) >= 1 - CRITICAL_RHO_TOL]
 
 
 # =============================================================================================
@@ -168,10 +160,10 @@ def exact_case(A: np.ndarray, C: np.ndarray) -> ExactCase | None:
     if not is_detectable(A, C):
         return ExactCase("undetectable", None, "(A, C) is not detectable: an unstable mode is never measured",
                          "E[P_k] diverges for every arrival rate, λ = 1 included (if Q excites that mode)")
-    if rho < 1 - RHO_TOL:
+    if rho < 1 - CRITICAL_RHO_TOL:
         return ExactCase("stable", 0.0, f"A is Schur stable (ρ(A) = {rho:.6g} < 1)",
                          "open-loop prediction keeps E[P_k] ≤ Σ Aⁱ Q Aᵀⁱ bounded for every λ ≥ 0")
-    if rho <= 1 + RHO_TOL:
+    if rho <= 1 + CRITICAL_RHO_TOL:
         return ExactCase("marginal", 0.0, "ρ(A) = 1 and (A, C) detectable",
                          "every λ > 0 works: n consecutive arrivals occur at geometric times and bound P, "
                          "while ‖Aᵏ‖ grows only polynomially (experiments/critical/README.md)")
@@ -325,7 +317,7 @@ class _SinopoliLMI:
             Y = _sym(Y)
             e1 = np.linalg.eigvalsh(_sym(self.psi(Y, Z, lam))).min()
             e2 = np.linalg.eigvalsh(Y).min()
-            cert = bool(e1 > MARGIN_TOL and e2 > MARGIN_TOL)
+            cert = bool(e1 > CRITICAL_MARGIN_TOL and e2 > CRITICAL_MARGIN_TOL)
         return float(self.t.value), st, cert
 
 
@@ -349,12 +341,12 @@ class LambdaMax:
         return self.hi
 
 
-def lambda_max(A, C, *, tol: float = DEFAULT_BISECTION_TOL, lo: float = 0.0, solver: str = "CLARABEL") -> LambdaMax:
+def lambda_max(A, C, *, tol: float = CRITICAL_BISECTION_TOL, lo: float = 0.0, solver: str = "CLARABEL") -> LambdaMax:
     """Sinopoli's upper bound λ_max on λ_c: bisection on the LMI Ψ_λ(Y, Z) > 0 (Thm 5).
 
     Feasibility is monotone in λ (g_λ decreases in λ), so bisection over [lo, 1] finds the
     threshold; "feasible" means the solver's (Y, Z) passes a numerical eigenvalue check
-    (:data:`MARGIN_TOL`), so ``hi`` is certified; "infeasible" trusts the solver's optimum
+    (:data:`CRITICAL_MARGIN_TOL`), so ``hi`` is certified; "infeasible" trusts the solver's optimum
     t* ≤ 0 (status checked). ``lo`` defaults to 0 so that λ_min ≤ λ_max is a check, not an input.
     """
     A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
@@ -488,7 +480,7 @@ class _MarkovLMI:
         M0 = np.block([[P0, A.T @ E0], [E0 @ A, E0]])
         M1 = np.block([[P1, A.T @ E1 - C.T @ W.T], [E1 @ A - W @ C, E1]])
         mins = [np.linalg.eigvalsh(_sym(M)).min() for M in (M0, M1, P0, P1)]
-        return bool(min(mins) > MARGIN_TOL), st
+        return bool(min(mins) > CRITICAL_MARGIN_TOL), st
 
 
 @dataclass(frozen=True)
@@ -608,10 +600,6 @@ class NonDegeneracy:
                            for g in self.groups]}
 
 
-RANK_TOL = 1e-8
-"""C restricted to a quasi-equiblock counts as injective when σ_min(C V) > RANK_TOL·‖C‖ (V orthonormal): scale-free."""
-
-
 def group_tolerance(A: np.ndarray) -> float:
     """Two eigenvalue moduli closer than this are one quasi-equiblock.
 
@@ -624,7 +612,7 @@ def group_tolerance(A: np.ndarray) -> float:
     return max(1e-6 * spectral_radius(A), 10.0 * (n * eps) ** (1.0 / n) * float(np.linalg.norm(A, 2)))
 
 
-def nondegeneracy(A, C, *, rank_tol: float = RANK_TOL) -> NonDegeneracy:
+def nondegeneracy(A, C, *, rank_tol: float = CRITICAL_RANK_TOL) -> NonDegeneracy:
     """Is (A, C) non-degenerate in the sense of Mo & Sinopoli 2012 (IEEE TAC 57(3), Def. of non-degeneracy)?
 
     Jordan form grouped by eigenvalue modulus: each group of eigenvalues of equal modulus (a quasi-equiblock) must
@@ -650,7 +638,7 @@ def nondegeneracy(A, C, *, rank_tol: float = RANK_TOL) -> NonDegeneracy:
     reason = ""
     for g in groups:
         lo, hi = float(mods[g].min()), float(mods[g].max())
-        if hi < 1 - RHO_TOL:
+        if hi < 1 - CRITICAL_RHO_TOL:
             continue
         sel = lambda x, y, lo=lo, hi=hi: lo - gtol / 2 <= math.hypot(x, y) <= hi + gtol / 2  # noqa: E731
         T, Z, sdim = scipy.linalg.schur(A, output="real", sort=sel)
@@ -711,10 +699,10 @@ def degenerate_second_order(A, C) -> ExactCase | None:
         return None
     ev = np.linalg.eigvals(A)
     rho = spectral_radius(A)
-    if rho <= 1 + RHO_TOL or abs(abs(ev[0]) - abs(ev[1])) > group_tolerance(A):
+    if rho <= 1 + CRITICAL_RHO_TOL or abs(abs(ev[0]) - abs(ev[1])) > group_tolerance(A):
         return None
     s = np.linalg.svd(C, compute_uv=False)
-    if s.size >= 2 and s[1] > RANK_TOL * s[0]:
+    if s.size >= 2 and s[1] > CRITICAL_RANK_TOL * s[0]:
         return None  # C has rank 2: one-step observable (non-degenerate)
     w = complex(ev[1] / ev[0])
     p = root_of_unity_order(w / abs(w), tol=1e-9)
@@ -847,7 +835,6 @@ def ge_degenerate_critical_q(A, C, p: float, *, tol: float = 1e-10) -> float | N
     return b
 
 
-
 def tail_exponent(A, C, *, loss_stay: float, channel: str = "bernoulli", T: np.ndarray | None = None) -> tuple[float | None, str]:
     """Decay exponent φ of Pr[tr P_k > M] ~ M^φ and where it comes from.
 
@@ -859,7 +846,7 @@ def tail_exponent(A, C, *, loss_stay: float, channel: str = "bernoulli", T: np.n
     """
     A, C = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(C, float))
     rho = spectral_radius(A)
-    if rho <= 1 + RHO_TOL:
+    if rho <= 1 + CRITICAL_RHO_TOL:
         return None, "ρ(A) ≤ 1: no exponential growth during bursts (no power law)"
     if not 0.0 < loss_stay < 1.0:
         return None, "the loss-burst law is degenerate (no loss, or bursts never end)"
@@ -990,7 +977,7 @@ def block_certified(bm: BlockMap, *, iters: int = 400) -> tuple[bool, float]:
         top = max(float(np.linalg.eigvalsh(X[j]).max()) for j in (0, 1))
         marg = min(float(np.linalg.eigvalsh(X[j] - F[j]).min()) for j in (0, 1)) / max(top, np.finfo(float).tiny)
         best = max(best, marg)
-        if marg > MARGIN_TOL:
+        if marg > CRITICAL_MARGIN_TOL:
             return True, marg
     return False, best
 
@@ -1010,7 +997,7 @@ class Certificate:
                 "bisection_tol": self.tol,
                 "method": "L-step averaged Riccati map over all 2^L arrival patterns (Jensen + concavity); the upper "
                           "end carries a strict super-solution Z ≻ Φ(Z) re-checked in floating point (margin > %g)"
-                          % MARGIN_TOL,
+                          % CRITICAL_MARGIN_TOL,
                 "meaning": "numerical certificate: λ_c ≤ upper (the lower end is where the bisection found none, not "
                            "a bound on λ_c)"}
 
@@ -1248,7 +1235,7 @@ class CriticalReport:
             "lambda_min": self.lam_min,
             "lambda_max": {"lower": lm.lo, "upper": None if math.isinf(lm.hi) else lm.hi, "bisection_tol": lm.tol,
                            "solves": lm.solves, "solver": lm.solver, "statuses": list(lm.statuses),
-                           "certificate": "upper end: the solver's (Y, Z) re-checked, min eig(Ψ_λ) > %g" % MARGIN_TOL},
+                           "certificate": "upper end: the solver's (Y, Z) re-checked, min eig(Ψ_λ) > %g" % CRITICAL_MARGIN_TOL},
             "lambda_c": None if e is None else e.value,
             "proven": self.proven,
             "condition": None if e is None else e.key,
@@ -1265,7 +1252,7 @@ class CriticalReport:
         }
 
 
-def critical_report(A, C, *, tol: float = DEFAULT_BISECTION_TOL, solver: str = "CLARABEL", Q=None, R=None,
+def critical_report(A, C, *, tol: float = CRITICAL_BISECTION_TOL, solver: str = "CLARABEL", Q=None, R=None,
                     certificate: bool = True, block: int = 6, certificate_tol: float = 1e-3) -> CriticalReport:
     """λ_min, λ_max (bisection), the proven case for (A, C), and where no theorem applies a numerical certificate
     (:func:`lambda_c_certificate`, with the system's Q and R; identity when not given)."""

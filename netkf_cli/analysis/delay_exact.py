@@ -53,9 +53,7 @@ from netkf_cli.linalg import riccati
 from netkf_cli.analysis.delay_bounds import max_kept_delay
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.core.system import LinearSystem
-from netkf_cli.core.tolerances import PSD_TOL
-
-DEFAULT_TOL = 1e-6
+from netkf_cli.core.tolerances import DELAY_EXACT_TOL, PSD_TOL
 
 
 @dataclass
@@ -79,7 +77,7 @@ class ExactResult:
 
     @property
     def converged(self) -> bool:
-        return bool(np.all(self.err <= DEFAULT_TOL))
+        return bool(np.all(self.err <= DELAY_EXACT_TOL))
 
 
 def _lft_matrices(s: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +118,7 @@ def leq_threshold(M: np.ndarray) -> np.ndarray:
     return M + PSD_TOL * np.maximum(1.0, np.abs(M))
 
 
-def exact_probability(s: LinearSystem, channel, span: int, M_grid, *, tol: float = DEFAULT_TOL,
+def exact_probability(s: LinearSystem, channel, span: int, M_grid, *, tol: float = DELAY_EXACT_TOL,
                       prune: float | None = None, max_depth: int = 2000, max_nodes: int = 50_000,
                       horizon: int | None = None, P0: np.ndarray | None = None) -> ExactResult:
     """Certified Pr[P_k ≤ M·I] for each M of ``M_grid`` (module docstring).

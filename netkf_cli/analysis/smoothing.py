@@ -44,7 +44,7 @@ import scipy.linalg
 from netkf_cli.linalg import kalman, riccati
 from netkf_cli.core.errors import ConfigError, TheoremConditionError
 from netkf_cli.core.system import LinearSystem
-from netkf_cli.core.tolerances import EXACT_PSD_TOL
+from netkf_cli.core.tolerances import EXACT_PSD_TOL, SMOOTHING_EXACT_TOL, SMOOTHING_MEAN_TOL
 
 K_MAX = 100_000
 MAX_EXACT_LAG = 8
@@ -591,10 +591,6 @@ def enumerate_retransmission_ways(n: int, N: int, p) -> list[tuple[str, object]]
 # Closed-form references for the generic metrics (``analysis.references``, see analysis/references.py)
 # --------------------------------------------------------------------------------------------
 
-EXACT_TOL = 1e-13
-"""Per-node weight tolerance of the reference enumerations (the certified brackets are < 1e-11 wide)."""
-MEAN_TOL = 1e-10
-"""Per-node trace tolerance of the exact stationary means."""
 G_N_MAX = 30
 """Largest n of the g(n) = 1 check (eqs 10–11) in floating point; exact rationals up to 12."""
 _CACHE: dict = {}
@@ -684,7 +680,7 @@ def reference_exact(point) -> list[dict]:
     ck = (round(float(T[0, 1]), 15), round(float(T[1, 1]), 15))
     for lab, q, lag in _columns(point):
         for m in _m_values(point.metric):
-            ex = _memo(("p", _skey(s), ck, lag, m), lambda: exact_probability(s, m, lag, T, pi, tol=EXACT_TOL))
+            ex = _memo(("p", _skey(s), ck, lag, m), lambda: exact_probability(s, m, lag, T, pi, tol=SMOOTHING_EXACT_TOL))
             rows.append(dict(series=f"exact, {q}, M = {m:g}", value=ex.value, estimator=lab, quantity=q, M=m))
         lam = _iid_rate(point.channel)
         if point.metric.get("kind") == "time_average" and point.metric.get("M") is None and lam is not None and 0 < lam < 1:
@@ -698,7 +694,7 @@ def _exact_trace_mean(s: LinearSystem, lam: float, lag: int | None) -> float:
         return math.inf
 
     def f():
-        e = exact_mean(s, lam, lag, tol=MEAN_TOL)
+        e = exact_mean(s, lam, lag, tol=SMOOTHING_MEAN_TOL)
         return 0.5 * (float(np.trace(e.lower)) + float(np.trace(e.upper)))
 
     return _memo(("m", _skey(s), lam, lag), f)

@@ -81,10 +81,8 @@ from pydantic import Field, model_validator
 from scipy import stats
 
 from netkf_cli.core.spec import StrictModel
+from netkf_cli.core.tolerances import GOLDEN_CLOSED_ATOL, GOLDEN_CLOSED_RTOL, MC_SIGMAS
 
-CLOSED_RTOL = 1e-7
-CLOSED_ATOL = 1e-9  # times the column's scale
-SIGMAS = 5.0
 Z95 = 1.959963984540054
 UPDATE_ENV = "NETKF_UPDATE_GOLDEN"
 
@@ -100,7 +98,7 @@ class GoldenRule(StrictModel):
     kind: Kind = Field(..., description="closed | mc | optimizer | stderr | size | diagnostic | cdf (see netkf_cli/app/golden.py)")
     atol: float | None = Field(None, ge=0, description="absolute tolerance (closed: times the column's scale)")
     rtol: float | None = Field(None, ge=0, description="relative tolerance")
-    sigmas: float = Field(SIGMAS, gt=0, description="Monte Carlo: number of combined standard errors")
+    sigmas: float = Field(MC_SIGMAS, gt=0, description="Monte Carlo: number of combined standard errors")
     stderr: str | None = Field(None, description="Monte Carlo: the column holding this column's standard error")
     n: str | None = Field(None, description="the column holding the sample size (default n, n_runs or runs)")
     grid: str | None = Field(None, description="cdf: the column holding the (sample-dependent) abscissa x of F(x)")
@@ -364,8 +362,8 @@ def _compare_cells_inner(fresh, golden, c, rule: GoldenRule, rows, reliable, qui
         return np.zeros(len(g), bool), tol, kind
     finite_scale = np.abs(g[np.isfinite(g)])
     scale = float(finite_scale.max()) if finite_scale.size else 0.0
-    closed_tol = (rule.atol if rule.kind == "closed" and rule.atol is not None else CLOSED_ATOL) * scale \
-        + (rule.rtol if rule.kind == "closed" and rule.rtol is not None else CLOSED_RTOL) * np.abs(g)
+    closed_tol = (rule.atol if rule.kind == "closed" and rule.atol is not None else GOLDEN_CLOSED_ATOL) * scale \
+        + (rule.rtol if rule.kind == "closed" and rule.rtol is not None else GOLDEN_CLOSED_RTOL) * np.abs(g)
     if kind == "closed":
         tol = closed_tol
     elif kind == "optimizer":

@@ -62,9 +62,9 @@ from netkf_cli.app.report import write_report as _write
 from netkf_cli.app.runner import run_scenario
 from netkf_cli.core.spec import StrictModel
 from netkf_cli.runtime.workers import pool_kwargs  # pool workers ignore Ctrl-C and die with this process
+from netkf_cli.core.tolerances import MC_SIGMAS
 
 TOP_LEVEL_TOPIC = "shi2009"
-SIGMAS = 5.0
 
 
 class _Entry(StrictModel):
@@ -352,7 +352,7 @@ def evaluate(check: Printed, folder: Path, quick: bool) -> CheckResult:
     ours = float(row[check.column])
     se = _stderr(row)
     if quick and se is not None:
-        tol = max(tol, SIGMAS * se)
+        tol = max(tol, MC_SIGMAS * se)
     ok = bool(np.isfinite(ours) and abs(ours - check.printed) <= tol * (1 + 1e-12))
     interval = None
     if check.interval:
@@ -377,7 +377,7 @@ def evaluate_claim(claim: Claim, folder: Path, quick: bool) -> ClaimResult:
     for _, row in rows.iterrows():
         ours = float(row[claim.column])
         se = _stderr(row)
-        slack = SIGMAS * se if (quick and se is not None) else 0.0
+        slack = MC_SIGMAS * se if (quick and se is not None) else 0.0
         lo_ok = b.min is None or ours >= b.min - slack - 1e-12 * max(1.0, abs(b.min))
         hi_ok = b.max is None or ours <= b.max + slack + 1e-12 * max(1.0, abs(b.max))
         # ±∞ is a value (a diverged E[P] is +∞): it holds against a one-sided bound it satisfies; NaN never

@@ -32,10 +32,10 @@ from pydantic import Field, model_validator
 from netkf_cli.core.errors import ConfigError, Problem
 from netkf_cli.core.spec import ChannelModel, Matrix, Probability
 from netkf_cli.core.trace import Trace
+from netkf_cli.core.tolerances import STOCHASTIC_ROW_TOL
 
 MODE_NAMES = ("ok", "delay", "missing", "dropout")
 N_MODES = 4
-ROW_TOL = 1e-9
 
 
 class PrecedenceWarning(UserWarning):
@@ -54,7 +54,7 @@ def validate_transition(T, path: str = "channel.transition") -> np.ndarray:
         row = T[j]
         if np.any(row < 0) or np.any(row > 1):
             problems.append(Problem(f"{path}[{j}]", f"ρ_{{q/{j + 1}}} must be probabilities in [0, 1], got {row.tolist()}"))
-        elif abs(row.sum() - 1.0) > ROW_TOL:
+        elif abs(row.sum() - 1.0) > STOCHASTIC_ROW_TOL:
             problems.append(Problem(f"{path}[{j}]", f"row {j + 1} (from mode {j + 1}) must sum to 1, got {row.sum():.12g}"))
     if problems:
         raise ConfigError(problems)
@@ -129,7 +129,7 @@ class MarkovModesChannel(ChannelModel):
         if isinstance(self.initial, list):
             if len(self.initial) != N_MODES:
                 raise ValueError(f"initial: needs 4 probabilities (one per mode), got {len(self.initial)}")
-            if abs(sum(self.initial) - 1.0) > ROW_TOL:
+            if abs(sum(self.initial) - 1.0) > STOCHASTIC_ROW_TOL:
                 raise ValueError(f"initial: must sum to 1, got {sum(self.initial):.12g}")
         try:
             stationary_distribution(T, "transition")

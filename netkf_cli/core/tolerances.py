@@ -6,6 +6,8 @@ writing their own ``1e-9``.
 
 from __future__ import annotations
 
+import sys
+
 PSD_TOL = 1e-9
 """Relative tolerance of the PSD order: X ≤ M iff min eig(M − X) ≥ −PSD_TOL·max(1, ‖M‖).
 Riccati iterates converge to ~1e-12 relative; 1e-9 absorbs that without merging distinct jump points."""
@@ -58,3 +60,51 @@ joint second moment M of [plant state; filter state] is reported as ``inf`` (los
 when its round-off bound ε_mach·‖C‖_F²·tr M exceeds this fraction of tr(C M Cᵀ): for an unstable plant
 (A = diag(1e6, 0.5)) M grows without bound and the subtraction cancels every digit — a wrong finite
 number must not be reported. 1e-6 keeps six correct digits; stable plants are ~1e-15 from it."""
+
+GOLDEN_CLOSED_RTOL = 1e-7
+"""Golden comparison of a closed-form column: relative tolerance (the committed CSVs keep 10 significant digits)."""
+
+GOLDEN_CLOSED_ATOL = 1e-9
+"""Golden comparison of a closed-form column: absolute tolerance, times the column's scale."""
+
+MC_SIGMAS = 5.0
+"""A Monte Carlo number agrees with another (a golden column, a printed number under `--check`) within this many
+combined standard errors."""
+
+STOCHASTIC_ROW_TOL = 1e-9
+"""A transition matrix row sums to 1 within this (and no entry is below −this)."""
+
+SMOOTHING_EXACT_TOL = 1e-13
+"""Per-node weight tolerance of the smoothing reference enumerations (the certified brackets are < 1e-11 wide)."""
+
+SMOOTHING_MEAN_TOL = 1e-10
+"""Per-node trace tolerance of the exact stationary means (analysis/smoothing)."""
+
+CRITICAL_RHO_TOL = 1e-9
+"""Critical arrival rate: |σ| within this of 1 counts as "on the unit circle"."""
+
+CRITICAL_MARGIN_TOL = 1e-9
+"""Critical arrival rate: an LMI solution certifies feasibility when the smallest eigenvalue of the (numerically
+re-evaluated) block matrix and of Y exceeds this (both are normalised by Y ≤ I)."""
+
+CRITICAL_BISECTION_TOL = 1e-5
+"""Critical arrival rate: default width of the bisection bracket on λ (``analysis.bisection_tol``)."""
+
+CRITICAL_RANK_TOL = 1e-8
+"""C restricted to a quasi-equiblock counts as injective when σ_min(C V) > CRITICAL_RANK_TOL·‖C‖ (V orthonormal): scale-free."""
+
+DELAY_EXACT_TOL = 1e-6
+"""Default tolerance of the exact delay-buffer probabilities (analysis/delay_exact): the enumeration stops when the
+unexplored probability mass is below it."""
+
+LAMBDA_MAX_MARGIN = 1e-11
+"""Relative margin of the compiled reductions' certified decisions λ_max(P) ≤ th, times |th| + max_i Σ_j |P_ij|
+(≥ ‖P‖₂): see :mod:`netkf_cli.linalg._reduce_numba`."""
+
+EIGEN_GAP_SE = 5.0
+"""‖E P‖ (metrics/norm_of_mean): λ₁ − λ_i of the mean must exceed this many standard errors s_i of the (u, u_i) block
+for the delta-method s.e. (else flag_reason eigen_gap)."""
+
+ROUNDOFF_VARIANCE = 100.0 * sys.float_info.epsilon
+"""‖E P‖: a per-run variance below ROUNDOFF_VARIANCE · ‖M̂‖² is rounding (every run the same number, e.g. scenario 2
+with an invertible C, exact per run): the s.e. is 0, as :func:`netkf_cli.core.stats.mean_se` rules for a scalar mean."""

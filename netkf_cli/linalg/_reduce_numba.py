@@ -17,7 +17,7 @@ last sweep whose every off-diagonal entry is negligible (|a_pq| ≤ max(1e-2·ep
 (tests/engine/test_reduce_numba.py). A non-finite P has λ_max = +∞ (as ``batched.lambda_max``).
 
 The PSD order P ≤ M·I ⇔ λ_max ≤ th = M + tol (n = 1: P ≤ th exactly, as numpy) is decided, outside
-a margin mg = MARGIN·(|th| + max_i Σ_j |P_ij|) (≥ 1e-11·‖P‖₂, far above the ~n·eps·‖P‖ error of either
+a margin mg = LAMBDA_MAX_MARGIN·(|th| + max_i Σ_j |P_ij|) (≥ 1e-11·‖P‖₂, far above the ~n·eps·‖P‖ error of either
 eigenvalue routine, so the decision is the one eigvalsh gives), by certificates: bounds that hold for
 any symmetric matrix (λ_max ≥ max_i P_ii, λ_max ≤ max_i (P_ii + Σ_{j≠i} |P_ij|), Gershgorin), then the
 LDLᵀ factorization of (th − mg)·I − P (every pivot positive: P < th − mg up to its backward error

@@ -14,6 +14,7 @@ equal to eigvalsh's (tests/engine/test_reduce_numba.py).
 from __future__ import annotations
 
 from netkf_cli.linalg import kalman_codegen as kc
+from netkf_cli.core.tolerances import LAMBDA_MAX_MARGIN
 
 
 def _tri(n):
@@ -68,7 +69,7 @@ def _search(n: int, ind: str) -> list[str]:
     else:
         i2 = ind + "        "
         L += [f"{ind}    ref = abs(th) + sc",
-              f"{ind}    mg = {kc._num(MARGIN)} * ref",
+              f"{ind}    mg = {kc._num(LAMBDA_MAX_MARGIN)} * ref",
               f"{ind}    lim = 1e3 * ref",
               f"{ind}    if hi + mg < th:", f"{ind}        yes = True",
               f"{ind}    elif lo - mg > th:", f"{ind}        yes = False",
@@ -80,11 +81,6 @@ def _search(n: int, ind: str) -> list[str]:
               f"{i2}        ambig = True", f"{i2}        break"]
     L += [f"{ind}    if yes:", f"{ind}        i1 = mid", f"{ind}    else:", f"{ind}        i0 = mid + 1"]
     return L
-
-
-MARGIN = 1e-11
-"""Relative margin of the certified decisions, times |th| + max_i Σ_j |P_ij| (≥ ‖P‖₂): see
-:mod:`netkf_cli.linalg._reduce_numba`."""
 
 
 def _head(fn: str, args: str) -> list[str]:

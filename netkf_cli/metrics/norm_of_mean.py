@@ -15,25 +15,20 @@ The delta method needs the top eigenvalue to be simple at the scale of the sampl
 lower eigenvalue λ_i (eigenvector u_i) the noise of M̂ on the plane (u, u_i) is a 2 × 2 block
 [[λ₁ + a, c], [c, λ_i + b]] (a = uᵀΔu, b = u_iᵀΔu_i, c = uᵀΔu_i, Δ = M̂ − E P̄), whose eigenvalues split by
 √((λ₁ − λ_i + a − b)² + 4c²); its noise scale s_i = √(Var(a − b) + 4 Var(c)) comes from the same S. The
-point is flagged ``eigen_gap`` (s.e. NaN) when λ₁ − λ_i < :data:`GAP_FACTOR` · s_i for some i: λ_max is then
+point is flagged ``eigen_gap`` (s.e. NaN) when λ₁ − λ_i < :data:`EIGEN_GAP_SE` · s_i for some i: λ_max is then
 not differentiable on the scale of the noise, and λ_max(M̂) is biased upward by about the noise itself.
-Otherwise the second-order bias Σ_i E c²/(λ₁ − λ_i) is below s_i/GAP_FACTOR per direction. Tail flags are those of tr P̄_r (λ_max(P) ≤ tr P ≤ n λ_max(P), so uᵀ P u has no
+Otherwise the second-order bias Σ_i E c²/(λ₁ − λ_i) is below s_i/EIGEN_GAP_SE per direction. Tail flags are those of tr P̄_r (λ_max(P) ≤ tr P ≤ n λ_max(P), so uᵀ P u has no
 heavier a tail than tr P)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from netkf_cli.core.stats import EPS
+from netkf_cli.core.tolerances import EIGEN_GAP_SE, ROUNDOFF_VARIANCE
 
-GAP_FACTOR = 5.0
-"""λ₁ − λ_i of M̂ must exceed this many standard errors s_i of the (u, u_i) block for the delta-method s.e."""
 EIGEN_GAP_REASON = ("the top eigenvalue of the mean is (near-)degenerate: λ1 − λi < 5 s.e. of the mean's 2 x 2 block "
                     "on (u1, ui) for some i, so the delta-method s.e. of its norm is invalid (stderr NaN)")
 
-ROUNDOFF = 100.0 * EPS
-"""A per-run variance below ROUNDOFF · ‖M̂‖² is rounding (every run the same number, e.g. scenario 2 with an invertible
-C, exact per run): the s.e. is 0, as :func:`netkf_cli.core.stats.mean_se` rules for a scalar mean."""
 
 _TRIU: dict = {}
 
@@ -131,7 +126,7 @@ def norm_of_mean(stats: dict, j: int, shift: dict | None = None) -> dict:
     S = (stats[f"cross_T_{j}"] / m - np.outer(dbar, dbar)) * m / max(m - 1, 1)
     S = 0.5 * (S + S.T)
     var_run = max(float(g @ S @ g), 0.0)
-    if var_run <= ROUNDOFF * lam[-1] ** 2:  # the runs agree to rounding (stats.mean_se's rule): s.e. 0, not noise
+    if var_run <= ROUNDOFF_VARIANCE * lam[-1] ** 2:  # the runs agree to rounding (stats.mean_se's rule): s.e. 0, not noise
         var_run = 0.0
     var = var_run / m
     # per lower eigenvalue λ_i: the noise of the 2 × 2 block of M̂ − E M̂ on (u, u_i), s_i² = Var(a − b) + 4 Var(c)
@@ -143,7 +138,7 @@ def norm_of_mean(stats: dict, j: int, shift: dict | None = None) -> dict:
         gc = np.where(i == jj, u[i] * v[i], u[i] * v[jj] + u[jj] * v[i])
         s_k = np.sqrt(max(float((g - gb) @ S @ (g - gb)) + 4.0 * float(gc @ S @ gc), 0.0) / m)
         worst = max(worst, s_k / max(float(lam[-1] - lam[k]), np.finfo(float).tiny))
-    degenerate = bool(GAP_FACTOR * worst > 1.0)
+    degenerate = bool(EIGEN_GAP_SE * worst > 1.0)
     return dict(value=float(lam[-1]), stderr=np.nan if degenerate else float(np.sqrt(var)), gap=gap,
                 gap_noise=worst, eigen_gap=degenerate, mean=M)
 

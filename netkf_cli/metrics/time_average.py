@@ -37,6 +37,7 @@ from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note,
 from netkf_cli.core.spec import PositiveInt
 from netkf_cli.runtime.plotting import LINESTYLES, MARKERS, MIN_FONT_PT, PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.core.stats import FLAG_REASONS, flag_reason, heavy_tail_flag, mean_se, rare_event_flag
+from netkf_cli.core.tolerances import EIGEN_GAP_SE, ROUNDOFF_VARIANCE
 
 TRACE, PROB, NORM = "E[tr P]", "Pr[P<=M]", "‖E P‖"
 M4_ROUNDING = 1e-3
@@ -201,7 +202,7 @@ class TimeAverage(GenericMetric):
                                      "references": list(self.references),
                                      "norm_of_mean": "‖E P̄‖₂ = λ_max of the mean of the per-run packed P̄; s.e. by the "
                                                      "delta method (gradient u uᵀ); eigen_gap column = λ1 − λ2 of the "
-                                                     f"mean, flagged when below {nm.GAP_FACTOR:g} s.e. of the (u1, ui) block",
+                                                     f"mean, flagged when below {EIGEN_GAP_SE:g} s.e. of the (u1, ui) block",
                                      "heavy_tail_rule": f"of tr P̄: relative s.e. of the sample variance > "
                                                         f"{engine.HEAVY_TAIL_RSE}, any non-finite run, or (kf and the "
                                                         f"smoother on i.i.d. or Gilbert–Elliott loss) the theoretical "
@@ -337,10 +338,10 @@ def _sym(q: str) -> str:
 
 
 def _constant(st: dict, c: int) -> bool:
-    """Whether column c's per-run tr P̄ are one number up to rounding (variance ≤ ``nm.ROUNDOFF`` · mean²)."""
+    """Whether column c's per-run tr P̄ are one number up to rounding (variance ≤ ``ROUNDOFF_VARIANCE`` · mean²)."""
     m = max(int(st["n"]) - int(st[f"nonfinite_{c}"]), 1)
     mu = float(st[f"sum_avg_{c}"]) / m
-    return float(st[f"sumsq_avg_{c}"]) / m - mu * mu <= nm.ROUNDOFF * mu * mu
+    return float(st[f"sumsq_avg_{c}"]) / m - mu * mu <= ROUNDOFF_VARIANCE * mu * mu
 
 
 def _heavy_by_theory(system, channel, est, lab: str, theory_flags: dict) -> bool:

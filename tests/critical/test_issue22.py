@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from netkf_cli.analysis import critical as cr
+from netkf_cli.core.tolerances import CRITICAL_MARGIN_TOL
 
 
 def rot(th: float) -> np.ndarray:
@@ -170,7 +171,7 @@ def test_ge_region_of_a_non_degenerate_system_both_sides():
     e = cr.enumerate_expected_trace(A, C, I2, R1, cr.ge_chain(p, q), 20)
     assert cr.growth_per_period(e, 1) < 1
     ok, margin = cr.block_certified(cr.BlockMap(A, C, I2, R1, cr.ge_chain(p, q), 6))
-    assert ok and margin > cr.MARGIN_TOL
+    assert ok and margin > CRITICAL_MARGIN_TOL
 
 
 def test_ge_not_decided_for_degenerate_systems():

@@ -18,6 +18,7 @@ from netkf_cli.core.errors import ConfigError
 from netkf_cli.config.loader import load_scenario_text
 from netkf_cli.metrics import norm_of_mean as nm
 from netkf_cli.runtime.montecarlo import add_stats
+from netkf_cli.core.tolerances import EIGEN_GAP_SE
 
 A = [[1.25, 0.3], [0.0, 0.8]]
 C = [[1.0, 0.5]]
@@ -116,7 +117,7 @@ def test_a_degenerate_top_eigenvalue_is_flagged_and_has_no_stderr():
     st["n"] = np.asarray(2000)
     r = nm.norm_of_mean(st, 0)
     assert r["eigen_gap"] and np.isnan(r["stderr"])
-    assert r["gap_noise"] * nm.GAP_FACTOR > 1
+    assert r["gap_noise"] * EIGEN_GAP_SE > 1
 
 
 def _exact_kf(k: int, p0=P0):
