@@ -118,14 +118,35 @@ class _CompiledKernel:
         return {"sum": f(rng.random(runs)), "max_private_mb": _private_mb()}
 
 
+_MEASURE = """
+import sys
+from netkf_cli.runtime import montecarlo
+from tests.safety.test_memory import _CompiledKernel
+if sys.argv[1] == "cold":
+    montecarlo.warm_compiler = lambda: None  # the parent does not set numba's compiler up before forking
+with montecarlo.execution("process", jobs=2):
+    st = montecarlo.run_chunked(_CompiledKernel(), runs=4000, chunk=1000, seed=1)
+assert 0 < st["sum"] < 4000
+print(float(st["max_private_mb"]))
+"""
+
+
+def _worker_private_mb(mode: str) -> float:
+    """A worker's private memory, measured from a fresh interpreter (the parent's heap is then the same in every
+    run: forked from a long-lived pytest worker, a child copies whatever of that heap it touches, 70 MB seen)."""
+    root = Path(__file__).resolve().parents[2]
+    r = subprocess.run([sys.executable, "-c", _MEASURE, mode], cwd=root, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return float(r.stdout.strip().splitlines()[-1])
+
+
 def test_workers_share_the_parents_compiler_setup():
     """numba's compiler set-up (LLVM, target and typing contexts) is ~70 MB per process; done in the parent
     before the fork (montecarlo.warm_compiler), a worker that compiles its own kernel holds only that kernel
-    privately (~20 MB measured) — without it each worker held its own ~80 MB copy."""
+    privately (~20 MB measured) — without it each worker held its own copy (~55 MB measured)."""
     pytest.importorskip("numba")
     if usable_cores() < 2:
         pytest.skip("needs 2 cores for worker processes")
-    with execution("process", jobs=2):
-        st = run_chunked(_CompiledKernel(), runs=4000, chunk=1000, seed=1)
-    assert np.isfinite(st["sum"]) and 0 < st["sum"] < 4000
-    assert float(st["max_private_mb"]) < 45, f"a worker holds {float(st['max_private_mb']):.0f} MB privately"
+    warm, cold = _worker_private_mb("warm"), _worker_private_mb("cold")
+    assert warm < 45, f"a worker holds {warm:.0f} MB privately (without the warm-up: {cold:.0f} MB)"
+    assert cold - warm > 15, f"the warm-up saves only {cold - warm:.0f} MB per worker ({cold:.0f} → {warm:.0f})"
