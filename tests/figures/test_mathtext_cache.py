@@ -6,7 +6,7 @@ import io
 import numpy as np
 import matplotlib
 from matplotlib.mathtext import MathTextParser
-from PIL import Image
+import matplotlib.image as mpimg
 
 from netkf_cli.runtime import plotting as P
 
@@ -25,7 +25,7 @@ def _png(default: str | None = None) -> np.ndarray:
         buf = io.BytesIO()
         P._layout(fig)
         fig.savefig(buf, format="png", dpi=150)
-        arr = np.asarray(Image.open(io.BytesIO(buf.getvalue())))
+        arr = mpimg.imread(io.BytesIO(buf.getvalue()), format="png")
         matplotlib.pyplot.close(fig)
     return arr
 
