@@ -16,10 +16,10 @@ from typing import Annotated, ClassVar, Literal, Union
 
 import numpy as np
 from pydantic import Field, model_validator
-from scipy import stats
 
 # the buffer rule is the paper's (closed forms use it too): defined with them, one layer down
 from netkf_cli.analysis.delay_bounds import CONVENTION_HELP, DEFAULT_CONVENTION, Convention, max_kept_delay  # noqa: F401
+from netkf_cli.analysis.delay_references import poisson_cdf
 from netkf_cli.linalg.kalman import AUTO_MIN_RUN_STEPS
 from netkf_cli.core.spec import ChannelModel, NonNegFloat, PositiveInt, Probability, StrictModel
 from netkf_cli.core.trace import LOST, Trace  # LOST: the delay of a packet that never arrives
@@ -33,7 +33,7 @@ class PoissonDelay(StrictModel):
     mean: NonNegFloat = Field(description="mean delay d (time steps)")
 
     def cdf(self, i: np.ndarray | int) -> np.ndarray:
-        return stats.poisson.cdf(np.asarray(i), self.mean)
+        return poisson_cdf(i, self.mean)
 
     def sample(self, rng: np.random.Generator, size) -> np.ndarray:
         return rng.poisson(self.mean, size=size).astype(np.int32)
