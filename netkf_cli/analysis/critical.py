@@ -63,7 +63,6 @@ import math
 import warnings
 from dataclasses import dataclass, field
 
-import cvxpy as cp
 import numpy as np
 import scipy.linalg
 
@@ -275,6 +274,7 @@ class _SinopoliLMI:
     """max t s.t. Ψ_λ(Y, Z) ⪰ t I, t I ⪯ Y ⪯ I (cvxpy, DPP in √λ, √(1−λ)); feasible ⇔ t* > 0."""
 
     def __init__(self, A: np.ndarray, C: np.ndarray, solver: str = "CLARABEL"):
+        import cvxpy as cp  # here, not at module level: cvxpy (with the scipy.stats it loads) costs ~40 MB and ~1 s in every process
         self.A, self.C, self.solver = A, C, solver
         n, m = A.shape[0], C.shape[0]
         self.Y = cp.Variable((n, n), symmetric=True)
@@ -301,6 +301,7 @@ class _SinopoliLMI:
 
     def margin(self, lam: float) -> tuple[float, str, bool]:
         """(t*, solver status, certified): certified = the returned (Y, Z) satisfies the strict LMI."""
+        import cvxpy as cp  # loaded by __init__ already
         self.sl.value, self.sl1.value = math.sqrt(lam), math.sqrt(max(0.0, 1 - lam))
         try:
             with warnings.catch_warnings():  # "solution may be inaccurate": the status and a certificate check decide
@@ -443,6 +444,7 @@ class _MarkovLMI:
     """
 
     def __init__(self, A: np.ndarray, C: np.ndarray, solver: str = "CLARABEL"):
+        import cvxpy as cp  # here, not at module level: cvxpy (with the scipy.stats it loads) costs ~40 MB and ~1 s in every process
         self.A, self.C, self.solver = A, C, solver
         n, m = A.shape[0], C.shape[0]
         self.P0 = cp.Variable((n, n), symmetric=True)
@@ -460,6 +462,7 @@ class _MarkovLMI:
         self.prob = cp.Problem(cp.Maximize(self.t), cons)
 
     def feasible(self, p: float, q: float) -> tuple[bool, str]:
+        import cvxpy as cp  # loaded by __init__ already
         T = np.array([[1 - q, q], [p, 1 - p]])
         self.T.value = T
         try:

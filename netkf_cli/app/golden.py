@@ -78,7 +78,7 @@ import numpy as np
 import pandas as pd
 import yaml
 from pydantic import Field, model_validator
-from scipy import stats
+from scipy.special import ndtr, stdtrit
 
 from netkf_cli.core.spec import StrictModel
 from netkf_cli.core.tolerances import GOLDEN_CLOSED_ATOL, GOLDEN_CLOSED_RTOL, MC_SIGMAS
@@ -210,12 +210,12 @@ def _t_factor(sigmas: float, ng: np.ndarray, nf: np.ndarray) -> np.ndarray:
     """``sigmas`` normal standard errors as a Student-t quantile of the same tail probability
     when the standard errors come from few samples (ν = min(n) − 1; e.g. 12 replicate runs:
     5σ → 10.3; ≥ 1000 samples: 5.03). Unknown n: the normal value."""
-    p_half = stats.norm.sf(sigmas)
+    p_half = ndtr(-sigmas)  # the normal upper tail (what scipy.stats.norm.sf computes)
     n = np.fmin(ng, nf)
     out = np.full(n.shape, float(sigmas))
     ok = np.isfinite(n) & (n >= 2)
     if ok.any():
-        out[ok] = np.maximum(stats.t.isf(p_half, n[ok] - 1.0), sigmas)
+        out[ok] = np.maximum(-stdtrit(n[ok] - 1.0, p_half), sigmas)  # Student-t upper quantile (= scipy.stats.t.isf)
     return out
 
 

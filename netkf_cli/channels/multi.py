@@ -35,7 +35,6 @@ from functools import lru_cache
 from typing import ClassVar, Literal
 
 import numpy as np
-import scipy.stats
 from pydantic import Field, ValidationInfo, field_validator
 
 from netkf_cli.linalg import kalman
@@ -128,7 +127,9 @@ def count_tables(N: int, p: float) -> tuple[np.ndarray, np.ndarray]:
     P(raw < thr_k) = Pr[ℓ ≤ k] (exact to 2⁻⁵³ relative, as :func:`_raw_threshold`), so the count
     ℓ = #{k : raw ≥ thr_k}; ``cell`` (2¹⁶,) uint8 the count of every raw draw in the cell of its top
     16 bits, or 255 where a threshold falls inside the cell (those draws are resolved exactly)."""
-    cdf = scipy.stats.binom.cdf(np.arange(N), N, p)
+    from scipy.stats import binom  # here, not at module level: scipy.stats costs ~20 MB in every process
+
+    cdf = binom.cdf(np.arange(N), N, p)
     thr = _raw_threshold(cdf)
     if p >= 1.0:
         thr = np.zeros(N, dtype=np.uint64)  # every sensor arrives: ℓ = N for every draw

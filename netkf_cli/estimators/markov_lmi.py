@@ -53,7 +53,6 @@ import time
 from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
-import cvxpy as cp
 import numpy as np
 from pydantic import Field
 
@@ -189,6 +188,7 @@ class _SDP:
     """The prediction and update SDPs of one design, built once with cvxpy Parameters (DPP)."""
 
     def __init__(self, blocks: _Blocks, rho, eps: float, solver: str, tol: float):
+        import cvxpy as cp  # here, not at module level: cvxpy (with the scipy.stats it loads) costs ~40 MB and ~1 s in every process
         self.cp = cp
         md = blocks.model
         n, m, d, p, D = blocks.n, blocks.m, blocks.d, blocks.p, blocks.D

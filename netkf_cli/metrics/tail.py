@@ -41,7 +41,7 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 from pydantic import Field, model_validator
-from scipy import stats as sps
+from scipy.special import stdtrit
 
 from netkf_cli.analysis import critical as cr
 from netkf_cli.core.errors import ConfigError
@@ -376,7 +376,7 @@ class TailMetric(AnalysisModel):
             mask = (p > 0) & (p <= self.fit_below) & good
             slope, sej, nb = jackknife_slope(M, st[f"bwf_{j}"], st["n_b"], mask) if mask.sum() >= 3 else (math.nan, math.nan, 0)
 
-            tq = float(sps.t.ppf(0.975, max(nb - 1, 1))) if nb >= 3 else math.nan
+            tq = float(stdtrit(max(nb - 1, 1), 0.975)) if nb >= 3 else math.nan
             theo, why = (None, "theory only for the Kalman filter (kind: kf)")
             if ests[j].kind == "kf" and loss_stay is not None:
                 theo, why = kf_tail_exponent(s, ch, ests[j])
