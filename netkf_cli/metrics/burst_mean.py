@@ -45,6 +45,8 @@ from netkf_cli.metrics.common import LABEL_COLUMNS, describe, GenericMetric, lab
 from netkf_cli.runtime.montecarlo import run_chunked
 from netkf_cli.runtime.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.core.spec import PositiveInt
+from netkf_cli.core.stats import mean_se
+from netkf_cli.core.tolerances import ROUNDOFF_VARIANCE
 
 RELIABLE_REL_SE = 0.05
 """A mean is flagged unreliable (not drawn) above 5 % relative standard error or with an overflowed run."""
@@ -63,7 +65,10 @@ def norm_and_se(sumX: np.ndarray, sumXX: np.ndarray, N: int) -> tuple[float, flo
     j = int(np.argmax(np.abs(w)))
     grad = np.outer(V[:, j], V[:, j]).ravel()
     cov = (sumXX / N - np.outer(M.ravel(), M.ravel())) * N / max(N - 1, 1)
-    return float(abs(w[j])), math.sqrt(max(float(grad @ cov @ grad), 0.0) / N)
+    var = max(float(grad @ cov @ grad), 0.0)
+    if var <= ROUNDOFF_VARIANCE * w[j] ** 2:  # the runs agree to rounding (stats.mean_se's rule): s.e. 0, not noise
+        var = 0.0
+    return float(abs(w[j])), math.sqrt(var / N)
 
 
 class BurstMean(GenericMetric):
@@ -135,8 +140,7 @@ class BurstMean(GenericMetric):
                              label=f"burst_mean {name}")
             val, se = norm_and_se(st["sum"][:, :, 0], st["sumsq"][:, :, 0], R)
             tr, tr2 = float(st["tr"][0]), float(st["tr2"][0])
-            tr_m = tr / R
-            tr_se = math.sqrt(max(tr2 / R - tr_m**2, 0.0) * R / max(R - 1, 1) / R)
+            tr_m, tr_se = (float(x) for x in mean_se(tr, tr2, R))  # s.e. 0 where the runs agree to rounding
             with np.errstate(invalid="ignore", divide="ignore"):
                 ess = tr**2 / tr2 / R if tr2 > 0 else np.nan
             inf = float(st["inf"][0])
@@ -147,8 +151,7 @@ class BurstMean(GenericMetric):
                 ok = inf == 0 and np.isfinite(v) and v > 0 and sv / v < RELIABLE_REL_SE
                 rows.append(dict(base, series=series, value=v, stderr=sv, reliable=int(ok)))
             for j, L in enumerate(kern.burst_lags):
-                m_ = float(st["w"][0, j]) / R
-                se_ = math.sqrt(max(float(st["w2"][0, j]) / R - m_**2, 0.0) / max(R - 1, 1))
+                m_, se_ = (float(x) for x in mean_se(st["w"][0, j], st["w2"][0, j], R))
                 bursts.append(dict(channel=name, L=L, value=m_, stderr=se_, n=R,
                                    reliable=int(m_ > 0 and se_ / m_ < RELIABLE_REL_SE)))
             for r in self.reference_rows(sc, [lab]):
