@@ -37,6 +37,14 @@ def _key(df: pd.DataFrame, cols: list[str]) -> pd.Series:
     return df[cols].apply(lambda r: "\x1f".join(str(v) for v in r.tolist()), axis=1)
 
 
+def _cells(df: pd.DataFrame, cols) -> dict[str, list]:
+    """``{c: [df.iat[i, position of c] for each row i]}`` of a frame with a RangeIndex: the scalars ``df.at``
+    returns (the same lookup without the label step, pandas' unboxing included), read once per cell instead of
+    once per derived row that repeats it."""
+    return {c: [df.iat[i, pos] for i in range(len(df))]
+            for c in dict.fromkeys(cols) for pos in [df.columns.get_loc(c)]}
+
+
 def pairs(t: pd.DataFrame, over: list[str]) -> pd.DataFrame:
     """Every (a, b) comparison at one over point (see the module docstring)."""
     cols = [c for c in over if c in t.columns]
@@ -50,6 +58,7 @@ def pairs(t: pd.DataFrame, over: list[str]) -> pd.DataFrame:
         val = g["value"].astype(float).to_numpy()
         mc = (g["source"] == "monte_carlo").to_numpy()
         est = g["estimator"].astype(str).to_numpy()
+        cell = _cells(g, cols + grp + ["series", "source"])
         for i in range(len(g)):
             for j in range(len(g)):
                 if i == j or not (mc[i] or est[i] == est[j]):
@@ -58,9 +67,9 @@ def pairs(t: pd.DataFrame, over: list[str]) -> pd.DataFrame:
                     diff = val[i] - val[j]
                     s = float(np.hypot(se[i], se[j]))
                     floor = PSD_TOL * max(abs(val[i]), abs(val[j])) if np.isfinite(diff) else 0.0
-                    row = {c: g.at[i, c] for c in cols + grp}
-                    row.update(a_estimator=est[i], a_series=g.at[i, "series"], a_source=g.at[i, "source"],
-                               b_estimator=est[j], b_series=g.at[j, "series"], b_source=g.at[j, "source"],
+                    row = {c: cell[c][i] for c in cols + grp}
+                    row.update(a_estimator=est[i], a_series=cell["series"][i], a_source=cell["source"][i],
+                               b_estimator=est[j], b_series=cell["series"][j], b_source=cell["source"][j],
                                a=val[i], b=val[j], diff=diff, ratio=val[i] / val[j] if val[j] != 0 else np.nan,
                                stderr=s, z=diff / max(s, floor) if max(s, floor) > 0 else
                                (0.0 if diff == 0 else np.sign(diff) * np.inf))
@@ -76,6 +85,7 @@ def trend(t: pd.DataFrame, over: list[str]) -> pd.DataFrame:
     out = []
     t = t.reset_index(drop=True)
     key = _key(t, ident)
+    cell = _cells(t, cols + ident + ["value"])
     for p in cols:
         others = [c for c in cols if c != p]
         order = list(dict.fromkeys(t[p].tolist()))  # grid order of p's values
@@ -85,13 +95,16 @@ def trend(t: pd.DataFrame, over: list[str]) -> pd.DataFrame:
             vals = {}  # (identity, p value) -> row index
             for idx, (k, v) in zip(g.index, zip(key[g.index], g[p])):
                 vals[(k, v)] = idx
+            same = {}  # identity -> [(p value, row index)] in the order of vals
+            for (k, v), idx in vals.items():
+                same.setdefault(k, []).append((v, idx))
             for (k, v_from), i_from in vals.items():
-                for (k2, v_to), i_to in vals.items():
-                    if k2 != k or rank[v_to] <= rank[v_from]:
+                for v_to, i_to in same[k]:
+                    if rank[v_to] <= rank[v_from]:
                         continue
-                    a, b = float(t.at[i_from, "value"]), float(t.at[i_to, "value"])
+                    a, b = float(cell["value"][i_from]), float(cell["value"][i_to])
                     row = {"path": p, "from": v_from, "to": v_to}
-                    row.update({c: t.at[i_from, c] for c in others + ident})
+                    row.update({c: cell[c][i_from] for c in others + ident})
                     with np.errstate(invalid="ignore"):
                         row.update(value_from=a, value_to=b, diff=b - a)
                     out.append(row)
