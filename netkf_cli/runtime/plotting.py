@@ -33,17 +33,13 @@ import textwrap
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
+from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import numpy as np
-import matplotlib
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib import cycler  # noqa: E402  (matplotlib re-exports its cycler dependency)
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.mathtext import MathTextParser  # noqa: E402
-from matplotlib.text import Text  # noqa: E402
-from matplotlib.transforms import offset_copy  # noqa: E402
+if TYPE_CHECKING:  # annotations only: matplotlib itself is imported by the first function that draws (_mpl)
+    from matplotlib.figure import Figure
 
 #: Okabe & Ito (2008) colour-blind-safe palette; yellow last (weak on white).
 PALETTE: tuple[str, ...] = (
@@ -76,7 +72,7 @@ STYLE = {
     "grid.alpha": 0.3,
     "axes.spines.top": False,
     "axes.spines.right": False,
-    "axes.prop_cycle": cycler(color=list(PALETTE)) + cycler(linestyle=list(LINESTYLES)),
+    "axes.prop_cycle": None,  # cycler(color=PALETTE) + cycler(linestyle=LINESTYLES), set by _mpl() (a matplotlib object)
     "legend.frameon": False,
     "font.family": "DejaVu Sans",
     # STIX sans: upright sans like DejaVu, but a Υ with curved arms (DejaVu's Υ looks like "Y")
@@ -96,14 +92,43 @@ STYLE = {
     "svg.hashsalt": "netkf",  # deterministic element ids: the same figure gives the same SVG
     "pdf.fonttype": 42,
 }
-# The style is the process-wide default for netkf figures: titles, labels and legends created
-# after ``new_figure`` returns get these sizes too (an rc_context would only cover creation).
-matplotlib.rcParams.update(STYLE)
-
 #: mathtext parses kept per process (matplotlib keeps 50 per renderer, and every figure, and every dpi
 #: of a figure, gets a new renderer: a log axis' "$10^{-2}$" was parsed again by each of them)
 MATHTEXT_CACHE = 4096
-_MATHTEXT_RC = tuple(k for k in matplotlib.rcParams if k.startswith("mathtext."))
+
+
+@functools.cache
+def _mpl() -> SimpleNamespace:
+    """matplotlib on the Agg backend with the netkf style, set up once per process at the first figure.
+
+    Importing this module (and so ``netkf_cli.app.cli``: every ``netkf`` start, every forked worker that
+    never draws) does not import matplotlib: ≈ 0.5 s and 27 MB RSS that only drawing needs (issue 20).
+    What happens here is what importing this module did before, in the same order: the Agg backend,
+    ``rcParams.update(STYLE)`` (the process-wide default for netkf figures: titles, labels and legends
+    created after ``new_figure`` returns get these sizes too — an rc_context would only cover creation),
+    then the shared mathtext cache (``share_mathtext_parses``)."""
+    import matplotlib  # here, not at module level: ≈ 0.5 s and 27 MB RSS in every process, needed only to draw
+
+    matplotlib.use("Agg")
+    import matplotlib.mathtext  # with matplotlib, after the backend choice (above)
+    import matplotlib.pyplot as plt  # with matplotlib, after the backend choice (above)
+    import matplotlib.text  # with matplotlib (above)
+    import matplotlib.transforms  # with matplotlib (above)
+
+    m = SimpleNamespace(matplotlib=matplotlib, plt=plt, mathtext=matplotlib.mathtext, text=matplotlib.text,
+                        transforms=matplotlib.transforms)
+    # matplotlib re-exports its cycler dependency
+    STYLE["axes.prop_cycle"] = matplotlib.cycler(color=list(PALETTE)) + matplotlib.cycler(linestyle=list(LINESTYLES))
+    matplotlib.rcParams.update(STYLE)
+    m.shared_mathtext = _install_shared_mathtext(m)
+    return m
+
+
+def setup() -> None:
+    """Import matplotlib and apply the netkf style now rather than at the first figure: a parent about to
+    fork workers that draw (``netkf reproduce --jobs N``) calls it once, so they share its pages instead of
+    each importing matplotlib again."""
+    _mpl()
 
 
 def share_mathtext_parses() -> bool:
@@ -117,7 +142,14 @@ def share_mathtext_parses() -> bool:
     the string, dpi, font properties, antialiasing, hinting and the ``mathtext.*`` rcParams, so this
     cache keys on exactly those (the rcParams included) and returns the same objects matplotlib's own
     cache does: the pixels are unchanged. Private API: if matplotlib moves it, its own cache stays.
-    Returns True when installed (idempotent)."""
+    Returns True when installed (idempotent); ``_mpl()`` installs it at the first figure."""
+    return _mpl().shared_mathtext
+
+
+def _install_shared_mathtext(m: SimpleNamespace) -> bool:
+    """``share_mathtext_parses``' work, done once by ``_mpl()``."""
+    matplotlib, MathTextParser = m.matplotlib, m.mathtext.MathTextParser
+    mathtext_rc = tuple(k for k in matplotlib.rcParams if k.startswith("mathtext."))
     current = MathTextParser.__dict__.get("_parse_cached")
     if getattr(current, "_netkf_shared", False):
         return True
@@ -132,7 +164,7 @@ def share_mathtext_parses() -> bool:
 
     def _parse_cached(self, s, dpi, prop, antialiased, load_glyph_flags):
         parsers.setdefault(self._output_type, self)
-        rc = tuple(matplotlib.rcParams[k] for k in _MATHTEXT_RC)
+        rc = tuple(matplotlib.rcParams[k] for k in mathtext_rc)
         return shared(self._output_type, s, dpi, prop, antialiased, load_glyph_flags, rc)
 
     def forget():  # a forked child must not draw with the parent's fonts: their open files share one offset
@@ -149,9 +181,6 @@ def share_mathtext_parses() -> bool:
     _parse_cached.original = current  # matplotlib's own (the tests render with both)
     MathTextParser._parse_cached = _parse_cached
     return True
-
-
-share_mathtext_parses()
 
 
 def series_style(i: int) -> dict:
@@ -204,7 +233,7 @@ def legend_outside(ax, *, loc: str = "right", **kw):
         # a fixed distance (in points) under the axes, whatever their height: clears the tick labels
         # and the x-axis label even when a long footnote shrinks the axes
         kw = {"loc": "upper center", "bbox_to_anchor": (0.5, 0.0),
-              "bbox_transform": offset_copy(ax.transAxes, fig=ax.figure, y=-40, units="points"),
+              "bbox_transform": _mpl().transforms.offset_copy(ax.transAxes, fig=ax.figure, y=-40, units="points"),
               "borderaxespad": 0.0, "ncol": kw.pop("ncol", 2), **kw}
     else:
         raise ValueError("loc must be 'right' or 'below'")
@@ -215,6 +244,7 @@ def new_figure(ncols: int = 1, nrows: int = 1, width: float = 6.4, height: float
     """A figure with the project's style; returns (fig, axes).
 
     ``width`` is per column when ``ncols > 1``, ``height`` per row (as before)."""
+    plt = _mpl().plt
     with plt.rc_context(STYLE):
         fig, ax = plt.subplots(nrows, ncols, figsize=(width * ncols if ncols > 1 else width, height * nrows), **kw)
     for a in (ax.flat if hasattr(ax, "flat") else [ax]):
@@ -317,8 +347,9 @@ def save(fig: Figure, path, dpi: int | None = None, formats: Iterable[str] | Non
     formats = tuple(dict.fromkeys(str(f).lower().lstrip(".") for f in formats))
     bad = [f for f in formats if f not in KNOWN_FORMATS]
     if bad or not formats:
-        plt.close(fig)
+        _mpl().plt.close(fig)
         raise ValueError(f"unknown figure format(s) {bad or formats}; choose from {KNOWN_FORMATS}")
+    plt = _mpl().plt
     stem = path.with_suffix("") if suffix in KNOWN_FORMATS else path
     _layout(fig)
     lint_dir = os.environ.get("NETKF_FIGURE_LINT")
@@ -429,7 +460,7 @@ def lint(fig: Figure) -> list[str]:
 
     every_tick, drawn_tick = _tick_labels(fig)
     seen = set()
-    for t in fig.findobj(Text):
+    for t in fig.findobj(_mpl().text.Text):
         if id(t) in seen or not t.get_visible() or not t.get_text().strip():
             continue
         seen.add(id(t))

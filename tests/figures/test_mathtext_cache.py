@@ -31,8 +31,9 @@ def _png(default: str | None = None) -> np.ndarray:
 
 
 def test_installed_and_pixels_identical_to_matplotlibs_own_cache(monkeypatch):
+    P.setup()  # matplotlib is set up at the first figure (tests/figures/test_lazy_matplotlib.py), not on import
     shared = MathTextParser._parse_cached
-    assert getattr(shared, "_netkf_shared", False), "plotting should install the shared cache on import"
+    assert getattr(shared, "_netkf_shared", False), "plotting should install the shared cache at set-up"
     shared.cache.cache_clear()
     cold = _png()
     misses_cold = shared.cache.cache_info().misses
@@ -46,7 +47,6 @@ def test_installed_and_pixels_identical_to_matplotlibs_own_cache(monkeypatch):
 
 def test_rc_params_are_part_of_the_key():
     """A figure drawn with another mathtext.default (not part of the font properties) is not served the first one's parses."""
-    shared = MathTextParser._parse_cached
     stix = _png()
     dejavu = _png("regular")
     assert stix.shape == dejavu.shape and not np.array_equal(stix, dejavu)
@@ -73,6 +73,7 @@ def test_a_forked_child_starts_without_the_parents_parses():
     import matplotlib.pyplot as plt
     from matplotlib.mathtext import MathTextParser
 
+    P.setup()
     fig, ax = plt.subplots()
     ax.set_yscale("log")
     ax.plot([1, 2], [1e-3, 1e2])
