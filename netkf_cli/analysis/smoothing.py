@@ -161,6 +161,18 @@ def future_information(s: LinearSystem, pattern) -> np.ndarray:
     return riccati.sym(J)
 
 
+_FUTURE_J: dict = {}
+
+
+def _future_information_cached(s: LinearSystem, pattern) -> np.ndarray:
+    """:func:`future_information` memoized per (system, pattern) in this process (a copy: the enumerations
+    recompute the same J(f) for every arrival rate and lag)."""
+    key = (_skey(s), tuple(int(b) for b in pattern))
+    if key not in _FUTURE_J:
+        _FUTURE_J[key] = future_information(s, key[1])
+    return _FUTURE_J[key].copy()
+
+
 def smoothed_from_prior(P: np.ndarray, s: LinearSystem, pattern) -> np.ndarray:
     """P_{k|k+N} = (P⁻¹ + J(f))⁻¹ from P_{k|k−1} = P and the future arrival pattern f, computed as
     (I + P J)⁻¹ P (valid for a singular P)."""
@@ -210,6 +222,21 @@ def _require_invertible_A(s: LinearSystem) -> np.ndarray:
     return np.linalg.inv(s.A)
 
 
+_KERNEL: list = []
+
+
+def _scalar_kernel():
+    """:func:`netkf_cli.analysis._smoothing_numba.evaluate_scalar` where numba imports, else None (probed once)."""
+    if not _KERNEL:
+        try:
+            from netkf_cli.analysis import _smoothing_numba
+        except ImportError:
+            _KERNEL.append(None)
+        else:
+            _KERNEL.append(_smoothing_numba.evaluate_scalar)
+    return _KERNEL[0]
+
+
 class _Batch:
     """Batched (leading axis = node) Riccati maps in covariance and information form."""
 
@@ -253,9 +280,17 @@ class _Batch:
         return self.sym(out)
 
     def evaluate(self, bits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For suffixes ``bits`` (B, j) (oldest first): P_lo = Φ_s(P*), Y_hi = (Φ_s(∞))⁻¹ (information)."""
+        """For suffixes ``bits`` (B, j) (oldest first): P_lo = Φ_s(P*), Y_hi = (Φ_s(∞))⁻¹ (information).
+        Scalar systems run compiled where numba imports (:mod:`netkf_cli.analysis._smoothing_numba`: the same
+        operations per node, the same bits; ≈ 5× the numpy steps, which are the fallback)."""
         B = bits.shape[0]
         n = self.s.n
+        if self.scalar and bits.shape[1] and _scalar_kernel() is not None:
+            P = np.empty(B)
+            Y = np.empty(B)
+            _scalar_kernel()(np.ascontiguousarray(bits), float(self.Pst[0, 0]), self.a2, self.c2, self.q, self.r,
+                             self.crc, P, Y)
+            return P[:, None, None], Y[:, None, None]
         P = np.broadcast_to(self.Pst, (B, n, n)).copy()
         Y = np.zeros((B, n, n))
         for c in range(bits.shape[1]):
@@ -269,7 +304,7 @@ class _Batch:
         if self.scalar:  # (P⁻¹ + J(f))⁻¹ = P / (1 + P J(f))
             key = tuple(int(b) for b in pattern)
             if key not in self._J:
-                self._J[key] = float(future_information(self.s, key)[0, 0])
+                self._J[key] = float(_future_information_cached(self.s, key)[0, 0])
             J = self._J[key]
             if J == 0.0:
                 return P
@@ -277,7 +312,7 @@ class _Batch:
                 return np.where(np.isinf(P), 1.0 / J, P / (1.0 + P * J))
         key = tuple(int(b) for b in pattern)
         if key not in self._J:
-            self._J[key] = future_information(self.s, key)
+            self._J[key] = _future_information_cached(self.s, key)
         J = self._J[key]
         return self.sym(np.linalg.solve(self.I + P @ J, P))  # (I + P J)⁻¹ P = (P⁻¹ + J)⁻¹
 
@@ -356,7 +391,7 @@ def exact_probability(
         raise ConfigError.at("channel", "the exact enumeration needs both arrivals and losses to be possible (0 < λ < 1)")
     futures = [()] if lag is None else list(itertools.product((0, 1), repeat=lag + 1))
     F = len(futures)
-    Js = [future_information(s, f) for f in futures]
+    Js = [_future_information_cached(s, f) for f in futures]
     fw = np.array([np.prod([T[a, b] for a, b in zip(f[:-1], f[1:])]) if f else 1.0 for f in futures])
     first = np.array([f[0] if f else -1 for f in futures])
     scale = float(np.abs(Minv).max())  # relative: an absolute tolerance would swamp M⁻¹ for a large M
@@ -433,19 +468,20 @@ def _expect_bounded(phis, caps, weights, bt: _Batch, lam: float, tol: float, max
     while bits.shape[0]:
         P_lo, Y_hi = bt.evaluate(bits)
         vals = [phi(P_lo, Y_hi) for phi in phis]
+        fins = [np.all(np.isfinite(hi), axis=(1, 2)) for _, hi in vals]
         gap = np.zeros(bits.shape[0])
         for i, (lo, hi) in enumerate(vals):
-            fin = np.all(np.isfinite(hi), axis=(1, 2))
+            fin = fins[i]
             gi = np.where(fin, np.trace(np.where(fin[:, None, None], hi - lo, 0.0), axis1=1, axis2=2), np.inf)
             gap += weights[i] * gi
         stop = (w * gap <= tol) | (depth >= max_depth) | (w < 1e-300)
         if 2 * int((~stop).sum()) > max_nodes:
             stop[:] = True
-        for i, (lo, hi) in enumerate(vals):
-            fin = np.all(np.isfinite(hi), axis=(1, 2))
-            hi_c = np.where(fin[:, None, None], hi, caps[i])
-            lo_sum[i] += np.einsum("b,bij->ij", w[stop], lo[stop])
-            hi_sum[i] += np.einsum("b,bij->ij", w[stop], hi_c[stop])
+        w_stop = w[stop]
+        for i, (lo, hi) in enumerate(vals):  # the capped upper ends of the stopped nodes only (the same values)
+            hi_c = np.where(fins[i][stop][:, None, None], hi[stop], caps[i])
+            lo_sum[i] += np.einsum("b,bij->ij", w_stop, lo[stop])
+            hi_sum[i] += np.einsum("b,bij->ij", w_stop, hi_c)
         bits, w = bits[~stop], w[~stop]
         if not bits.shape[0]:
             break
@@ -489,7 +525,7 @@ def exact_mean(s: LinearSystem, lam: float, lag: int | None, *, tol: float = 1e-
     phis, caps, wts = [phi_g], [Mbar], [1.0 if a2 < 1 else 0.0]
     futs = [] if lag is None else [f for f in itertools.product((0, 1), repeat=lag + 1) if any(f)]
     for f in futs:
-        J = future_information(s, f)
+        J = _future_information_cached(s, f)
         pf = lam ** sum(f) * (1 - lam) ** (len(f) - sum(f))
 
         def phi_f(P_lo, Y_hi, f=f, J=J):

@@ -194,3 +194,27 @@ def test_future_information_matches_smoothed_from_prior():
     for f in [(1,), (0, 1), (1, 0, 1), (0, 1, 1, 1)]:
         J = sm.future_information(s, f)
         np.testing.assert_allclose(np.linalg.inv(np.linalg.inv(P) + J), sm.smoothed_from_prior(P, s, f), rtol=1e-10)
+
+
+def test_compiled_scalar_enumeration_is_the_numpy_one_bit_for_bit(monkeypatch):
+    """``_Batch.evaluate`` compiled (numba, scalar systems) and on numpy give the same P_lo, Y_hi bits, and so the
+    same exact means and probabilities; J(f) memoized gives the J of a fresh computation."""
+    if sm._scalar_kernel() is None:
+        pytest.skip("numba not importable: only the numpy path exists")
+    bt = sm._Batch(S)
+    bits = np.random.default_rng(3).integers(0, 2, size=(4000, 30)).astype(np.int8)
+    bits[:5] = 0  # all losses: P_lo grows, Y_hi stays 0
+    P1, Y1 = bt.evaluate(bits)
+    ref = {lam: (sm.exact_mean(S, lam, 3), sm.exact_probability(S, 5.0, 1, *bern(lam))) for lam in (0.45, 0.7)}
+    monkeypatch.setattr(sm, "_KERNEL", [None])
+    monkeypatch.setattr(sm, "_FUTURE_J", {})
+    P2, Y2 = bt.evaluate(bits)
+    assert P1.shape == P2.shape == (4000, 1, 1) and Y1.shape == Y2.shape
+    assert np.array_equal(P1, P2) and np.array_equal(Y1, Y2)
+    assert np.all(Y1[:5] == 0.0) and np.all(P1[5:] < P1[0])
+    for lam, (m, p) in ref.items():
+        m2, p2 = sm.exact_mean(S, lam, 3), sm.exact_probability(S, 5.0, 1, *bern(lam))
+        assert np.array_equal(m.lower, m2.lower) and np.array_equal(m.upper, m2.upper)
+        assert (p.lower, p.upper, p.nodes) == (p2.lower, p2.upper, p2.nodes)
+    for f in ((1,), (0, 1), (1, 0, 1, 1)):
+        assert np.array_equal(sm._future_information_cached(S, f), sm.future_information(S, f))
