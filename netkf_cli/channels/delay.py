@@ -238,10 +238,25 @@ def inverse_cdf(u: np.ndarray, table: np.ndarray, buckets: int = 1 << 12, compil
     return d
 
 
+TRACE_BLOCK = 1 << 18
+"""delay_trace draws and inverts its uniforms in blocks of rows of about this many entries (one reused buffer,
+cache-sized): the same numbers as one ``rng.random((horizon, runs))`` (the generator's stream is sequential,
+time-major), without a horizon × runs float array per chunk."""
+
+
 def delay_trace(channel, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
-    """Sample a delay trace for ``channel`` (see :meth:`DelayChannel.sample_trace`)."""
-    u = rng.random((horizon, runs))
-    d = inverse_cdf(u, cdf_table(channel, horizon - 1))
+    """Sample a delay trace for ``channel`` (see :meth:`DelayChannel.sample_trace`): the uniforms of
+    ``rng.random((horizon, runs))``, in blocks of rows (:data:`TRACE_BLOCK`), through :func:`inverse_cdf`
+    (compiled or not as it decides for the whole horizon × runs array)."""
+    table = cdf_table(channel, horizon - 1)
+    compiled = None if horizon * runs >= AUTO_MIN_RUN_STEPS else False
+    d = np.empty((horizon, runs), dtype=np.int32)
+    rows = max(1, min(horizon, TRACE_BLOCK // max(runs, 1)))
+    buf = np.empty((rows, runs))
+    for t0 in range(0, horizon, rows):
+        u = buf[: min(rows, horizon - t0)]
+        rng.random(out=u)
+        d[t0:t0 + len(u)] = inverse_cdf(u, table, compiled=compiled)
     d[d >= horizon] = LOST
     return Trace(runs=runs, horizon=horizon, delay=d[None], arrival=(d == 0)[None],
                  meta={"channel": channel.kind, "buffer": int(channel.D), "convention": channel.convention,

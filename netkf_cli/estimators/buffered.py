@@ -150,22 +150,24 @@ def mkf_runs(trace, steps, compiled: bool | None = None):
     d = trace_delays(trace)
     T, runs = d.shape
     Dmax = trace_max_kept_delay(trace)
-    oldest = np.zeros((T + 1, runs), dtype=np.int64)  # row k: the largest kept delay arriving at time k
     kernel = _oldest_compiled() if compiled is None or compiled else None
-    if kernel is not None:
+    if kernel is not None:  # int16 when the delays fit: a quarter of the fresh pages (the same counts)
+        oldest = np.zeros((T + 1, runs), dtype=np.int16 if min(Dmax, T) < 2**15 else np.int64)
         kernel(np.ascontiguousarray(d), int(Dmax), oldest)
-    elif Dmax < MKF_DELAY_LOOP_MAX:  # one pass per delay value δ, ascending: the last write at (k, run) is the largest
-        for delta in range(min(Dmax, T - 1) + 1):  # packet s (row s − 1) with d_s = δ arrives at k = s + δ ≤ T
-            np.copyto(oldest[1 + delta:], delta, where=d[: T - delta] == delta)
-    else:  # a long buffer: scatter each kept packet's delay to its arrival time (the same maxima)
-        d = d.astype(np.int64)
-        arrive = np.arange(1, T + 1)[:, None] + d
-        t_idx, r_idx = np.nonzero((d <= Dmax) & (arrive <= T))
-        np.maximum.at(oldest, (arrive[t_idx, r_idx], r_idx), d[t_idx, r_idx])
+    else:
+        oldest = np.zeros((T + 1, runs), dtype=np.int64)  # row k: the largest kept delay arriving at time k
+        if Dmax < MKF_DELAY_LOOP_MAX:  # a pass per delay value δ, ascending: the last write at (k, run) is the largest
+            for delta in range(min(Dmax, T - 1) + 1):  # packet s (row s − 1) with d_s = δ arrives at k = s + δ ≤ T
+                np.copyto(oldest[1 + delta:], delta, where=d[: T - delta] == delta)
+        else:  # a long buffer: scatter each kept packet's delay to its arrival time (the same maxima)
+            d = d.astype(np.int64)
+            arrive = np.arange(1, T + 1)[:, None] + d
+            t_idx, r_idx = np.nonzero((d <= Dmax) & (arrive <= T))
+            np.maximum.at(oldest, (arrive[t_idx, r_idx], r_idx), d[t_idx, r_idx])
     for k in steps:
         if not 1 <= k <= T:
             raise ValueError(f"steps must lie in 1..{T}, got {k}")
-        yield int(k), 1.0 + oldest[int(k)]
+        yield int(k), 1.0 + oldest[int(k)]  # float64 from either integer table: the same values
 
 
 def _c_invertible(s: LinearSystem) -> bool:

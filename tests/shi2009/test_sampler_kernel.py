@@ -149,3 +149,22 @@ def test_availability_pair_packets():
     kept = np.array([[0], [1], [0], [0], [1]], dtype=bool)
     assert availability(kept, 2)[:, 0].tolist() == [True, True, False, True, True]
     assert availability(kept, 1)[:, 0].tolist() == kept[:, 0].tolist()
+
+
+@pytest.mark.parametrize("runs,horizon,block", [(7, 5, 1 << 18), (300, 40, 1000), (301, 41, 1000), (5, 3, 1),
+                                                (20_000, 60, 1 << 18)])
+def test_delay_trace_in_blocks_is_the_one_shot_trace(runs, horizon, block, monkeypatch):
+    """delay_trace draws its uniforms in blocks of rows into one buffer: the same delays, arrivals and generator
+    state afterwards as one rng.random((horizon, runs)) inverted at once (searchsorted, LOST beyond the horizon)."""
+    from netkf_cli.channels import delay as dl
+
+    monkeypatch.setattr(dl, "TRACE_BLOCK", block)
+    ch = poisson(5, 10)
+    r1, r2 = np.random.default_rng(11), np.random.default_rng(11)
+    tr = dl.delay_trace(ch, r1, runs, horizon)
+    u = r2.random((horizon, runs))
+    d = np.searchsorted(cdf_table(ch, horizon - 1), u, side="right").astype(np.int32)
+    d[d >= horizon] = LOST
+    assert tr.delay.dtype == np.int32 and np.array_equal(tr.delay[0], d)
+    assert np.array_equal(tr.arrival[0], d == 0)
+    assert r1.random() == r2.random()  # the same number of uniforms consumed
