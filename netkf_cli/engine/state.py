@@ -92,6 +92,144 @@ def simulate(system, trace, rng: np.random.Generator, S: np.ndarray | None = Non
     return States(x, y, v, received(trace, y, v, comm))
 
 
+BLOCK_STEPS = 16
+"""Steps per block of :class:`StateBlocks` (and of the :class:`StateErrorKernel` pass over them): a chunk's
+per-run state arrays exist for one block of steps at a time. The numbers do not depend on it (tested)."""
+
+_SKIP = 1 << 16  # normals drawn (and dropped) at a time while finding where each row of a draw starts
+
+
+class _NormalRows:
+    """The standard normals of one ``rng.standard_normal((rows, length, runs))`` call, served a block of the
+    middle axis at a time (:meth:`take`, consecutive blocks), never all held at once.
+
+    In C order row p of that draw is the ``length · runs`` normals after rows 0 … p − 1, and successive draws
+    from a Generator continue one stream (``standard_normal(a)`` then ``standard_normal(b)`` equals
+    ``standard_normal(a + b)``). So each row gets a copy of the bit generator at the row's start (found by drawing
+    and dropping the rows before it), and ``rng`` ends where the one call would have left it."""
+
+    def __init__(self, rng: np.random.Generator, rows: int, length: int, runs: int):
+        self.runs, self.gens = runs, []
+        bg = rng.bit_generator
+        for _ in range(rows):
+            g = np.random.Generator(type(bg)())
+            g.bit_generator.state = bg.state
+            self.gens.append(g)
+            left = length * runs
+            while left:
+                k = min(left, _SKIP)
+                rng.standard_normal(k)
+                left -= k
+
+    def take(self, steps: int) -> np.ndarray:
+        """The next ``steps`` columns of every row: (rows, steps, runs)."""
+        out = np.empty((len(self.gens), steps, self.runs))
+        for p, g in enumerate(self.gens):
+            out[p] = g.standard_normal((steps, self.runs))
+        return out
+
+
+class StateBlocks:
+    """:func:`simulate` a block of steps at a time: the same random numbers in the same order and the same
+    arithmetic (bit for bit), with only one block's x, y, v, z held (memory ∝ block × runs, not horizon × runs).
+
+    Construction draws x_0 and advances ``rng`` past every normal :func:`simulate` draws (:class:`_NormalRows`);
+    :meth:`blocks` then yields, for consecutive time blocks [t0, t1) of k = 0 … horizon+1,
+    (t0, x, y, v, z) with x[:, j] = x_{t0+j} (and so on). It can be iterated again (the same numbers)."""
+
+    def __init__(self, system, trace, rng: np.random.Generator, S: np.ndarray | None = None):
+        self.A, self.C = np.asarray(system.A, float), np.asarray(system.C, float)
+        self.n, self.m = self.A.shape[0], self.C.shape[0]
+        self.trace, self.T, self.runs = trace, trace.horizon, trace.runs
+        n, m, T, runs = self.n, self.m, self.T, self.runs
+        L0 = psd_factor(initial_covariance(system))
+        self.Ls = psd_factor(noise_covariance(system, S))
+        self.x0 = L0 @ rng.standard_normal((n, runs))
+        self._eps = self._snap(_NormalRows(rng, n + m, T + 2, runs))
+        self._comm = None
+        if trace.snr is not None and callable(trace.meta.get("noise")):  # a fading link's communication noise
+            self._comm = self._snap(_NormalRows(rng, m, T, runs))
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                s2 = np.asarray(trace.meta["noise"](np.asarray(trace.snr, float)), float)
+            self._sd = np.sqrt(np.where(np.isfinite(s2), np.maximum(s2, 0.0), 0.0))
+
+    @staticmethod
+    def _snap(rows: _NormalRows) -> list:
+        return [g.bit_generator.state for g in rows.gens]
+
+    @staticmethod
+    def _rows(states: list, runs: int) -> _NormalRows:
+        rows = _NormalRows.__new__(_NormalRows)
+        rows.runs, rows.gens = runs, []
+        for st in states:
+            g = np.random.Generator(getattr(np.random, st["bit_generator"])())
+            g.bit_generator.state = st
+            rows.gens.append(g)
+        return rows
+
+    def blocks(self, size: int | None = None, x_only: bool = False):
+        """Yield (t0, x, y, v, z) for consecutive blocks of ``size`` steps (default :data:`BLOCK_STEPS`);
+        ``x_only``: (t0, x, None, None, None) (the same x, without the measurements)."""
+        n, T, runs, A, C = self.n, self.T, self.runs, self.A, self.C
+        size = max(1, int(size or BLOCK_STEPS))
+        eps_rows = self._rows(self._eps, runs)
+        comm_rows = None if self._comm is None else self._rows(self._comm, runs)
+        mode = None if self.trace.mode is None else np.asarray(self.trace.mode)
+        xk = self.x0
+        y_prev = z_prev = None
+        for t0 in range(0, T + 2, size):
+            t1 = min(T + 2, t0 + size)
+            tb = t1 - t0
+            eps = np.einsum("pq,qtr->ptr", self.Ls, eps_rows.take(tb))  # ε_k = [w_k; v_k], k = t0 … t1−1
+            w, v = eps[:n], np.ascontiguousarray(eps[n:])
+            x = np.empty((n, tb, runs))
+            x[:, 0] = xk
+            for j in range(tb - 1):
+                x[:, j + 1] = A @ x[:, j] + w[:, j]
+            if t1 - 1 <= T:  # x_{t1}, the next block's first state
+                xk = A @ x[:, tb - 1] + w[:, tb - 1]
+            if x_only:
+                yield t0, x, None, None, None
+                continue
+            y = np.einsum("mn,ntr->mtr", C, x) + v
+            if comm_rows is not None:
+                z = y.copy()
+                c0, c1 = max(t0, 1), min(t1, T + 1)  # z_k += σ_n(Υ_k) n_k for k = 1 … T
+                if c1 > c0:
+                    z[:, c0 - t0: c1 - t0] += self._sd[None, c0 - 1: c1 - 1] * comm_rows.take(c1 - c0)
+            elif mode is None:
+                z = y
+            else:
+                z = np.empty_like(y)
+                for j in range(tb):
+                    k = t0 + j
+                    if k == 0:
+                        z[:, 0] = v[:, 0]
+                        continue
+                    q = mode[min(k, mode.shape[0]) - 1]
+                    yp = y[:, j - 1] if j else y_prev
+                    zp = z[:, j - 1] if j else z_prev
+                    z[:, j] = np.where(q == 0, y[:, j], np.where(q == 1, yp, np.where(q == 2, v[:, j], zp)))
+                y_prev, z_prev = y[:, tb - 1].copy(), z[:, tb - 1].copy()
+            yield t0, x, y, v, z
+
+    def received(self) -> np.ndarray:
+        """z (m, horizon+2, runs), what the receiver sees (:func:`received`), block by block."""
+        z = np.empty((self.m, self.T + 2, self.runs))
+        for t0, _, _, _, zb in self.blocks():
+            z[:, t0: t0 + zb.shape[1]] = zb
+        return z
+
+    def states(self) -> States:
+        """x and z whole, block by block (y and v are not kept: ``States.y``, ``States.v`` are None)."""
+        x = np.empty((self.n, self.T + 2, self.runs))
+        z = np.empty((self.m, self.T + 2, self.runs))
+        for t0, xb, _, _, zb in self.blocks():
+            x[:, t0: t0 + xb.shape[1]] = xb
+            z[:, t0: t0 + zb.shape[1]] = zb
+        return States(x, None, None, z)
+
+
 def received(trace, y: np.ndarray, v: np.ndarray, comm: np.ndarray | None = None) -> np.ndarray:
     """What the receiver sees at each step (module docstring): ``y`` unless the trace carries modes or SNRs;
     a fading link adds σ_n(Υ_k) · ``comm`` (standard normal draws, (m, horizon, runs)) to y_k, k ≥ 1, with the
@@ -265,7 +403,10 @@ class StateErrorKernel:
 
     def __call__(self, rng: np.random.Generator, runs: int) -> dict:
         trace = self.channel.sample_trace(rng, runs, self.horizon)
-        st = simulate(self.system, trace, rng, self.S)
+        if self.keep:  # trajectories: a few runs
+            st = simulate(self.system, trace, rng, self.S)
+        else:  # the same numbers a block of steps at a time: no whole-horizon noise, y or v (StateBlocks)
+            st = StateBlocks(self.system, trace, rng, self.S).states()
         want = sorted(set(self.steps) | set(self.window))
         K, n = len(self.steps), st.x.shape[0]
         win = set(self.window)

@@ -74,7 +74,12 @@ def source(A: np.ndarray, BSB: np.ndarray, Cf: np.ndarray, LJS: np.ndarray, Cp: 
     """The kernel ``run`` for stacked 𝒜 (T, N, D, D), ℬΣℬᵀ (T, N, D, D), C_f (T, N, n, D), L_fJΣJᵀL_fᵀ
     (T, N, n, n) and the constant C_p (n, D); its arguments are the same arrays flattened to index t·N + q.
     What is written depends on the model only (H_q, J_q, d, C_p and the ξ blocks F_q, G_qΣG_qᵀ of the first
-    step): entries that can be nonzero for some gains are read from the arrays, the model's own inlined."""
+    step): entries that can be nonzero for some gains are read from the arrays, the model's own inlined.
+
+    One call runs trace steps t0 … t1 − 1 (a block of steps): ``Mu`` (runs, D(D+1)/2) holds each run's M (upper
+    triangle, row by row) at t0 and is overwritten with M at t1; ``modes`` (runs, t1 − t0) are the block's modes;
+    ``slot[t + 1]`` ≥ 0 is the block's output row of step k = t + 1. The numbers do not depend on the blocks
+    (M is carried in float64 between them: the same operations in the same order)."""
     N, D = A.shape[1], A.shape[2]
     n = Cp.shape[0]
     hcol = (H != 0.0).any(axis=1)  # (N, d): the columns each mode's measurement reads
@@ -109,12 +114,12 @@ def source(A: np.ndarray, BSB: np.ndarray, Cf: np.ndarray, LJS: np.ndarray, Cp: 
     up = [(i, j) for i in range(D) for j in range(i, D)]
     L = ["import numpy as np", "import numba as nb", "", "",
          "@nb.njit(cache=True, nogil=True)",
-         "def run(M0, modes, t1, AA, BB, slot, CF, LJ, sumCf, sumCp, want_f, want_p, eps, prec, out_f, out_p):",
+         "def run(Mu, modes, t0, t1, AA, BB, slot, CF, LJ, sumCf, sumCp, want_f, want_p, eps, prec, out_f, out_p):",
          "    runs = modes.shape[0]",
          "    for r in range(runs):"]
-    L += [f"        {_m(i, j)} = M0[{i}, {j}]" for i, j in up]
-    L += ["        for t in range(t1):",
-          "            q = modes[r, t]",
+    L += [f"        {_m(i, j)} = Mu[r, {u}]" for u, (i, j) in enumerate(up)]
+    L += ["        for t in range(t0, t1):",
+          "            q = modes[r, t - t0]",
           f"            idx = t * {N} + q",
           "            s = slot[t + 1]"]
     I = "                "
@@ -174,6 +179,7 @@ def source(A: np.ndarray, BSB: np.ndarray, Cf: np.ndarray, LJS: np.ndarray, Cp: 
     for a in range(n):
         for b in range(n):
             L.append(I + f"out_p[s, {a}, {b}, r] = np.inf if bad else p{min(a, b)}_{max(a, b)}")
+    L += [f"        Mu[r, {u}] = {_m(i, j)}" for u, (i, j) in enumerate(up)]  # the state at t1, for the next block
     return "\n".join(L) + "\n"
 
 
@@ -188,21 +194,28 @@ def source_mode_aware(H: np.ndarray, Rq: np.ndarray, Fb: np.ndarray, Qb: np.ndar
     per mode q the scalar pseudo-inverse update (S = H_q P H_qᵀ + R_q; no gain unless S > floor =
     ZERO_INNOVATION_RTOL·(tr Σ + tr P): ``kalman.update_pinv`` for one row), then P⁺ = F̄_q P_f F̄_qᵀ + Q̄_q,
     ξ̂⁺ = F̄_q ξ̂_f + D_q y; H, R_q, F̄, Q̄, D inlined (structural zeros skipped). Mode 3 (H = 0) leaves P, ξ̂.
-    A run whose x block trips the plain KF's overflow flag in a mode-1 / mode-3 step is flagged and left."""
+    A run whose x block trips the plain KF's overflow flag in a mode-1 / mode-3 step is flagged and left.
+
+    One call runs trace steps t0 … t1 − 1 (a block of steps): ``xi`` (runs, d) and ``Pu`` (runs, d(d+1)/2, the upper
+    triangle row by row) hold each run's ξ̂(t0+1|t0) and P at t0 and are overwritten with those at t1; ``modes`` and
+    ``y`` (runs, t1 − t0) are the block's modes and received values (column t − t0 is step k = t + 1);
+    ``slot[t + 1]`` ≥ 0 is the block's output row of step t + 1. A run flagged before the call is skipped."""
     N, d = Fb.shape[0], Fb.shape[1]
     up = [(i, j) for i in range(d) for j in range(i, d)]
     P = lambda i, j: f"p{min(i, j)}_{max(i, j)}"  # noqa: E731
     Fp = lambda i, j: f"f{min(i, j)}_{max(i, j)}"  # noqa: E731
     L = ["import numpy as np", "import numba as nb", "", "",
          "@nb.njit(cache=True, nogil=True)",
-         "def run(xi0, P0, modes, y, t1, scale, rtol, limit, slot, xf_out, Pf_out, xp_out, Pp_out, flag):",
+         "def run(xi, Pu, modes, y, t0, t1, scale, rtol, limit, slot, xf_out, Pf_out, xp_out, Pp_out, flag):",
          "    runs = modes.shape[0]",
-         "    for r in range(runs):"]
-    L += [f"        {P(i, j)} = P0[{i}, {j}]" for i, j in up]
-    L += [f"        x{i} = xi0[{i}]" for i in range(d)]
-    L += ["        for t in range(t1):",
-          "            q = modes[r, t]",
-          "            yy = y[r, t + 1]"]
+         "    for r in range(runs):",
+         "        if flag[r]:",
+         "            continue"]
+    L += [f"        {P(i, j)} = Pu[r, {u}]" for u, (i, j) in enumerate(up)]
+    L += [f"        x{i} = xi[r, {i}]" for i in range(d)]
+    L += ["        for t in range(t0, t1):",
+          "            q = modes[r, t - t0]",
+          "            yy = y[r, t - t0]"]
     I = "                "
     for q in range(N):
         L.append(f"            {'if' if q == 0 else 'elif'} q == {q}:")
@@ -252,6 +265,10 @@ def source_mode_aware(H: np.ndarray, Rq: np.ndarray, Fb: np.ndarray, Qb: np.ndar
         for j in range(n):
             L.append(I + f"Pf_out[s, {i}, {j}, r] = {Fp(i, j)}")
             L.append(I + f"Pp_out[s, {i}, {j}, r] = {P(i, j)}")
+    L.append("        if flag[r]:")
+    L.append("            continue")
+    L += [f"        Pu[r, {u}] = {P(i, j)}" for u, (i, j) in enumerate(up)]  # the state at t1, for the next block
+    L += [f"        xi[r, {i}] = x{i}" for i in range(d)]
     return "\n".join(L) + "\n"
 
 

@@ -55,6 +55,7 @@ The scenario block (``kind: markov_lmi``) is :class:`netkf_cli.estimators.markov
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -796,56 +797,152 @@ def linear_filter_covariances_compiled(model: AugmentedModel, filt: LinearFilter
     flat = lambda X: np.ascontiguousarray(X.reshape((t1 * N_MODES,) + X.shape[2:]))  # noqa: E731 - index t·N + q
     slot = np.full(t1 + 1, -1, np.int64)
     rep = [k for k in want if k <= t1]
-    slot[rep] = np.arange(len(rep))
     wf, wp = "filtered" in quantities, "predicted" in quantities
-    out_f = np.empty((len(rep) if wf else 0, n, n, runs))
-    out_p = np.empty((len(rep) if wp else 0, n, n, runs))
-    mT = np.ascontiguousarray(modes[:t1].T, dtype=np.int64)
+    iu = np.triu_indices(D)
+    Mu = np.broadcast_to(M0[iu], (runs, iu[0].size)).copy()  # each run's M (upper triangle), carried
     Cff = flat(Cf)
+    args = (flat(A), flat(BSB), slot, Cff, flat(LJS), np.ascontiguousarray((Cff * Cff).sum(axis=(1, 2))),
+            float(np.sum(Cp * Cp)), wf, wp, float(np.finfo(float).eps), FIXED_GAIN_PRECISION)
     run = _markov_codegen.kernel(A, BSB, Cf, LJS, Cp, model.H, model.J, d)
-    run(M0, mT, t1, flat(A), flat(BSB), slot, Cff, flat(LJS), np.ascontiguousarray((Cff * Cff).sum(axis=(1, 2))),
-        float(np.sum(Cp * Cp)), wf, wp, float(np.finfo(float).eps), FIXED_GAIN_PRECISION, out_f, out_p)
-    for i, k in enumerate(rep):
-        got = {}
-        if wf:
-            got["filtered"] = out_f[i]
-        if wp:
-            got["predicted"] = out_p[i]
-        yield k, {q: got[q] for q in quantities}
+    for t0, t1b in _blocks(t1, BLOCK_STEPS):  # a block of steps at a time: its reports only (memory ∝ block × runs)
+        brep = [k for k in rep if t0 < k <= t1b]
+        slot[t0 + 1: t1b + 1] = -1
+        slot[brep] = np.arange(len(brep))
+        out_f = np.empty((len(brep) if wf else 0, n, n, runs))
+        out_p = np.empty((len(brep) if wp else 0, n, n, runs))
+        mT = np.ascontiguousarray(modes[t0:t1b].T, dtype=np.int64)
+        run(Mu, mT, t0, t1b, *args, out_f, out_p)
+        for i, k in enumerate(brep):
+            got = {}
+            if wf:
+                got["filtered"] = out_f[i]
+            if wp:
+                got["predicted"] = out_p[i]
+            yield k, {q: got[q] for q in quantities}
+
+
+BLOCK_STEPS = 4
+"""Steps per call of the compiled kernels (:func:`linear_filter_covariances_compiled`,
+:func:`mode_aware_estimates_compiled`): a chunk's per-run outputs exist for one block of steps at a time
+(4 · n² · 8 B per run and quantity), whatever the horizon. The numbers do not depend on it (tested)."""
+
+
+def _blocks(t1: int, size: int):
+    """(t0, t1) of consecutive blocks of ``size`` steps covering 0 … t1 − 1."""
+    size = max(1, int(size))
+    return [(t0, min(t1, t0 + size)) for t0 in range(0, t1, size)]
 
 
 def mode_aware_estimates_compiled(model: AugmentedModel, modes: np.ndarray, y: np.ndarray, xhat0, P0, steps,
-                                  base: str = "paper") -> dict:
+                                  base: str = "paper") -> "Mapping[int, tuple]":
     """The mode-aware KF with states (:class:`ModeAwareKFTr`, ``states=True``) compiled for one output (m = 1:
     a kernel generated for this model, :func:`netkf_cli.estimators._markov_codegen.source_mode_aware`) over trace
     steps 0 … max(steps) − 1: {k: (x̂(k|k), P_x(k|k), x̂(k+1|k), P_x(k+1|k))} for k in ``steps`` (run axis
     last). ``y`` (m, horizon+2, runs): trace step t reads y[:, t + 1]. A run that trips the plain KF's overflow
-    flag is redone by the numpy reference. Equal to the numpy path to rounding."""
+    flag is redone by the numpy reference. Equal to the numpy path to rounding.
+
+    A lazy mapping (:func:`mode_aware_blocks`): reading the steps in ascending order runs the kernel once, a
+    block of :data:`BLOCK_STEPS` steps at a time, and keeps one block's outputs (memory ∝ block × runs, not
+    horizon × runs); reading an earlier step again reruns from the start (the same numbers)."""
+    return _LazySteps(lambda: mode_aware_blocks(model, modes, y, xhat0, P0, steps, base),
+                      sorted({int(k) for k in steps}))
+
+
+class _LazySteps(Mapping):
+    """{k: value} over a generator of (k, value) in ascending k (``make()`` starts it): a forward read advances
+    it and keeps only the value read; a read behind it restarts the generator."""
+
+    def __init__(self, make, keys):
+        self._make, self._keys = make, list(keys)
+        self._keyset = set(self._keys)
+        self._gen, self._last = None, None
+
+    def __getitem__(self, k):
+        k = int(k)
+        if k not in self._keyset:
+            raise KeyError(k)
+        if self._last is not None and self._last[0] == k:
+            return self._last[1]
+        if self._gen is None or (self._last is not None and k < self._last[0]):
+            self._gen, self._last = self._make(), None
+        for kk, val in self._gen:
+            self._last = (kk, val)
+            if kk == k:
+                return val
+        raise KeyError(k)  # pragma: no cover - every key is yielded
+
+    def __iter__(self):
+        return iter(self._keys)
+
+    def __len__(self):
+        return len(self._keys)
+
+
+def _open_loop_trace_max(model: AugmentedModel, P0x: np.ndarray, t1: int) -> float:
+    """max over k < t1 of tr Σ_x(k), Σ_x(k+1) = A Σ_x(k) Aᵀ + Q from the prior's x block: the unconditional
+    covariance of x_k, which bounds the x block of every run's prior P(k|k−1) (conditioning on the modes and
+    the measurements only lowers it; x's dynamics do not depend on the modes)."""
+    A, Q = model.A, model.Q
+    Sx, top = np.array(P0x, float), 0.0
+    with np.errstate(over="ignore", invalid="ignore"):
+        for _ in range(t1):
+            tr = float(np.trace(Sx))
+            if not np.isfinite(tr):
+                return np.inf
+            top = max(top, tr)
+            Sx = A @ Sx @ A.T + Q
+    return top
+
+
+def mode_aware_blocks(model: AugmentedModel, modes: np.ndarray, y: np.ndarray, xhat0, P0, steps, base: str = "paper"):
+    """Yield (k, (x̂(k|k), P_x(k|k), x̂(k+1|k), P_x(k+1|k))) for k in ``steps`` ascending
+    (:func:`mode_aware_estimates_compiled`), the kernel run a block of :data:`BLOCK_STEPS` steps at a time with
+    each run's ξ̂ and P carried between blocks (the same operations: the same numbers).
+
+    Blocks need a run never to trip the overflow flag after its first block (its earlier outputs were already
+    yielded; the numpy reference redoes a flagged run from the start): used when the open-loop bound
+    (:func:`_open_loop_trace_max`) stays below a quarter of the flag's limit over the horizon; otherwise the
+    whole horizon is one block (exactly the one-call algorithm)."""
     md = model
     if md.m != 1:
         raise ValueError("the compiled mode-aware KF with states needs one output (m = 1): use ModeAwareKFTr")
-    n, runs = md.n, modes.shape[1]
-    want = sorted(int(k) for k in steps)
+    n, d, runs = md.n, md.d, modes.shape[1]
+    want = sorted({int(k) for k in steps})
+    if not want:
+        return
     t1 = want[-1]
     ref = ModeAwareKFTr(md, 1, xhat0, P0, states=True, base=base)
-    slot = np.full(t1 + 1, -1, np.int64)
-    slot[want] = np.arange(len(want))
-    S = len(want)
-    xf, xp = np.empty((S, n, runs)), np.empty((S, n, runs))
-    Pf, Pp = np.empty((S, n, n, runs)), np.empty((S, n, n, runs))
+    size = BLOCK_STEPS if _open_loop_trace_max(md, ref.P[:n, :n, 0], t1) <= 0.25 * ref.rescue.limit else t1
+    iu = np.triu_indices(d)
+    xi = np.broadcast_to(ref.xi[:, 0], (runs, d)).copy()
+    Pu = np.broadcast_to(ref.P[:, :, 0][iu], (runs, iu[0].size)).copy()
     flag = np.zeros(runs, dtype=np.bool_)
-    yT = np.ascontiguousarray(y[0].T)  # (runs, T + 2): one run contiguous
-    mT = np.ascontiguousarray(modes[:t1].T, dtype=np.int64)
+    slot = np.full(t1 + 1, -1, np.int64)
     run = _markov_codegen.kernel_mode_aware(md.H, ref.Rq, ref.Fb, ref.Qb, ref.D, n)
-    run(ref.xi[:, 0].copy(), ref.P[:, :, 0].copy(), mT, yT, t1, ref.scale, ZERO_INNOVATION_RTOL, ref.rescue.limit,
-        slot, xf, Pf, xp, Pp, flag)
-    if flag.any():  # the overflow policy: these runs through the numpy reference from the start
-        idx = np.flatnonzero(flag)
-        kf = ModeAwareKFTr(md, idx.size, xhat0, P0, states=True, base=base)
-        for t in range(t1):
-            a, _, pf = kf.step(y[:, t + 1, idx], modes[t, idx], want_cov=slot[t + 1] >= 0)
-            s = slot[t + 1]
-            if s >= 0:
-                xf[s][:, idx], Pf[s][:, :, idx] = a, pf
-                xp[s][:, idx], Pp[s][:, :, idx] = kf.xi[:n], kf.P[:n, :n]
-    return {k: (xf[i], Pf[i], xp[i], Pp[i]) for i, k in enumerate(want)}
+    redo = []  # (runs, the numpy reference for them) of the runs flagged so far, run from the start
+    for t0, tb in _blocks(t1, size):
+        bw = [k for k in want if t0 < k <= tb]
+        slot[:] = -1
+        slot[bw] = np.arange(len(bw))
+        S = len(bw)
+        xf, xp = np.empty((S, n, runs)), np.empty((S, n, runs))
+        Pf, Pp = np.empty((S, n, n, runs)), np.empty((S, n, n, runs))
+        before = flag.copy()
+        yT = np.ascontiguousarray(y[0, t0 + 1: tb + 1].T)  # (runs, block): one run contiguous
+        mT = np.ascontiguousarray(modes[t0:tb].T, dtype=np.int64)
+        run(xi, Pu, mT, yT, t0, tb, ref.scale, ZERO_INNOVATION_RTOL, ref.rescue.limit, slot, xf, Pf, xp, Pp, flag)
+        new = np.flatnonzero(flag & ~before)
+        if new.size:  # the overflow policy: these runs through the numpy reference from the start
+            kf = ModeAwareKFTr(md, new.size, xhat0, P0, states=True, base=base)
+            for t in range(t0):
+                kf.step(y[:, t + 1, new], modes[t, new])
+            redo.append((new, kf))
+        for idx, kf in redo:
+            for t in range(t0, tb):
+                a, _, pf = kf.step(y[:, t + 1, idx], modes[t, idx], want_cov=slot[t + 1] >= 0)
+                s = slot[t + 1]
+                if s >= 0:
+                    xf[s][:, idx], Pf[s][:, :, idx] = a, pf
+                    xp[s][:, idx], Pp[s][:, :, idx] = kf.xi[:n], kf.P[:n, :n]
+        for i, k in enumerate(bw):
+            yield k, (xf[i], Pf[i], xp[i], Pp[i])
