@@ -329,10 +329,11 @@ def _run_core(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str):
 SHARE_MARGIN = 4
 """Forward rows kept below each requested step beyond the estimator's own lag, so that the smoothers of
 larger lag (up to this) of the same run find the trace's forward pass already done (:func:`_run_shared`)."""
-BLOCK_BYTES = 256 * 2**20
+BLOCK_BYTES = 8 * 2**20
 """Memory of one block of the shared pass (stored P_{t|t}, J_t, C_t and a smoothed chain): a request
 that fits is one block and is kept for the next estimator on the same trace; a larger one is cut into
-blocks of steps (nothing kept)."""
+blocks of steps (nothing kept). It bounds a chunk's working set (issue 20: at 256 MB a 5000-run chunk of
+Table I's 500 steps was one block and held 145 MB; at 8 MB it holds ~12 MB)."""
 
 _TLS = threading.local()
 """Per thread, the last trace's :class:`_Pass` (an executor's threads never share a trace)."""
@@ -379,10 +380,10 @@ class _Pass:
     """One trace's forward pass P_{t|t} at ``rows`` (``H`` (R, n, n, runs)), the RTS pieces J_t, C_t of
     the rows prepared so far, and the deepest smoothed chain computed for ``steps``."""
 
-    def __init__(self, f, rows: list[int], H: np.ndarray, rts: str, steps: tuple[int, ...], margin: int):
+    def __init__(self, f, rows: list[int], H: np.ndarray, rts: str, steps: tuple[int, ...], margin: int, back=None):
         self.f, self.rows, self.H, self.rts, self.steps, self.margin = f, rows, H, rts, steps, margin
         self.pos = {t: i for i, t in enumerate(rows)}
-        self.back = kalman.SmoothStep.of(f.A, f.Q)
+        self.back = kalman.SmoothStep.of(f.A, f.Q) if back is None else back  # (one per call: the blocks share it)
         self.J = self.C = None
         self.ready = np.zeros(len(rows), dtype=bool)
         self.chain: tuple[int, np.ndarray] | None = None  # (lag d, P_{k−d|k} (K, n, n, runs), NaN for k < d)
@@ -477,14 +478,17 @@ def _forget(key) -> None:
 
 
 def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: str):
-    """Forward: :meth:`kalman.Filter.run` with backend ``fwd`` (exactly kf's numbers) at every trace step a
-    requested step's backward pass reads; backward: J_t, C_t once per trace step (:class:`_Pass`, ``rts``
-    numpy = the core's operations batched over trace steps, bit for bit :func:`_run_core`; compiled =
-    :mod:`netkf_cli.estimators._smoother_codegen`, equal to rounding), then for every requested step the N
-    affine RTS maps batched over the steps. A request that fits one block is kept (per thread) for the next
-    call on the same arrivals and system — the engine's other estimators on the same trace — so smoothers
-    that differ only in lag share the forward pass, the RTS pieces and the chain (the same numbers as
-    separate calls, a test)."""
+    """Forward: :meth:`kalman.Filter.run` with backend ``fwd`` (exactly kf's numbers; numba: streamed by
+    :func:`_forward_stream`) at every trace step a requested step's backward pass reads; backward: J_t, C_t
+    once per trace step (:class:`_Pass`, ``rts`` numpy = the core's operations batched over trace steps, bit
+    for bit :func:`_run_core`; compiled = :mod:`netkf_cli.estimators._smoother_codegen`, equal to rounding),
+    then for every requested step the N affine RTS maps batched over the steps. A request that fits one block
+    (:data:`BLOCK_BYTES`) is kept (per thread) for the next call on the same arrivals and system — the
+    engine's other estimators on the same trace — so smoothers that differ only in lag share the forward
+    pass, the RTS pieces and the chain (the same numbers as separate calls, a test). A larger request is cut
+    into blocks of steps, each holding only the rows [k − N, k] of its steps, and nothing is kept: the
+    working set is one block whatever the horizon and chunk (issue 20); every number is the one-block
+    number (per run and step the same operations on the same operands, a test)."""
     runs, n = gamma.shape[-1], f.A.shape[0]
     smooth = "smoothed" in qs and N > 0
     L = max(N, SHARE_MARGIN)
@@ -499,64 +503,163 @@ def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: st
         if got is not None and got[0] == key and got[1].margin >= N:
             yield from _emit(got[1], qs, N)
             return
+    else:  # nothing is kept for another estimator: only the rows this lag reads
+        L = N if smooth else 0
+        blocks = _blocks(steps, L, row_bytes)
     want = [t for t in sorted({t for k in steps for t in range(max(0, k - L), k + 1)}) if t >= 1]
-    if len(blocks) == 1 and fwd == "numba" and f.sequential and kc.supported(n, f.groups):
-        forward = iter(_forward_compiled(f, P0, gamma, want).items())
-    else:
-        forward = f.run(P0, gamma, want, ("filtered",), backend=fwd)
+    forward = _forward(f, P0, gamma, want, fwd) if key is not None else _forward_kept(f, P0, gamma, steps, N, fwd)
     have: dict[int, np.ndarray] = {0: np.repeat(P0[:, :, None], runs, axis=2)}
     last = 0
+    back = kalman.SmoothStep.of(f.A, f.Q)
     for block in blocks:
         rows = sorted({t for k in block for t in range(max(0, k - L), k + 1)})
         while last < rows[-1]:
-            last, d = next(forward)
-            have[last] = d["filtered"]
+            last, P = next(forward)
+            have[last] = P
         H = np.stack([have[t] for t in rows])
         for t in [u for u in have if u < rows[-1] + 1 - L]:
             del have[t]
-        ps = _Pass(f, rows, H, rts, tuple(block), L)
+        ps = _Pass(f, rows, H, rts, tuple(block), L, back)
+        del H
         if key is not None:
             _keep(gamma, key, ps)
         yield from _emit(ps, qs, N if smooth else 0)
+        del ps
+
+
+FORWARD_BYTES = 24 * 2**20
+"""Largest forward pass (P_{t|t} at the rows of every requested step) kept for the next estimator on the same
+trace when a request is cut into blocks (:func:`_forward_kept`; a larger one is redone by each estimator).
+The engine's smoothers of one trace (Table I: lags 0 … 4) would otherwise redo it each: kf's numpy pass (batches
+under ``kalman.AUTO_MIN_RUN_STEPS`` = 2e6 run-steps) costs ~0.3 ms per step in numpy's per-call overhead
+whatever the batch, the compiled one ~20 µs per step. 24 MB holds the configs' chunks at n = 1 (5000 runs ×
+504 rows: 20 MB)."""
+
+
+def _forward(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, want: list[int], fwd: str):
+    """``(t, P_{t|t})`` for t in ``want``: kf's forward pass on backend ``fwd`` (:meth:`kalman.Filter.run`;
+    numba with kf's generated kernel: :func:`_forward_stream`, the same numbers)."""
+    if fwd == "numba" and f.sequential and kc.supported(f.A.shape[0], f.groups):
+        return _forward_stream(f, P0, gamma, want)
+    return ((k, d["filtered"]) for k, d in f.run(P0, gamma, want, ("filtered",), backend=fwd))
+
+
+def _forward_kept(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, steps: list[int], N: int, fwd: str):
+    """Yield ``(t, P_{t|t})`` at the rows [k − N, k] of ``steps`` (t ≥ 1), from ``f.run(..., backend=fwd)``:
+    the rows of [k − max(N, SHARE_MARGIN), k] are computed and, when they fit :data:`FORWARD_BYTES`, kept (per
+    thread, until the arrivals are freed) for the next call on the same arrivals, system, steps and backend
+    with a lag of at most that margin — the same arrays, so the same numbers."""
+    L = max(N, SHARE_MARGIN)
+    rows = [t for t in sorted({t for k in steps for t in range(max(0, k - L), k + 1)}) if t >= 1]
+    need = {t for k in steps for t in range(max(1, k - N), k + 1)}
+    n, runs = f.A.shape[0], gamma.shape[-1]
+    key = (_fingerprint(gamma), f.A.tobytes(), f.C.tobytes(), f.Q.tobytes(), f.R.tobytes(), f.groups,
+           np.asarray(P0).tobytes(), fwd, tuple(steps))
+    got = getattr(_TLS, "forward", None)
+    if got is not None and got[0] == key and got[1] >= N:
+        for i, t in enumerate(got[2]):
+            if t in need:
+                yield t, got[3][i]
+        return
+    _TLS.forward = None  # (a previous trace's pass: freed before this one is built)
+    keep = len(rows) * n * n * runs * 8 <= FORWARD_BYTES
+    store = np.empty((len(rows), n, n, runs)) if keep else None
+    for i, (t, P) in enumerate(_forward(f, P0, gamma, rows, fwd)):
+        if keep:
+            store[i] = P
+            P = store[i]
+            if i == len(rows) - 1:  # complete: kept for the next estimator on this trace
+                _TLS.forward = (key, L, rows, store)
+                try:
+                    weakref.finalize(gamma, _forget_forward, key)
+                except TypeError:  # not weak-referenceable: kept until the next pass replaces it
+                    pass
+        if t in need:
+            yield t, P
+
+
+def _forget_forward(key) -> None:
+    got = getattr(_TLS, "forward", None)
+    if got is not None and got[0] == key:
+        _TLS.forward = None
+
+
+def _forward_stream(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, want: list[int]) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield ``(k, P_{k|k})`` for k in ``want``: ``f.run(P0, gamma, want, ("filtered",), backend="numba")``
+    — the same numbers, bit for bit (a test) — streamed, one step's covariances at a time. kf's generated
+    kernel (:func:`kalman_codegen.kernel`) runs twice over ``want``: first only to note the step at which
+    each run is first flagged for the rescue (nothing kept but the packed state), then reporting every step;
+    the flagged runs go once through the numpy core from P0 (:meth:`kalman.Filter.step`) in step with the
+    second pass, their covariances from their first flagged step on replacing the kernel's — what
+    :class:`kalman.FlaggedRuns` does at each step, without restarting the newly flagged runs from P0 at every
+    step (under bursty loss many runs are flagged at different steps: the restarts cost O(flagged runs ×
+    steps²)), and without holding the whole horizon (issue 20: 19 MB per 5000 runs × 500 steps, n = 1)."""
+    n, runs = f.A.shape[0], gamma.shape[-1]
+    if not want:
+        return
+    P_init = np.array(np.repeat(np.asarray(P0, dtype=float)[:, :, None], runs, axis=2), dtype=float, order="C")
+    adv = kc.kernel(f.A, f.C, f.Q, f.R, f.groups, f.rescue.limit)
+    gam = np.ascontiguousarray(gamma)
+    flagged = _first_flagged(f, adv, P_init, gam, want[-1])
+    idx = np.flatnonzero(flagged <= want[-1])
+    # a run flagged at step t is reported from the numpy core from the first step of want ≥ t on (the flag stays)
+    k0 = np.asarray(want, dtype=np.int64)[np.searchsorted(want, flagged[idx])]
+    Pn, tn = P_init[:, :, idx], 0
+    T, flag, t = kc.pack(P_init), np.zeros(runs, dtype=np.bool_), 0
+    iu = [(q, i, j) for q, (i, j) in enumerate(zip(*np.triu_indices(n)))]
+    for k in want:  # the kernel's calls, reported; the flagged runs on the numpy core
+        adv(T, gam, t, k, flag)
+        t = k
+        Pk = np.empty((n, n, runs))  # kc.unpack without recomputing the triangle's indices every step
+        for q, i, j in iu:
+            Pk[i, j] = T[q]
+            if i != j:
+                Pk[j, i] = T[q]
+        if idx.size:
+            while tn < k:
+                Pn = f.step(Pn, gamma[:, tn][:, idx])[1]
+                tn += 1
+            sel = k0 <= k
+            if sel.any():
+                Pk[:, :, idx[sel]] = Pn[:, :, sel]
+        yield k, Pk
+
+
+def _first_flagged(f: kalman.Filter, adv, P_init: np.ndarray, gam: np.ndarray, upto: int) -> np.ndarray:
+    """Per run, the first step t ≤ ``upto`` after which kf's generated kernel ``adv`` has flagged it for the
+    rescue (``upto`` + 1: never), from the kernel one step at a time (its flag is deterministic per step and
+    stays set). Kept per thread for the next estimator on the same arrivals and filter (the engine's smoothers
+    on one trace), until the arrivals are freed."""
+    key = (_fingerprint(gam), f.A.tobytes(), f.C.tobytes(), f.Q.tobytes(), f.R.tobytes(), f.groups,
+           float(f.rescue.limit), P_init[:, :, :1].tobytes())
+    got = getattr(_TLS, "flagged", None)
+    if got is not None and got[0] == key and got[1] >= upto:
+        return np.minimum(got[2], upto + 1)
+    runs = gam.shape[-1]
+    first = np.full(runs, upto + 1, dtype=np.int64)
+    T, flag = kc.pack(P_init), np.zeros(runs, dtype=np.bool_)
+    for t in range(upto):
+        adv(T, gam, t, t + 1, flag)
+        first[flag & (first > upto)] = t + 1
+    if np.all(P_init == P_init[:, :, :1]):  # (one P0 for every run: the key holds it)
+        _TLS.flagged = (key, upto, first)
+        try:
+            weakref.finalize(gam, _forget_flagged, key)
+        except TypeError:  # not weak-referenceable: kept until the next pass replaces it
+            pass
+    return first
+
+
+def _forget_flagged(key) -> None:
+    got = getattr(_TLS, "flagged", None)
+    if got is not None and got[0] == key:
+        _TLS.flagged = None
 
 
 def _forward_compiled(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, want: list[int]) -> dict[int, dict]:
-    """``dict(f.run(P0, gamma, want, ("filtered",), backend="numba"))`` — the same numbers, bit for bit (a
-    test) — in two passes: kf's generated kernel (:func:`kalman_codegen.kernel`) over every step of
-    ``want``, noting the step at which each run is first flagged for the rescue; then every flagged run
-    once on the numpy core from P0 (:meth:`kalman.Filter.step`), its covariances from that step on replacing
-    the kernel's — what :class:`kalman.FlaggedRuns` does at each step, without restarting the newly flagged
-    runs from P0 at every step (under bursty loss many runs are flagged at different steps: the restarts
-    cost O(flagged runs × steps²))."""
-    n, runs = f.A.shape[0], gamma.shape[-1]
-    P = np.array(np.repeat(np.asarray(P0, dtype=float)[:, :, None], runs, axis=2), dtype=float, order="C")
-    P_init = P.copy()
-    flag = np.zeros(runs, dtype=np.bool_)
-    first = np.full(runs, -1, dtype=np.int64)
-    adv = kc.kernel(f.A, f.C, f.Q, f.R, f.groups, f.rescue.limit)
-    T, gam = kc.pack(P), np.ascontiguousarray(gamma)
-    iu = np.triu_indices(n)
-    out: dict[int, dict] = {}
-    t = 0
-    for k in want:
-        adv(T, gam, t, k, flag)
-        t = k
-        first[flag & (first < 0)] = k
-        Pk = np.empty((n, n, runs))  # kc.unpack without recomputing the triangle's indices every step
-        Pk[iu[0], iu[1]] = T
-        Pk[iu[1], iu[0]] = T
-        out[k] = {"filtered": Pk}
-    idx = np.flatnonzero(first >= 0)
-    if idx.size:
-        Pn, t, k0 = P_init[:, :, idx], 0, first[idx]
-        for k in want:
-            while t < k:
-                Pn = f.step(Pn, gamma[:, t][:, idx])[1]
-                t += 1
-            sel = k0 <= k
-            if sel.any():
-                out[k]["filtered"][:, :, idx[sel]] = Pn[:, :, sel]
-    return out
+    """``dict(f.run(P0, gamma, want, ("filtered",), backend="numba"))`` by :func:`_forward_stream`, every step
+    held (tests, benchmarks)."""
+    return {k: {"filtered": P} for k, P in _forward_stream(f, P0, gamma, want)}
 
 
 def _emit(ps: _Pass, qs, N: int):

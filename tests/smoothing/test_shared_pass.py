@@ -94,9 +94,9 @@ def test_lags_on_one_trace_share_one_pass_with_the_numbers_of_separate_passes(ba
     ests = [SmootherEstimator(kind="smoother", lag=lag, backend=backend) for lag in (0, 1, 2, 4)]
     steps = list(range(11, 81))
     calls = []
-    run, fwd = kalman.Filter.run, sm._forward_compiled
+    run, fwd = kalman.Filter.run, sm._forward_stream
     monkeypatch.setattr(kalman.Filter, "run", lambda *a, **k: (calls.append(1), run(*a, **k))[1])
-    monkeypatch.setattr(sm, "_forward_compiled", lambda *a: (calls.append(1), fwd(*a))[1])
+    monkeypatch.setattr(sm, "_forward_stream", lambda *a: (calls.append(1), fwd(*a))[1])
     monkeypatch.setattr(sm, "AUTO_NUMBA_MAX_RUNS", 0)  # the batched path even for this small batch
 
     def sim(es):
