@@ -292,14 +292,66 @@ def _fit_titles(fig: Figure) -> None:
                 shrink -= 0.1
 
 
+def _wrapped_text(t) -> str:
+    """matplotlib's ``Text._get_wrapped_text``, the same line breaks with a fraction of its measurements.
+
+    matplotlib breaks each line before the first word whose prefix ``" ".join(words[:i])``, i = 2, 3, …, is wider
+    than the room to the canvas edge, measuring every prefix in turn (a footnote line of 20 words: 20 renderings of
+    up to 120 characters, ≈ 0.03 ms per character, or a mathtext parse when the prefix holds ``$…$``). The width of
+    a prefix grows with i as long as it is drawn the same way — as plain text (the union of its glyphs' boxes) or
+    as mathtext (a row of boxes) —, so within each run of prefixes drawn the same way (``cbook.is_math_text``) one
+    measurement of the run's last prefix says whether the break lies in it, and a bisection finds it: the first
+    prefix too wide, as matplotlib's scan finds it. The prefixes are measured by matplotlib's own
+    ``_get_rendered_text_width`` (its renderer, rounding and cache), with its ``_get_wrap_line_width``."""
+    is_math = _mpl().matplotlib.cbook.is_math_text
+    width = t._get_rendered_text_width
+    room = t._get_wrap_line_width()
+    lines = []
+    for unwrapped in t.get_text().split("\n"):  # the user's line breaks are kept
+        words = unwrapped.split(" ")
+        while words:
+            n = len(words)
+            if n == 1:
+                lines.append(words.pop(0))
+                continue
+            prefix = [" ".join(words[:i]) for i in range(n + 1)]
+            first = None  # the first i in 2..n whose prefix is too wide
+            i = 2
+            while i <= n and first is None:
+                mode, j = is_math(prefix[i]), i
+                while j < n and is_math(prefix[j + 1]) == mode:
+                    j += 1
+                try:
+                    if width(prefix[j]) > room:  # the break is in [i, j]
+                        lo, hi = i, j
+                        while lo < hi:
+                            mid = (lo + hi) // 2
+                            if width(prefix[mid]) > room:
+                                hi = mid
+                            else:
+                                lo = mid + 1
+                        first = lo
+                except ValueError:  # a prefix matplotlib's scan may never reach is not valid mathtext: scan as it does
+                    first = next((k for k in range(i, j + 1) if width(prefix[k]) > room), None)
+                i = j + 1
+            if first is None:
+                lines.append(prefix[n])
+                words = []
+            else:
+                lines.append(prefix[first - 1])
+                words = words[first - 1:]
+    return "\n".join(lines)
+
+
 def _wrap_once(t, renderer) -> None:
     """Freeze a ``wrap=True`` text's line breaks: matplotlib re-wraps it (measuring every word prefix) at every
-    extent query and draw — half the time of a small run's figure. The breaks are matplotlib's own, taken once."""
-    if not t.get_wrap():
+    extent query and draw — half the time of a small run's figure. The breaks are matplotlib's own (as
+    ``_wrapped_text`` finds them), taken once."""
+    if not t.get_wrap() or t.get_usetex():  # matplotlib does not wrap TeX either
         return
-    t.get_window_extent(renderer)  # binds the renderer the wrapping measures with
     try:
-        wrapped = t._get_wrapped_text()  # matplotlib's wrapping (private: if it moves, keep wrapping on)
+        t._renderer = renderer  # what get_window_extent(renderer) binds: the renderer the wrapping measures with
+        wrapped = _wrapped_text(t)  # matplotlib's private helpers: if they move, keep matplotlib's wrapping on
     except AttributeError:  # pragma: no cover - another matplotlib
         return
     t.set_text(wrapped)
@@ -321,15 +373,24 @@ def _layout(fig: Figure) -> None:
             y += t.get_window_extent(r).height + 2
         bottom = min(0.4, (y + 4) / h)
 
+    engine = fig.get_layout_engine()
     try:
         with warnings.catch_warnings():  # a layout that cannot fit is reported by lint(), not as a warning
             warnings.filterwarnings("ignore", message="Tight layout not applied")
             fig.tight_layout(rect=(0, bottom, 1, 1))
     except (ValueError, RuntimeError):  # pragma: no cover - degenerate layouts
         pass
+    if engine is None:
+        # tight_layout leaves a placeholder layout engine behind, and savefig draws a figure that has one twice
+        # (a draw "to make sure the layout works", then the printed one): a third of the save's CPU for nothing,
+        # the layout being done. Without an engine the printed draw is the only one (the same pixels, tested).
+        fig.set_layout_engine(None)
 
 
 KNOWN_FORMATS = ("png", "pdf", "svg")
+#: zlib level of the PNGs (lossless: the same pixels at any level). PIL's default, 6, spent 2.9 s CPU encoding the 37
+#: quick figures; 3 spends 2.1 s and its files are 4 % smaller (6.77 vs 7.05 MB: the figures' flat colours)
+PNG_COMPRESS_LEVEL = 3
 
 
 def save(fig: Figure, path, dpi: int | None = None, formats: Iterable[str] | None = None) -> list[Path]:
@@ -367,7 +428,8 @@ def save(fig: Figure, path, dpi: int | None = None, formats: Iterable[str] | Non
     try:
         for f in formats:
             out = stem.with_name(stem.name + "." + f)
-            fig.savefig(out, dpi=dpi or STYLE["savefig.dpi"], format=f, metadata=meta[f])
+            extra = {"pil_kwargs": {"compress_level": PNG_COMPRESS_LEVEL}} if f == "png" else {}
+            fig.savefig(out, dpi=dpi or STYLE["savefig.dpi"], format=f, metadata=meta[f], **extra)
             written.append(out)
     finally:
         plt.close(fig)
