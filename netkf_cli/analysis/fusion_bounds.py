@@ -262,7 +262,7 @@ def mf_lower_bound(loss: float, model: ScalarFusionModel) -> tuple[float, float]
 
 def _binom_pmf(k, n, p):
     """Binomial(n, p) probabilities at k (scipy.stats, imported here only: it costs ~20 MB in every process)."""
-    from scipy.stats import binom
+    from scipy.stats import binom  # here: scipy.stats costs ~20 MB in every process
 
     return binom.pmf(k, n, p)
 

@@ -229,7 +229,7 @@ def _scalar_kernel():
     """:func:`netkf_cli.analysis._smoothing_numba.evaluate_scalar` where numba imports, else None (probed once)."""
     if not _KERNEL:
         try:
-            from netkf_cli.analysis import _smoothing_numba
+            from netkf_cli.analysis import _smoothing_numba  # optional: needs numba (numpy fallback below)
         except ImportError:
             _KERNEL.append(None)
         else:

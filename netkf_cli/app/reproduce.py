@@ -55,7 +55,7 @@ from pydantic import Field, ValidationError, model_validator
 from rich.table import Table
 
 from netkf_cli.app import golden as golden_mod
-from netkf_cli.runtime import montecarlo
+from netkf_cli.runtime import montecarlo, plotting
 from netkf_cli.core.errors import ConfigError, NetkfError, Problem
 from netkf_cli.config.loader import line_index, load_scenario, validation_problems
 from netkf_cli.app.report import write_report as _write
@@ -442,6 +442,7 @@ def run_all(arts: list[Artefact], out_root: Path, quick: bool, jobs: int, on_don
     results: dict[str, tuple] = {}
     if jobs > 1:
         montecarlo.warm_compiler()  # numba's LLVM and typing set up once here: the forked workers inherit it
+        plotting.setup()  # so is matplotlib (imported at first use): every worker draws, and would import it privately
     # the ~200 000 objects alive now (modules, numba, matplotlib, the scenarios) live as long as the process:
     # frozen, the cyclic collector stops re-traversing them on every full collection of every artefact
     # (gc 3.0 -> 1.4 s CPU over the 37 quick artefacts), and forked workers stop touching (copying) their pages

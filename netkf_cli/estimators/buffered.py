@@ -134,7 +134,7 @@ MKF_DELAY_LOOP_MAX = 64
 def _oldest_compiled():
     """:func:`netkf_cli.channels._delay_numba.oldest_arrivals` where numba imports, else None."""
     try:
-        from netkf_cli.channels import _delay_numba
+        from netkf_cli.channels import _delay_numba  # optional: needs numba (numpy passes otherwise)
     except ImportError:
         return None
     return _delay_numba.oldest_arrivals
