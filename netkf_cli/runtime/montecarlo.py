@@ -36,6 +36,7 @@ import numpy as np
 from netkf_cli.core.stats import mean_se, proportion_stderr, wilson_interval  # noqa: F401 (re-exported: one statistics module)
 from netkf_cli.core.errors import NetkfError
 from netkf_cli.runtime.workers import pool_kwargs  # pool workers ignore Ctrl-C and die with this process
+from netkf_cli.runtime.workers import release_free_memory
 
 Stats = Mapping[str, np.ndarray | float | int]
 Kernel = Callable[[np.random.Generator, int], Stats]
@@ -151,6 +152,12 @@ class Execution:
     _client: object | None = field(default=None, repr=False)
     _cluster: object | None = field(default=None, repr=False)
 
+    def workers(self) -> int:
+        """Worker processes of the ``process`` executor: ``jobs − 1``, because the parent computes chunks too
+        (:func:`run_chunked`). An idle parent holding the imports, numba's compiler and the scenario while
+        ``jobs`` workers compute cost a whole process of memory (fig5: 3 processes, ~90 MB PSS each worker)."""
+        return max(1, self.jobs - 1)
+
     def pool(self) -> Executor:
         if self._pool is None:
             # Forked workers share the parent's pages until written; the cyclic collector writes to every
@@ -163,7 +170,7 @@ class Execution:
             warm_compiler()
             gc.collect()
             gc.freeze()
-            self._pool = ProcessPoolExecutor(max_workers=self.jobs, **pool_kwargs())
+            self._pool = ProcessPoolExecutor(max_workers=self.workers(), **pool_kwargs())
         return self._pool
 
     def client(self):
@@ -346,29 +353,49 @@ def run_chunked(
             cached = _load(path)
             stats = cached if cached is not None else attempt(lambda c=c: run_chunk(kernel, c), c)
             finish(c, stats, path, cached is not None)
+        release_free_memory()  # the chunks' freed arrays: back to the system before the analysis and figure
         return total  # type: ignore[return-value]
 
-    window = max(2, 2 * ex.jobs)
+    # ``process``: the parent is one of the ``jobs`` processes (Execution.workers). It keeps the workers'
+    # window full and, while the chunk it needs next is still running there, computes the next unsubmitted
+    # chunk itself. Which process computes a chunk does not change its numbers (its own SeedSequence), and
+    # the sums are still taken in chunk order.
+    in_parent = mode == "process"
+    window = max(2, 2 * (ex.workers() if in_parent else ex.jobs))
     pending: dict[int, object] = {}
-    nxt = 0  # next chunk index to submit
+    done: dict[int, dict] = {}  # chunks the parent computed ahead of the one summed next
+    nxt = 0  # next chunk index to submit (or compute here)
 
     def submit(c: Chunk):
         if mode == "process":
             return ex.pool().submit(run_chunk, kernel, c)
         return ex.client().submit(run_chunk, kernel, c, pure=False)
 
-    for c in chunks:  # consume in order; keep the window full
+    def fill() -> None:
+        nonlocal nxt
         while nxt < len(chunks) and len(pending) < window:
             cn = chunks[nxt]
             if _load(_cache_path(ex, call, label, cn)) is None:
                 pending[cn.index] = submit(cn)
             nxt += 1
+
+    for c in chunks:  # consume in order; keep the window full
+        fill()
         path = _cache_path(ex, call, label, c)
+        if c.index in done:
+            finish(c, done.pop(c.index), path, False)
+            continue
         cached = _load(path) if c.index not in pending else None
         if cached is not None:
             finish(c, cached, path, True)
             continue
         fut = pending.pop(c.index)
+        while in_parent and not fut.done() and nxt < len(chunks) and len(done) < window:
+            cn = chunks[nxt]
+            nxt += 1
+            if _load(_cache_path(ex, call, label, cn)) is None:
+                done[cn.index] = attempt(lambda cn=cn: run_chunk(kernel, cn), cn)
+            fill()
         stats = None
         for lost in range(ex.retries + 1):
             try:
@@ -388,6 +415,7 @@ def run_chunked(
                         pending[k] = submit(chunks[k])
                 fut = submit(c)
         finish(c, stats, path, False)
+    release_free_memory()
     return total  # type: ignore[return-value]
 
 

@@ -33,8 +33,8 @@ def test_jobs2_csv_is_byte_identical(tmp_path):
     b = run_scenario_file(CFG, out_dir=tmp_path / "jobs2" / "f", runs=RUNS, overrides=SMALL, executor="process", jobs=2)
     for p in sorted(a.glob("*.csv")):
         assert p.read_bytes() == (b / p.name).read_bytes(), p.name
-    # the chunks ran on the workers: the manifest's execution record
-    assert _in_parent(b) == 0 and _in_parent(a) == 8
+    # jobs=2 is the parent and one worker (Execution.workers): the worker computed at least the first chunk
+    assert _in_parent(b) < 8 and _in_parent(a) == 8
 
 
 def test_resume_after_interrupt_equals_uninterrupted(tmp_path, monkeypatch):

@@ -1,5 +1,6 @@
 """Executors, resume and retry: the same numbers whatever ran the chunks (issue 9)."""
 
+import os
 import textwrap
 
 import numpy as np
@@ -80,15 +81,15 @@ class Flaky:
 
 
 class DiesOnce:
-    """Kills its worker process the first time it runs (a lost worker, not a bug)."""
+    """Kills its worker process the first time it runs in a worker (a lost worker, not a bug); in the parent,
+    which computes chunks too (Execution.workers), it never dies."""
 
     def __init__(self, flag):
         self.flag = str(flag)
+        self.parent = os.getpid()
 
     def __call__(self, rng, n):
-        import os
-
-        if not os.path.exists(self.flag):
+        if os.getpid() != self.parent and not os.path.exists(self.flag):
             open(self.flag, "w").close()
             os._exit(1)
         return {"s": rng.random(n).sum(), "n": n}
@@ -106,6 +107,32 @@ def test_lost_worker_is_retried_with_identical_numbers(tmp_path):
         got = montecarlo.run_chunked(DiesOnce(tmp_path / "died"), 4000, 1000, seed=3)
     assert (tmp_path / "died").exists()
     assert got["s"] == ref["s"] and got["n"] == 4000
+
+
+class SlowInWorkers:
+    """Sleeps in worker processes only, so that the parent, one of the jobs, has time to compute chunks."""
+
+    def __init__(self):
+        self.parent = os.getpid()
+
+    def __call__(self, rng, n):
+        import time
+
+        if os.getpid() != self.parent:
+            time.sleep(0.3)
+        return {"s": rng.random(n).sum(), "n": n}
+
+
+def test_jobs2_is_the_parent_and_one_worker_with_identical_numbers():
+    """--jobs 2 forks one worker and the parent computes chunks too (Execution.workers): two processes ran
+    chunks, the worker at least the first, and the sums equal the serial ones exactly (chunk order kept)."""
+    ref = montecarlo.run_chunked(SlowInWorkers(), 6000, 1000, seed=4)
+    with montecarlo.execution("process", jobs=2) as ex:
+        assert ex.workers() == 1
+        got = montecarlo.run_chunked(SlowInWorkers(), 6000, 1000, seed=4)
+        ran = ex.report()
+    assert got["s"] == ref["s"] and got["n"] == 6000
+    assert ran["chunks"] == 6 and ran["processes"] == 2 and 1 <= ran["chunks_in_parent"] <= 5, ran
 
 
 def test_a_closure_kernel_is_refused_on_worker_processes():
