@@ -79,10 +79,15 @@ def _tri(P: np.ndarray) -> np.ndarray:
     ``batched.sym``), the matrix every reduction reads."""
     n = P.shape[0]
     if n not in _TRIU:
-        _TRIU[n] = np.triu_indices(n)
-    i, j = _TRIU[n]
+        i, j = np.triu_indices(n)
+        _TRIU[n] = (i * n + j, j * n + i)  # flat positions of P[i, j] and P[j, i]
+    fi, fj = _TRIU[n]
+    F = P.reshape(n * n, P.shape[-1])
     with np.errstate(over="ignore", invalid="ignore"):
-        return np.ascontiguousarray(0.5 * (P[i, j] + P[j, i]))
+        T = F.take(fi, axis=0)  # 0.5·(P[i, j] + P[j, i]) in place: the same two operations, fewer temporaries
+        T += F.take(fj, axis=0)
+        T *= 0.5
+    return T
 
 
 def _ambiguous(T: np.ndarray, n: int, amb: np.ndarray, M: np.ndarray):
@@ -112,6 +117,27 @@ def _sorted_thresholds(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(thr[order]), order.astype(np.int64)
 
 
+def _step_pos(red, k: int):
+    """Position of step k in ``red.steps`` (the first, as ``list.index``), None if absent: a dict built once
+    per steps list (the reducers are called once per step and estimator: a 300-step list scan each time
+    cost ~1 s in a stationary sweep)."""
+    cache = red.__dict__.get("_step_pos")
+    if cache is None or cache[0] is not red.steps:
+        pos: dict = {}
+        for i, s in enumerate(red.steps):
+            pos.setdefault(s, i)
+        cache = red.__dict__["_step_pos"] = (red.steps, pos)
+    return cache[1].get(k)
+
+
+def _step_index(red, k: int) -> int:
+    """:func:`_step_pos`, raising ValueError for a step not in ``red.steps`` (as ``list.index``)."""
+    i = _step_pos(red, k)
+    if i is None:
+        raise ValueError(f"{k} is not in list")
+    return i
+
+
 class DistributionReducer:
     """Counts of P_k ≤ M (PSD order; scalar M means M·Iₙ) per estimator, step and M.
 
@@ -127,7 +153,7 @@ class DistributionReducer:
 
     def update_tri(self, stats: dict, j: int, k: int, T: np.ndarray, n: int) -> None:
         """:meth:`update` for packed covariances T (n(n+1)/2, runs), compiled."""
-        i = self.steps.index(k)
+        i = _step_index(self, k)
         cnt = stats.setdefault(f"count_{j}", np.zeros((len(self.steps), len(self.M))))
         bad = stats.setdefault(f"nonfinite_{j}", np.zeros(len(self.steps)))
         row = np.zeros(len(self.M))
@@ -142,7 +168,7 @@ class DistributionReducer:
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         if _compiled(self.backend, P, w):
             return self.update_tri(stats, j, k, _tri(P), P.shape[0])
-        i = self.steps.index(k)
+        i = _step_index(self, k)
         cnt = stats.setdefault(f"count_{j}", np.zeros((len(self.steps), len(self.M))))
         bad = stats.setdefault(f"nonfinite_{j}", np.zeros(len(self.steps)))
         lmax = batched.lambda_max(P)  # P ≤ M·I ⇔ λ_max(P) ≤ M (inf for non-finite runs)
@@ -171,7 +197,7 @@ class MomentReducer:
 
     def update_tri(self, stats: dict, j: int, k: int, T: np.ndarray, n: int) -> None:
         """:meth:`update` for packed covariances T (n(n+1)/2, runs), compiled (sums in run order)."""
-        i, K = self.steps.index(k), len(self.steps)
+        i, K = _step_index(self, k), len(self.steps)
         nt = T.shape[0]
         out, e, e2 = np.zeros(8), np.zeros(nt), np.zeros(nt)
         rc.kernel_moments(n)(T, self.lmax, out, e, e2, np.empty((n, n)))
@@ -195,7 +221,7 @@ class MomentReducer:
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         if _compiled(self.backend, P, w):
             return self.update_tri(stats, j, k, _tri(P), P.shape[0])
-        i, K, n = self.steps.index(k), len(self.steps), P.shape[0]
+        i, K, n = _step_index(self, k), len(self.steps), P.shape[0]
         tr = batched.trace(P)
         finite = np.isfinite(P).all(axis=(0, 1))
         lm = batched.lambda_max(P) if self.lmax else tr
@@ -233,7 +259,7 @@ class PairedReducer:
 
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         self.inner.update(stats, j, k, P, w)
-        i = self.steps.index(k)
+        i = _step_index(self, k)
         tr = batched.trace(P) if w is None else batched.trace(P) * w
         if j == 0:
             stats.setdefault("_ref", {})[k] = tr
@@ -447,7 +473,7 @@ class StationaryReducer:
 
     def update_tri(self, stats: dict, j: int, k: int, T: np.ndarray, n: int) -> None:
         """:meth:`update` for packed covariances T (n(n+1)/2, runs), compiled."""
-        if k not in self.steps:
+        if _step_pos(self, k) is None:
             return
         runs = T.shape[-1]
         a = self._acc(stats, j, runs)
@@ -462,7 +488,7 @@ class StationaryReducer:
         a["steps"] += 1
 
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
-        if k not in self.steps:
+        if _step_pos(self, k) is None:
             return
         if _compiled(self.backend, P, w):
             return self.update_tri(stats, j, k, _tri(P), P.shape[0])

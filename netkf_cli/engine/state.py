@@ -410,6 +410,9 @@ class StateErrorKernel:
         want = sorted(set(self.steps) | set(self.window))
         K, n = len(self.steps), st.x.shape[0]
         win = set(self.window)
+        pos: dict = {}
+        for i, kk in enumerate(self.steps):  # step → its position (the first, as list.index), once per chunk
+            pos.setdefault(kk, i)
         out: dict = {"n": np.asarray(runs)}
         if self.keep:
             out["traj_x"] = st.x[:, : self.horizon + 1].copy()
@@ -459,8 +462,8 @@ class StateErrorKernel:
                     if k in win:
                         a["wa"] += np.stack([e2, trP, qq, rank]) / len(self.window)
                         a["bad"] |= ~ok
-                    if k in self.steps:
-                        i = self.steps.index(k)
+                    i = pos.get(k)
+                    if i is not None:
                         a["sum_e2"][i] = e2.sum()
                         a["sum_e4"][i] = (e2 * e2).sum()
                         a["sum_eeT"][i] = np.einsum("ir,jr->ij", e, e)

@@ -19,6 +19,24 @@ def sym(P: np.ndarray) -> np.ndarray:
     return 0.5 * (P + P.swapaxes(0, 1))
 
 
+_PATTERN: dict = {}
+"""Per constant matrix A (keyed by shape, dtype and bytes): its rows' nonzero coefficients for :func:`left`."""
+
+
+def _pattern(A: np.ndarray) -> tuple:
+    """Per row of A, ((j, A[i, j], A[i, j] == 1.0), …) over its nonzero entries (cached: the matrices are the
+    few constant system matrices, and finding the pattern costs more than the products at small runs)."""
+    key = (A.shape, A.dtype.str, A.tobytes())
+    pat = _PATTERN.get(key)
+    if pat is None:
+        p, n = A.shape
+        pat = tuple(tuple((j, A[i, j], bool(A[i, j] == 1.0)) for j in range(n) if A[i, j] != 0.0) for i in range(p))
+        if len(_PATTERN) > 4096:  # a bound, never reached by the constant system matrices
+            _PATTERN.clear()
+        _PATTERN[key] = pat
+    return pat
+
+
 def left(A: np.ndarray, P: np.ndarray) -> np.ndarray:
     """A P for a constant matrix A (p×n) and P (n, k, runs).
 
@@ -31,18 +49,17 @@ def left(A: np.ndarray, P: np.ndarray) -> np.ndarray:
         return (A @ np.ascontiguousarray(P).reshape(n, k * r)).reshape(p, k, r)
     out = np.empty((p,) + P.shape[1:], dtype=np.result_type(A, P))
     with np.errstate(over="ignore", invalid="ignore"):
-        for i in range(p):
-            nz = [(j, A[i, j]) for j in range(n) if A[i, j] != 0.0]
+        for i, nz in enumerate(_pattern(A)):
             if not nz:
                 out[i] = 0.0
                 continue
-            j0, a0 = nz[0]
-            if a0 == 1.0:
+            j0, a0, one0 = nz[0]
+            if one0:
                 out[i] = P[j0]
             else:
                 np.multiply(P[j0], a0, out=out[i])
-            for j, a in nz[1:]:
-                if a == 1.0:
+            for j, a, one in nz[1:]:
+                if one:
                     out[i] += P[j]
                 else:
                     out[i] += a * P[j]
@@ -60,17 +77,14 @@ def matmul(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     Small inner dimensions (the usual case) are summed entry by entry with the run axis
     innermost — no per-run Python loop and no batched-GEMM transposes.
     """
-    a, b, r = X.shape
-    c = Y.shape[1]
+    b = X.shape[1]
     if b <= 4:
-        out = np.empty((a, c, r), dtype=np.result_type(X, Y))
+        # out[i, k] = X[i, 0] Y[0, k] + X[i, 1] Y[1, k] + … in this order, all (i, k) at once (broadcast):
+        # the same products and sums, so the same bits, with b passes instead of a·c·b
         with np.errstate(over="ignore", invalid="ignore"):
-            for i in range(a):
-                for k in range(c):
-                    acc = X[i, 0] * Y[0, k]
-                    for j in range(1, b):
-                        acc += X[i, j] * Y[j, k]
-                    out[i, k] = acc
+            out = X[:, 0, None, :] * Y[None, 0, :, :]
+            for j in range(1, b):
+                out += X[:, j, None, :] * Y[None, j, :, :]
         return out
     return np.einsum("ijr,jkr->ikr", X, Y, optimize=True)
 

@@ -64,9 +64,13 @@ class MeanMatrixReducer:
     def __init__(self, steps: list[int], shift: dict | None = None):
         self.steps = list(steps)
         self.shift = {int(k): np.asarray(v, dtype=float) for k, v in (shift or {}).items()}
+        self._want = (self.steps, frozenset(self.steps))
 
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
-        if k not in self.steps:
+        want = self.__dict__.get("_want")
+        if want is None or want[0] is not self.steps:  # a set, not a scan of the steps list per call
+            want = self._want = (self.steps, frozenset(self.steps))
+        if k not in want[1]:
             return
         n, runs = P.shape[0], P.shape[-1]
         acc = stats.setdefault("_acc", {})
