@@ -66,7 +66,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from netkf_cli.linalg import kalman
+from netkf_cli.linalg import kalman, sdp
 from netkf_cli.analysis.delay_bounds import max_kept_delay
 from netkf_cli.core.errors import NetkfError
 from netkf_cli.core.tolerances import CRITICAL_BISECTION_TOL, CRITICAL_MARGIN_TOL, CRITICAL_RANK_TOL, CRITICAL_RHO_TOL
@@ -271,55 +271,46 @@ def v_bar(A, C, Q, R, lam: float, *, rtol: float = 1e-12, max_iter: int = 200_00
 
 
 class _SinopoliLMI:
-    """max t s.t. Ψ_λ(Y, Z) ⪰ t I, t I ⪯ Y ⪯ I (cvxpy, DPP in √λ, √(1−λ)); feasible ⇔ t* > 0."""
+    """max t s.t. Ψ_λ(Y, Z) ⪰ t I, t I ⪯ Y ⪯ I (:func:`netkf_cli.linalg.sdp.max_margin`); feasible ⇔ t* > 0."""
 
     def __init__(self, A: np.ndarray, C: np.ndarray, solver: str = "CLARABEL"):
-        import cvxpy as cp  # here, not at module level: cvxpy (with the scipy.stats it loads) costs ~40 MB and ~1 s in every process
+        _check_solver(solver)
         self.A, self.C, self.solver = A, C, solver
         n, m = A.shape[0], C.shape[0]
-        self.Y = cp.Variable((n, n), symmetric=True)
-        self.Z = cp.Variable((n, m))
-        self.t = cp.Variable()
-        self.sl, self.sl1 = cp.Parameter(nonneg=True), cp.Parameter(nonneg=True)
-        Y, Z = self.Y, self.Z
-        B = Y @ A + Z @ C
-        O = np.zeros((n, n))
-        Psi = cp.bmat([[Y, self.sl * B, self.sl1 * (Y @ A)],
-                       [self.sl * B.T, Y, O],
-                       [self.sl1 * (Y @ A).T, O, Y]])
-        I3, I = np.eye(3 * n), np.eye(n)
-        cons = [0.5 * (Psi + Psi.T) >> self.t * I3, Y >> self.t * I, Y << I, self.t <= 1]
-        self.prob = cp.Problem(cp.Maximize(self.t), cons)
+        self.vars = [sdp.Var((n, n), symmetric=True), sdp.Var((n, m))]
 
     def psi(self, Y, Z, lam):
         A, C = self.A, self.C
         n = A.shape[0]
         B = Y @ A + Z @ C
         O = np.zeros((n, n))
-        a, b = math.sqrt(lam), math.sqrt(1 - lam)
+        a, b = math.sqrt(lam), math.sqrt(max(0.0, 1 - lam))
         return np.block([[Y, a * B, b * Y @ A], [a * B.T, Y, O], [b * (Y @ A).T, O, Y]])
 
     def margin(self, lam: float) -> tuple[float, str, bool]:
         """(t*, solver status, certified): certified = the returned (Y, Z) satisfies the strict LMI."""
-        import cvxpy as cp  # loaded by __init__ already
-        self.sl.value, self.sl1.value = math.sqrt(lam), math.sqrt(max(0.0, 1 - lam))
+        n = self.A.shape[0]
         try:
-            with warnings.catch_warnings():  # "solution may be inaccurate": the status and a certificate check decide
-                warnings.simplefilter("ignore", UserWarning)
-                self.prob.solve(solver=getattr(cp, self.solver))
-        except cp.SolverError as exc:  # pragma: no cover - solver crash
+            sol = sdp.max_margin(self.vars, lambda v: [(self.psi(v[0], v[1], lam), True), (v[0], True),
+                                                       (np.eye(n) - v[0], False)])
+        except sdp.SDPError as exc:  # pragma: no cover - solver crash
             raise CriticalRateError(f"LMI solve failed at λ = {lam:.6g}: {exc}") from None
-        st = self.prob.status
+        st = sol.status
         if st not in ("optimal", "optimal_inaccurate"):
             raise CriticalRateError(f"LMI solve at λ = {lam:.6g} ended with status {st!r}")
-        Y, Z = self.Y.value, self.Z.value
         cert = False
-        if Y is not None and Z is not None:
-            Y = _sym(Y)
+        if sol.values is not None:
+            Y, Z = _sym(sol.values[0]), sol.values[1]
             e1 = np.linalg.eigvalsh(_sym(self.psi(Y, Z, lam))).min()
             e2 = np.linalg.eigvalsh(Y).min()
             cert = bool(e1 > CRITICAL_MARGIN_TOL and e2 > CRITICAL_MARGIN_TOL)
-        return float(self.t.value), st, cert
+        return sol.t, st, cert
+
+
+def _check_solver(solver: str) -> None:
+    """The critical-rate LMIs are solved by Clarabel (:mod:`netkf_cli.linalg.sdp`)."""
+    if solver != "CLARABEL":
+        raise CriticalRateError(f"the critical-rate LMIs are solved with Clarabel; solver {solver!r} is not available")
 
 
 @dataclass(frozen=True)
@@ -441,47 +432,48 @@ class _MarkovLMI:
         [[P₀, Aᵀ E₀], [E₀ A, E₀]] ≻ 0,   [[P₁, Aᵀ E₁ − Cᵀ Wᵀ], [E₁ A − W C, E₁]] ≻ 0.
     Feasible ⇒ the predictor x̂⁺ = A x̂ + γ K (y − C x̂) has bounded error covariance, which
     bounds E[P_k] of the (optimal) Kalman filter: a sufficient condition for stability.
+    Solved as max t s.t. both ⪰ t I, P_i ⪰ t I, P_i ⪯ I (:func:`netkf_cli.linalg.sdp.max_margin`).
     """
 
     def __init__(self, A: np.ndarray, C: np.ndarray, solver: str = "CLARABEL"):
-        import cvxpy as cp  # here, not at module level: cvxpy (with the scipy.stats it loads) costs ~40 MB and ~1 s in every process
+        _check_solver(solver)
         self.A, self.C, self.solver = A, C, solver
         n, m = A.shape[0], C.shape[0]
-        self.P0 = cp.Variable((n, n), symmetric=True)
-        self.P1 = cp.Variable((n, n), symmetric=True)
-        self.W = cp.Variable((n, m))
-        self.t = cp.Variable()
-        self.T = cp.Parameter((2, 2), nonneg=True)
-        E0 = self.T[0, 0] * self.P0 + self.T[0, 1] * self.P1
-        E1 = self.T[1, 0] * self.P0 + self.T[1, 1] * self.P1
-        M0 = cp.bmat([[self.P0, A.T @ E0], [E0 @ A, E0]])
-        M1 = cp.bmat([[self.P1, A.T @ E1 - C.T @ self.W.T], [E1 @ A - self.W @ C, E1]])
-        I2, I = np.eye(2 * n), np.eye(n)
-        cons = [0.5 * (M0 + M0.T) >> self.t * I2, 0.5 * (M1 + M1.T) >> self.t * I2,
-                self.P0 >> self.t * I, self.P1 >> self.t * I, self.P0 << I, self.P1 << I, self.t <= 1]
-        self.prob = cp.Problem(cp.Maximize(self.t), cons)
+        self.vars = [sdp.Var((n, n), symmetric=True), sdp.Var((n, n), symmetric=True), sdp.Var((n, m))]
 
-    def feasible(self, p: float, q: float) -> tuple[bool, str]:
-        import cvxpy as cp  # loaded by __init__ already
-        T = np.array([[1 - q, q], [p, 1 - p]])
-        self.T.value = T
-        try:
-            with warnings.catch_warnings():  # the status and a certificate check decide
-                warnings.simplefilter("ignore", UserWarning)
-                self.prob.solve(solver=getattr(cp, self.solver))
-        except cp.SolverError as exc:  # pragma: no cover
-            raise CriticalRateError(f"Markov LMI solve failed at p = {p:.6g}, q = {q:.6g}: {exc}") from None
-        st = self.prob.status
-        if st not in ("optimal", "optimal_inaccurate"):
-            raise CriticalRateError(f"Markov LMI at p = {p:.6g}, q = {q:.6g} ended with status {st!r}")
-        P0, P1, W = self.P0.value, self.P1.value, self.W.value
-        if P0 is None:
-            return False, st
+    def blocks(self, P0, P1, W, T) -> tuple[np.ndarray, np.ndarray]:
+        """The two Schur-complement matrices M₀, M₁ at (P₀, P₁, W) and transition matrix T."""
         A, C = self.A, self.C
-        P0, P1 = _sym(P0), _sym(P1)
         E0, E1 = T[0, 0] * P0 + T[0, 1] * P1, T[1, 0] * P0 + T[1, 1] * P1
         M0 = np.block([[P0, A.T @ E0], [E0 @ A, E0]])
         M1 = np.block([[P1, A.T @ E1 - C.T @ W.T], [E1 @ A - W @ C, E1]])
+        return M0, M1
+
+    def solve(self, p: float, q: float) -> sdp.Solution:
+        """The margin problem at failure rate p and recovery rate q."""
+        T = np.array([[1 - q, q], [p, 1 - p]])
+        I = np.eye(self.A.shape[0])
+
+        def lmis(v):
+            M0, M1 = self.blocks(v[0], v[1], v[2], T)
+            return [(M0, True), (M1, True), (v[0], True), (v[1], True), (I - v[0], False), (I - v[1], False)]
+
+        try:
+            return sdp.max_margin(self.vars, lmis)
+        except sdp.SDPError as exc:  # pragma: no cover
+            raise CriticalRateError(f"Markov LMI solve failed at p = {p:.6g}, q = {q:.6g}: {exc}") from None
+
+    def feasible(self, p: float, q: float) -> tuple[bool, str]:
+        """(certified, status): certified = the returned (P₀, P₁, W) satisfies the strict LMIs."""
+        T = np.array([[1 - q, q], [p, 1 - p]])
+        sol = self.solve(p, q)
+        st = sol.status
+        if st not in ("optimal", "optimal_inaccurate"):
+            raise CriticalRateError(f"Markov LMI at p = {p:.6g}, q = {q:.6g} ended with status {st!r}")
+        if sol.values is None:
+            return False, st
+        P0, P1, W = _sym(sol.values[0]), _sym(sol.values[1]), sol.values[2]
+        M0, M1 = self.blocks(P0, P1, W, T)
         mins = [np.linalg.eigvalsh(_sym(M)).min() for M in (M0, M1, P0, P1)]
         return bool(min(mins) > CRITICAL_MARGIN_TOL), st
 

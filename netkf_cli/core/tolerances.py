@@ -43,7 +43,7 @@ RARE_EVENT_FRACTION = 0.5
 single largest run (with n ≥ 2): the estimate then rests on one event of probability ~1/n."""
 
 SOLVER_TOL = 1e-8
-"""Feasibility/optimality tolerance of the semidefinite programs (cvxpy + Clarabel)."""
+"""Feasibility/optimality tolerance of the semidefinite programs (Clarabel, through cvxpy or :mod:`netkf_cli.linalg.sdp`)."""
 
 DARE_RTOL = 1e-12
 """Relative convergence tolerance of fixed-point Riccati iterations (P*, P̄, steady states)."""

@@ -3,7 +3,7 @@
 For the scenario's system (A, C, Q, R):
 
 * λ_min = 1 − 1/ρ(A)² ≤ λ_c ≤ λ_max (Sinopoli et al. 2004, Thms 3–5; λ_max by bisection on the
-  LMI Ψ_λ(Y, Z) > 0 with cvxpy + Clarabel), λ_c itself only where a theorem gives it
+  LMI Ψ_λ(Y, Z) > 0, solved by Clarabel: :mod:`netkf_cli.linalg.sdp`), λ_c itself only where a theorem gives it
   (:func:`netkf_cli.analysis.critical.exact_case`);
 * against λ: tr S̄ ≤ lim tr E[P_{k|k−1}] ≤ tr V̄ (Thms 3–4) and the Monte Carlo mean of
   tr P_{k|k−1} (``kf`` estimator, ``bernoulli`` channel, :func:`netkf_cli.metrics.tail.time_average_mean`),
