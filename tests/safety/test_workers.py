@@ -115,7 +115,7 @@ WIRED = "workers" in Path(montecarlo.__file__).read_text()
                                       "(issue 14.6)", strict=False)
 @pytest.mark.sigkilled
 def test_netkf_run_workers_die_after_sigkill(tmp_path):
-    """`netkf run --jobs 2` SIGKILLed mid-run: no worker is left alive a few seconds later."""
+    """`netkf run --jobs 2` (this process and one worker) SIGKILLed mid-run: no worker is left alive a few seconds later."""
     cfg = tmp_path / "long.yaml"
     cfg.write_text(textwrap.dedent(
         """\
@@ -132,13 +132,13 @@ def test_netkf_run_workers_die_after_sigkill(tmp_path):
     try:
         children: set[int] = set()
         deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and len(children) < 2:
+        while time.monotonic() < deadline and not children:
             time.sleep(0.2)
             try:
                 children = {int(p) for p in Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()}
             except OSError:
                 break
-        assert len(children) >= 2, "the run never started its workers"
+        assert children, "the run never started its worker"
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
         left = _wait_dead(children, 5.0)
