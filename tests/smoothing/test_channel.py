@@ -105,3 +105,18 @@ def test_retransmission_compiled_slot_loop_is_the_numpy_loop(lam, N, p):
     """The compiled slot loop of the retransmission channel on the same uniforms: the same trace, exactly."""
     a, b = (effective_arrivals(np.random.default_rng(3), 301, 90, lam, N, p, backend=be) for be in ("numpy", "numba"))
     assert a.dtype == b.dtype == bool and np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("runs,horizon,block", [(1, 1, 1), (7, 3, 1), (7, 3, 3), (5000, 560, 1 << 18), (300_000, 5, 1 << 18),
+                                                (1, 10_000, 64)])
+def test_bernoulli_trace_in_blocks_is_the_whole_draw(monkeypatch, runs, horizon, block):
+    """sample_trace draws its uniforms a block of steps at a time (memory): the same arrivals as one
+    rng.random((horizon, runs)) < γ, and the generator ends in the same state."""
+    import netkf_cli.channels.bernoulli as bern
+
+    monkeypatch.setattr(bern, "UNIFORM_BLOCK", block)
+    ch = bern.BernoulliChannel(kind="bernoulli", arrival=0.37)
+    r1, r2 = np.random.default_rng(5), np.random.default_rng(5)
+    got = ch.sample_trace(r1, runs, horizon).arrival[0]
+    assert got.dtype == bool and np.array_equal(got, r2.random((horizon, runs)) < 0.37)
+    assert r1.random() == r2.random()
