@@ -43,7 +43,8 @@ RARE_EVENT_FRACTION = 0.5
 single largest run (with n ≥ 2): the estimate then rests on one event of probability ~1/n."""
 
 SOLVER_TOL = 1e-8
-"""Feasibility/optimality tolerance of the semidefinite programs (Clarabel, through cvxpy or :mod:`netkf_cli.linalg.sdp`)."""
+"""Feasibility and duality-gap tolerance of the critical-rate SDPs (:mod:`netkf_cli.linalg.sdp`; Clarabel's defaults). A
+margin t* below it is solver noise: the certificate check (:data:`CRITICAL_MARGIN_TOL`) then decides."""
 
 DARE_RTOL = 1e-12
 """Relative convergence tolerance of fixed-point Riccati iterations (P*, P̄, steady states)."""

@@ -24,6 +24,8 @@ from typing import Callable
 import numpy as np
 from scipy import sparse
 
+from netkf_cli.core.tolerances import SOLVER_TOL
+
 STATUS = {"Solved": "optimal", "AlmostSolved": "optimal_inaccurate", "PrimalInfeasible": "infeasible",
           "DualInfeasible": "unbounded", "AlmostPrimalInfeasible": "infeasible_inaccurate",
           "AlmostDualInfeasible": "unbounded_inaccurate"}
@@ -115,6 +117,7 @@ def max_margin(variables: list[Var], lmis: Callable[[list[np.ndarray]], list[tup
     q[nx] = -1.0
     settings = clarabel.DefaultSettings()
     settings.verbose = False
+    settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = SOLVER_TOL  # Clarabel's defaults, stated once
     try:
         sol = clarabel.DefaultSolver(sparse.csc_matrix((nx + 1, nx + 1)), q, A, np.concatenate(b), cones,
                                      settings).solve()
