@@ -157,6 +157,12 @@ class Artefact:
     topic: str
     name: str
     config: Path
+    scenario: Any = field(default=None, repr=False, compare=False)  # as :func:`discover` validated it
+
+
+#: config path → the scenario :func:`discover` loaded, for :func:`_run_one` while :func:`run_all` runs (a forked
+#: pool worker inherits it): each scenario is parsed and validated once per reproduction, not once more to run it
+_SCENARIOS: dict[str, Any] = {}
 
 
 @dataclass
@@ -250,7 +256,7 @@ def discover(root: Path, topics: list[str]) -> tuple[list[Artefact], dict[str, P
         except ConfigError as exc:
             problems.extend(exc.problems)
             continue
-        arts.append(Artefact(topic_of(cfg, configs_root), sc.name, cfg))
+        arts.append(Artefact(topic_of(cfg, configs_root), sc.name, cfg, sc))
     names: dict[str, Path] = {}
     for a in arts:
         if a.name in names:
@@ -413,7 +419,7 @@ def _run_one(args) -> tuple[str, str | None, float, str | None]:
 
     t0 = time.perf_counter()
     try:
-        sc = load_scenario(config)
+        sc = _SCENARIOS.get(config) or load_scenario(config)
         runs = sc.montecarlo.quick_size() if quick else None
         run_scenario(sc, source=config, out_dir=folder, runs=runs, quick=quick, force=True)
         return sc.name, str(folder), time.perf_counter() - t0, None
@@ -439,6 +445,7 @@ def run_all(arts: list[Artefact], out_root: Path, quick: bool, jobs: int, on_don
     """Run every artefact; with ``jobs`` > 1 on a process pool, longest first (the previous wall
     times: the makespan is then at most the longest artefact or 4/3 of the even share)."""
     tasks = {a.name: (str(a.config), str(out_root / a.name), quick) for a in arts}
+    _SCENARIOS.update({str(a.config): a.scenario for a in arts if a.scenario is not None})
     results: dict[str, tuple] = {}
     if jobs > 1:
         montecarlo.warm_compiler()  # numba's LLVM and typing set up once here: the forked workers inherit it
@@ -465,6 +472,7 @@ def run_all(arts: list[Artefact], out_root: Path, quick: bool, jobs: int, on_don
                         on_done(a, results[a.name])
     finally:
         gc.unfreeze()
+        _SCENARIOS.clear()
     return results
 
 

@@ -136,6 +136,11 @@ def line_index(text: str) -> dict[tuple, int]:
         _check_size(root, None)
     except (yaml.YAMLError, ConfigError, RecursionError):
         return {}
+    return _node_index(root)
+
+
+def _node_index(root) -> dict[tuple, int]:
+    """:func:`line_index` of an already composed (and size-checked) YAML node."""
     index: dict[tuple, int] = {}
 
     def walk(node, path):
@@ -274,10 +279,16 @@ def _get(data, path):
 def parse_yaml(text: str, file: str | None = None) -> Any:
     """Parse one YAML document under YAML 1.2 scalar rules, within the size limits; every
     number must be finite. Errors are :class:`ConfigError` with file and line."""
+    return _parse_yaml(text, file)[0]
+
+
+def _parse_yaml(text: str, file: str | None = None) -> tuple[Any, dict[tuple, int]]:
+    """:func:`parse_yaml` and the :func:`line_index` of the same text, from one composition of it."""
     loader = _LineLoader(text)
     try:
         root = loader.get_single_node()
         _check_size(root, file)
+        index = _node_index(root) if root is not None else {}  # before construction (a merge key flattens the nodes)
         data = loader.construct_document(root) if root is not None else None
     except RecursionError:
         raise ConfigError([Problem("", "nested too deeply; not a scenario", file)]) from None
@@ -299,10 +310,9 @@ def parse_yaml(text: str, file: str | None = None) -> Any:
         loader.dispose()
     bad = list(_non_finite(data, ()))
     if bad:
-        index = line_index(text)
         raise ConfigError([Problem(_dotted(path), f"must be a finite number, got {v!r}", file, line_of(index, path))
                            for path, v in bad])
-    return data
+    return data, index
 
 
 def _non_finite(data: Any, path: tuple):
@@ -409,12 +419,12 @@ def validate_data(data: Any, file: str | None = None, index: dict | None = None,
 def load_scenario_text(text: str, file: str | None = None, overrides=None):
     """Parse and validate (after applying ``overrides``); raise one :class:`ConfigError` with every
     problem found."""
-    data = parse_yaml(text, file)
+    data, index = _parse_yaml(text, file)
     ovs = parse_overrides(overrides)
     if ovs and isinstance(data, dict):  # (anything else is refused by validate_data, naming the file)
         data = apply_overrides(data, ovs)
     base_dir = str(Path(file).resolve().parent) if file else None
-    return validate_data(data, file, line_index(text), base_dir, ovs)
+    return validate_data(data, file, index, base_dir, ovs)
 
 
 # ---- command-line overrides: key=value with dotted paths (the Hydra / OmegaConf grammar) -----------

@@ -134,8 +134,8 @@ def setup() -> None:
 def share_mathtext_parses() -> bool:
     """One process-wide cache of mathtext parses instead of matplotlib's 50 per renderer.
 
-    Every figure (and the layout at ``figure.dpi`` and the save at ``savefig.dpi`` of one figure)
-    draws with a new renderer, each with its own ``MathTextParser`` whose ``_parse_cached`` is an
+    Every figure (and, before ``save`` laid a figure out at the dpi it writes it at, the layout at
+    ``figure.dpi`` and the save at ``savefig.dpi`` of one figure) draws with a new renderer, each with its own ``MathTextParser`` whose ``_parse_cached`` is an
     ``lru_cache(50)`` keyed on the parser: a quick reproduction parsed 1 999 strings (log-axis tick
     labels such as ``$\\mathdefault{10^{0}}$`` 73 times) with 1 454 misses, pyparsing being most of
     a figure's text layout. The parse depends only on the parser's output type (raster/vector),
@@ -412,6 +412,10 @@ def save(fig: Figure, path, dpi: int | None = None, formats: Iterable[str] | Non
         raise ValueError(f"unknown figure format(s) {bad or formats}; choose from {KNOWN_FORMATS}")
     plt = _mpl().plt
     stem = path.with_suffix("") if suffix in KNOWN_FORMATS else path
+    dpi = dpi or STYLE["savefig.dpi"]
+    # laid out at the dpi it is saved at: the layout's text extents, mathtext parses and renderer are then the
+    # save's own (one parse per string instead of one per dpi, the renderer reused by savefig)
+    fig.set_dpi(dpi)
     _layout(fig)
     lint_dir = os.environ.get("NETKF_FIGURE_LINT")
     if lint_dir:
@@ -429,7 +433,7 @@ def save(fig: Figure, path, dpi: int | None = None, formats: Iterable[str] | Non
         for f in formats:
             out = stem.with_name(stem.name + "." + f)
             extra = {"pil_kwargs": {"compress_level": PNG_COMPRESS_LEVEL}} if f == "png" else {}
-            fig.savefig(out, dpi=dpi or STYLE["savefig.dpi"], format=f, metadata=meta[f], **extra)
+            fig.savefig(out, dpi=dpi, format=f, metadata=meta[f], **extra)
             written.append(out)
     finally:
         plt.close(fig)

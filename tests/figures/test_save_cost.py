@@ -1,4 +1,4 @@
-"""plotting.save's cheaper figure (issue 20): one draw per format, the footnote wrapped by bisection with
+"""plotting.save's cheaper figure (issue 20): laid out at the dpi it is saved at, one draw per format, the footnote wrapped by bisection with
 matplotlib's own line breaks, PNGs at a lower zlib level — and the same pixels as matplotlib's plain path."""
 
 import io
@@ -56,6 +56,7 @@ def test_one_draw_per_format_and_the_pixels_of_matplotlibs_path(tmp_path, monkey
     monkeypatch.setattr(Figure, "draw", real)
 
     fig = _figure()  # the same figure through matplotlib's own calls: its wrapping, layout engine left, zlib 6
+    fig.set_dpi(P.STYLE["savefig.dpi"])  # save lays a figure out at the dpi it writes it at
     notes = fig._netkf_footnotes
     r = fig.canvas.get_renderer()
     h, y = fig.bbox.height, 0.005 * fig.bbox.height
