@@ -1,5 +1,7 @@
 """The shared figure style (netkf_cli/runtime/plotting.py): titles, palette, formats and the lint itself."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -122,3 +124,41 @@ def test_lint_sees_a_legend_over_the_data():
     ax.legend(loc="center")  # an empty region
     P._layout(fig)
     assert P.lint(fig) == []
+
+
+def _short_log_axis():
+    """Leong burstiness' x axis: L_B = 1.25 … 8 on a log scale (less than a decade), a narrow panel."""
+    fig, ax = P.new_figure(width=3.2)
+    x = np.array([1.25, 1.5, 2.0, 2.2, 3.0, 4.0, 6.0, 8.0])
+    ax.plot(x, 1 / x, **P.series_style(0), label="a series")
+    ax.set_xscale("log")
+    ax.set_title(P.paper_title("smoothing", "Table I", "burstiness"))
+    ax.set_xlabel("mean loss-burst length")
+    ax.set_ylabel("value")
+    ax.legend()
+    return fig, ax
+
+
+def test_lint_reports_overlapping_tick_labels():
+    fig, ax = _short_log_axis()
+    fig.set_dpi(P.STYLE["savefig.dpi"])
+    fig.tight_layout()
+    problems = P.lint(fig)  # matplotlib's own labels: 2×10⁰ 3×10⁰ 4×10⁰ 6×10⁰ on a 2.5-inch axis
+    assert any("x-axis tick labels" in p and "overlap" in p for p in problems), problems
+    P._mpl().plt.close(fig)
+
+
+def test_save_labels_a_short_log_axis_with_plain_numbers(tmp_path, monkeypatch):
+    lint_dir = tmp_path / "lint"
+    monkeypatch.setenv("NETKF_FIGURE_LINT", str(lint_dir))
+    fig, ax = _short_log_axis()
+    P.save(fig, tmp_path / "f.png")
+    assert json.loads((lint_dir / "f.json").read_text(encoding="utf-8"))["problems"] == []
+    labels = [t.get_text() for t in ax.get_xticklabels(minor=True) + ax.get_xticklabels() if t.get_text()]
+    assert {"2", "3", "4", "6"} <= set(labels), labels
+    # a log axis over several decades keeps matplotlib's 10ⁿ labels
+    fig, ax = P.new_figure()
+    ax.loglog([1e-3, 1e2], [1, 2], label="wide")
+    P.plain_log_labels(fig)
+    assert type(ax.xaxis.get_major_formatter()).__name__ == "LogFormatterSciNotation"
+    P._mpl().plt.close(fig)
