@@ -168,3 +168,24 @@ def test_delay_trace_in_blocks_is_the_one_shot_trace(runs, horizon, block, monke
     assert tr.delay.dtype == np.int32 and np.array_equal(tr.delay[0], d)
     assert np.array_equal(tr.arrival[0], d == 0)
     assert r1.random() == r2.random()  # the same number of uniforms consumed
+
+
+def test_delay_trace_compiles_for_the_whole_array(monkeypatch):
+    """The compiled-or-not choice is made for the whole horizon × runs array (compiled_trace), not per block: a
+    trace of ≥ AUTO_MIN_RUN_STEPS entries inverts every block with the compiled loop (before, each block of
+    TRACE_BLOCK entries was below the threshold and took the numpy path); a small one in a process without numba
+    stays on numpy."""
+    import sys
+
+    from netkf_cli.channels import delay as dl
+    from netkf_cli.linalg.kalman import AUTO_MIN_RUN_STEPS
+
+    seen = []
+    real = dl.inverse_cdf
+    monkeypatch.setattr(dl, "inverse_cdf", lambda u, table, **kw: (seen.append(kw.get("compiled")), real(u, table, **kw))[1])
+    runs = AUTO_MIN_RUN_STEPS // 100
+    dl.delay_trace(poisson(5, 10), np.random.default_rng(1), runs, 100)
+    assert len(seen) > 1 and all(c is True for c in seen)
+    assert dl.compiled_trace(AUTO_MIN_RUN_STEPS) and not dl.compiled_trace(dl.TRACE_BLOCK - 1)
+    monkeypatch.delitem(sys.modules, "numba", raising=False)
+    assert not dl.compiled_trace(dl.TRACE_BLOCK)  # numba not imported: its import is not worth a small trace
