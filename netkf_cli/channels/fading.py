@@ -203,13 +203,27 @@ def jakes_factor(horizon: int, corr) -> np.ndarray:
 
 def sample_gain(rng: np.random.Generator, runs: int, horizon: int, corr) -> np.ndarray:
     """Complex unit-power channel gains h, shape (horizon, runs)."""
-    z = (rng.standard_normal((horizon, runs)) + 1j * rng.standard_normal((horizon, runs))) / np.sqrt(2.0)
+    re, im = gain_parts(rng, runs, horizon, corr)
+    return re + 1j * im
+
+
+def gain_parts(rng: np.random.Generator, runs: int, horizon: int, corr) -> tuple[np.ndarray, np.ndarray]:
+    """(Re h, Im h) of :func:`sample_gain`, bit for bit, without its complex arrays (the SNR needs only
+    |h|² = Re² + Im²: a 300 × 1000 chunk 10.4 → 6.5 ms).
+
+    h = (x + i y)/√2 with x, y standard normal (x drawn first); numpy divides a complex by √2 as a complex,
+    (x + y·0)·(1/√2) + i (y − x·0)·(1/√2) (Smith's algorithm), which is x·(1/√2) and y·(1/√2) exactly. A Jakes
+    gain is L z, each part on its own (einsum, not BLAS: a multi-threaded GEMM's rounding depends on the thread
+    count, and the channel must be bit-for-bit the same in the parent and in any worker process)."""
+    scale = 1.0 / np.sqrt(2.0)
+    x = rng.standard_normal((horizon, runs))
+    y = rng.standard_normal((horizon, runs))
+    x *= scale
+    y *= scale
     if corr.model == "iid":
-        return z
+        return x, y
     L = jakes_factor(horizon, corr)
-    # einsum, not BLAS: a multi-threaded GEMM's rounding depends on the thread count, and the
-    # channel must be bit-for-bit the same in the parent and in any worker process
-    return np.einsum("ij,jk->ik", L, z.real) + 1j * np.einsum("ij,jk->ik", L, z.imag)
+    return np.einsum("ij,jk->ik", L, x), np.einsum("ij,jk->ik", L, y)
 
 
 @dataclass(frozen=True)
@@ -250,8 +264,8 @@ class FadingChannel(ChannelModel):
         return self.snr_avg.linear
 
     def sample(self, rng: np.random.Generator, runs: int, horizon: int) -> FadingTrace:
-        h = sample_gain(rng, runs, horizon, self.correlation)
-        return FadingTrace(self.mean_snr * (h.real**2 + h.imag**2))
+        re, im = gain_parts(rng, runs, horizon, self.correlation)
+        return FadingTrace(self.mean_snr * (re**2 + im**2))
 
     def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
         """Issue-12 trace: ``snr`` (horizon, runs) linear Υ_t (eq. 3); ``meta['noise']`` is σ_n²(·) (picklable).
