@@ -40,6 +40,8 @@ from netkf_cli.core.stats import FLAG_REASONS, flag_reason, heavy_tail_flag, mea
 from netkf_cli.core.tolerances import EIGEN_GAP_SE, ROUNDOFF_VARIANCE
 
 TRACE, PROB, NORM = "E[tr P]", "Pr[P<=M]", "‖E P‖"
+AXES_IN = 6.0
+"""Inches a time_average figure keeps for its axes with their tick and axis labels, beside the legend (``plot``)."""
 M4_ROUNDING = 1e-3
 """Largest relative rounding error of the 4th central moment from raw power sums, ≈ eps·(mean/sd)⁴, accepted
 before the power sums are taken again about the mean (:func:`_cancelling`)."""
@@ -239,7 +241,13 @@ class TimeAverage(GenericMetric):
                 legend_outside(ax, loc="right", fontsize=MIN_FONT_PT)
         # a long legend (many closed forms, Fusion Fig. 3) needs a taller panel, or it runs into the footnote
         rows = max((len(ax.get_legend_handles_labels()[0]) for ax in axes), default=0)
-        fig.set_size_inches(fig.get_size_inches()[0], len(panels) * max(4.4, 1.9 + 0.25 * rows))
+        # a wide legend (long closed-form labels, Leong's eq. (8) guarantee) would leave the axes a third of the
+        # width: the figure grows to keep AXES_IN inches for the axes and their labels beside the widest legend
+        legends = [ax.get_legend() for ax in axes if ax.get_legend() is not None]
+        r = fig.canvas.get_renderer()
+        legend_in = max((lg.get_window_extent(r).width / fig.dpi for lg in legends), default=0.0)
+        fig.set_size_inches(max(fig.get_size_inches()[0], AXES_IN + legend_in + 0.3),
+                            len(panels) * max(4.4, 1.9 + 0.25 * rows))
         what = self.title or ("stationary " + ("statistics against " + (self.x_label or x) if x else "statistics"))
         fig.suptitle(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None,
                                  what), fontsize=11)
