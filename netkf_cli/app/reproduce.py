@@ -419,7 +419,9 @@ def _run_one(args) -> tuple[str, str | None, float, str | None]:
 
     t0 = time.perf_counter()
     try:
-        sc = _SCENARIOS.get(config) or load_scenario(config)
+        sc = _SCENARIOS.get(config)
+        if sc is None:  # not discovered in this process (a spawned worker, or a direct call)
+            sc = load_scenario(config)
         runs = sc.montecarlo.quick_size() if quick else None
         run_scenario(sc, source=config, out_dir=folder, runs=runs, quick=quick, force=True)
         return sc.name, str(folder), time.perf_counter() - t0, None

@@ -135,7 +135,8 @@ def share_mathtext_parses() -> bool:
     """One process-wide cache of mathtext parses instead of matplotlib's 50 per renderer.
 
     Every figure (and, before ``save`` laid a figure out at the dpi it writes it at, the layout at
-    ``figure.dpi`` and the save at ``savefig.dpi`` of one figure) draws with a new renderer, each with its own ``MathTextParser`` whose ``_parse_cached`` is an
+    ``figure.dpi`` and the save at ``savefig.dpi`` of one figure) draws with a new renderer, each
+    with its own ``MathTextParser`` whose ``_parse_cached`` is an
     ``lru_cache(50)`` keyed on the parser: a quick reproduction parsed 1 999 strings (log-axis tick
     labels such as ``$\\mathdefault{10^{0}}$`` 73 times) with 1 454 misses, pyparsing being most of
     a figure's text layout. The parse depends only on the parser's output type (raster/vector),

@@ -29,3 +29,30 @@ def test_serial_path_freezes_too_and_unfreezes(monkeypatch, tmp_path):
     res = R.run_all([R.Artefact("t", "a", tmp_path / "a.yaml")], tmp_path, True, 1)
     assert res["a"][2] > 10_000 and res["a"][3] == str(os.getpid())
     assert gc.get_freeze_count() == 0
+
+
+def _runs_what_it_was_given(args):
+    """Stands in for run_scenario's caller in a forked worker: which scenario _run_one would run, and whether it
+    had to load the config again."""
+    config, folder, quick = args
+    sc = R._SCENARIOS.get(config)
+    return Path(config).stem, folder, 0, None if sc is None else sc.tag
+
+
+def test_the_discovered_scenario_is_run_not_loaded_again(monkeypatch, tmp_path):
+    """Each scenario is parsed and validated once per reproduction: run_all hands discover's object to _run_one
+    (inherited by forked workers), and forgets it afterwards."""
+    from types import SimpleNamespace
+
+    ran = []
+    monkeypatch.setattr(R, "run_scenario", lambda sc, **kw: ran.append(sc))
+    monkeypatch.setattr(R, "load_scenario", lambda path: (_ for _ in ()).throw(AssertionError(f"{path} loaded again")))
+    sc = SimpleNamespace(name="a", montecarlo=SimpleNamespace(quick_size=lambda: 5))
+    res = R.run_all([R.Artefact("t", "a", tmp_path / "a.yaml", sc)], tmp_path, True, 1)
+    assert res["a"][3] is None and ran == [sc]  # no error: the object itself ran
+    assert R._SCENARIOS == {}
+    monkeypatch.setattr(R, "_run_one", _runs_what_it_was_given)
+    arts = [R.Artefact("t", f"b{i}", tmp_path / f"b{i}.yaml", SimpleNamespace(tag=f"sc{i}")) for i in range(3)]
+    res = R.run_all(arts, tmp_path, True, 2)
+    assert {k: v[3] for k, v in res.items()} == {"b0": "sc0", "b1": "sc1", "b2": "sc2"}  # in the workers too
+    assert R._SCENARIOS == {}
