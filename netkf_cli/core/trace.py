@@ -43,6 +43,19 @@ class Trace:
     snr: np.ndarray | None = None
     mode: np.ndarray | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    _derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def derived(self, key, compute):
+        """``compute()``, once per trace and ``key``: a quantity several estimators of one chunk derive from the
+        same trace (the fading receivers' σ_n²(Υ) of a block of steps) is computed once, the same array for each.
+        The key must name everything the value depends on besides the trace; the value must not be modified."""
+        try:
+            hit = key in self._derived
+        except TypeError:  # an unhashable part (a caller's own noise function): not shared
+            return compute()
+        if not hit:
+            self._derived[key] = compute()
+        return self._derived[key]
 
     def __post_init__(self) -> None:
         for name in ("arrival", "delay"):

@@ -220,11 +220,11 @@ class ReceiverEstimator(EstimatorModel):
             if rm.scenario == 1:
                 s2 = np.zeros(Y.shape)
                 s2u = None
-            elif cond:
-                s2 = rm.noise(snr_given_kept(Y, T, Ya))  # = σ_n²(Υ) where kept
+            elif cond:  # = σ_n²(Υ) where kept; the same array for every receiver of this trace (Trace.derived)
+                s2 = trace.derived(("s2_given_kept", t, k, T, Ya, rm.noise), lambda: rm.noise(snr_given_kept(Y, T, Ya)))
                 s2u = None if rb is None else np.full(Y.shape, float(rb))
             else:
-                s2 = rm.noise(np.where(keep, Y, 1.0))
+                s2 = trace.derived(("s2_kept", t, k, T, rm.noise), lambda: rm.noise(np.where(keep, Y, 1.0)))
                 s2u = None
             rec = np.full(k - t, -1, dtype=np.int64)
             rec[np.asarray(grp) - t - 1] = np.arange(len(grp))

@@ -304,3 +304,28 @@ def test_generic_compiled_step_for_four_states_equals_numpy(sc):
     b = fr.burst_conditioned_paths(r4, np.random.default_rng(5), th, mu, 100.0, np.eye(4), 30, [30], backend="numba")
     for x, y in zip(a, b):
         np.testing.assert_allclose(y.mean(-1), x.mean(-1), rtol=1e-7)
+
+
+@pytest.mark.parametrize("vr", ["none", "conditioned"])
+def test_receivers_of_one_trace_share_its_noise_variances(vr, monkeypatch):
+    """Two receivers reading one trace compute σ_n²(Υ) of each block once (Trace.derived), and their covariances
+    are bit for bit those each gets from a trace of its own."""
+    from netkf_cli.estimators.fading_receivers import ReceiverEstimator
+
+    s = LinearSystem.create(A5, 2 * np.eye(3), Q5, 1e-8 * np.eye(3), np.eye(3))
+    ests = [ReceiverEstimator.model_validate({"kind": "receiver", "scenario": sc, "variance_reduction": vr,
+                                              "threshold": {"value": 10, "unit": "linear"}, "backend": "numpy"})
+            for sc in (2, 3)]
+    ch = chan()
+    calls = []
+    real = fr.NoiseFn.__call__
+    monkeypatch.setattr(fr.NoiseFn, "__call__", lambda self, snr: (calls.append(1), real(self, snr))[1])
+    shared = ch.sample_trace(np.random.default_rng(4), 20, 12)
+    got = [dict(e.covariances(s, shared, [3, 12], ("predicted",))) for e in ests]
+    n_shared = len(calls)
+    own = [dict(e.covariances(s, ch.sample_trace(np.random.default_rng(4), 20, 12), [3, 12], ("predicted",)))
+           for e in ests]
+    assert n_shared > 0 and n_shared * 2 == len(calls) - n_shared  # own traces: each receiver computes its own
+    for g, o in zip(got, own):
+        for k in (3, 12):
+            assert np.array_equal(g[k]["predicted"], o[k]["predicted"])
