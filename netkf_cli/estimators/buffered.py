@@ -106,7 +106,7 @@ class BufferedEstimator(EstimatorModel):
         is kept."""
         qs = kalman.check_quantities(quantities, self.quantities, "buffered")
         span = packet_span(system, self.packet)
-        d = trace_delays(trace).astype(np.int64)
+        d = trace_delays(trace)  # int32, only compared
         Dmax = trace_max_kept_delay(trace)
         f = kalman.Filter.of(system, 1, "estimator.kind")
         P0 = initial_covariance(system)
