@@ -9,8 +9,8 @@ retransmits, the new measurements are discarded. The trace is the *effective* ar
 γ̃_{≤k} is available at time k + N (the latency of a lag-N smoother, which the paper compares).
 
 Every γ̃_t of the trace is final: the link is simulated N slots past the horizon, so the last
-measurements' retransmissions are complete. Uniforms: ``rng.random((horizon + N, 2, runs))`` —
-per slot, one for the link and one for the decision to ask.
+measurements' retransmissions are complete. Uniforms: those of ``rng.random((horizon + N, 2, runs))``
+(drawn a block of slots at a time) — per slot, one for the link and one for the decision to ask.
 """
 
 from __future__ import annotations
@@ -35,48 +35,60 @@ below it (a quick run) importing numba would cost more than it saves."""
 _JIT: dict[str, object] = {}
 
 
+UNIFORM_BLOCK = 1 << 18
+"""effective_arrivals draws its uniforms in blocks of slots of about this many entries: the same numbers as one
+``rng.random((horizon + N, 2, runs))`` (the generator's stream is sequential, slot-major), without a
+(horizon + N) × 2 × runs float array (29 MB for 5 000 runs × 362 slots: the peak of a smoothing chunk)."""
+
+
 def effective_arrivals(rng: np.random.Generator, runs: int, horizon: int, lam: float, N: int, p: float,
                        backend: str = "auto") -> np.ndarray:
     """γ̃ of shape ``(horizon, runs)`` (time-major, run axis innermost), bool: see the module docstring.
 
     ``numpy``: vectorized over runs, a loop over the horizon + N slots; ``numba``: the same loop compiled
     (:func:`_slots_loop`), on the same uniforms — the same trace; ``auto``: numba from
-    :data:`AUTO_MIN_SLOTS` run-slots when it is installed."""
+    :data:`AUTO_MIN_SLOTS` run-slots when it is installed. The uniforms come in blocks of slots
+    (:data:`UNIFORM_BLOCK`), the loop's state carried from one block to the next."""
     slots = horizon + N
-    u = rng.random((slots, 2, runs))
-    if backend == "numba" or (backend == "auto" and runs * slots >= AUTO_MIN_SLOTS and _numba_available()):
-        out = np.zeros((slots, runs), dtype=np.bool_)
-        _compiled()(u, float(lam), int(N), float(p), out)
-        return out[:horizon]
-    out = np.zeros((slots, runs), dtype=bool)
+    compiled = backend == "numba" or (backend == "auto" and runs * slots >= AUTO_MIN_SLOTS and _numba_available())
+    loop = _compiled() if compiled else _slots_numpy
+    out = np.zeros((slots, runs), dtype=np.bool_)
     count = np.zeros(runs, dtype=np.int64)    # retransmissions used so far for the pending measurement
     pending = np.zeros(runs, dtype=np.int64)  # index of the measurement being retransmitted
-    retrying = np.zeros(runs, dtype=bool)
-    ar = np.arange(runs)
-    for t in range(slots):
-        succ, ask = u[t, 0] < lam, u[t, 1] < p
+    retrying = np.zeros(runs, dtype=np.bool_)
+    rows = max(1, min(slots, UNIFORM_BLOCK // max(2 * runs, 1)))
+    for t0 in range(0, slots, rows):
+        u = rng.random((min(rows, slots - t0), 2, runs))
+        loop(u, t0, float(lam), int(N), float(p), out, count, pending, retrying)
+    return out[:horizon]
+
+
+def _slots_numpy(u, t0, lam, N, p, out, count, pending, retrying):
+    """Slots t0 … t0 + len(u) − 1 of the loop, vectorized over runs; ``count``, ``pending`` and ``retrying``
+    (per run) are updated in place for the next block."""
+    ar = np.arange(out.shape[1])
+    for i in range(u.shape[0]):
+        t = t0 + i
+        succ, ask = u[i, 0] < lam, u[i, 1] < p
         fresh = ~retrying
         out[t, fresh] = succ[fresh]                    # fresh transmission of y_t
         start = fresh & ~succ & ask & (N > 0)
         won = retrying & succ                          # a retransmission of y_pending arrives (y_t discarded)
         out[pending[won], ar[won]] = True
         cont = retrying & ~succ & ask & (count < N)
-        count = np.where(start, 1, np.where(cont, count + 1, 0))
-        pending = np.where(start, t, pending)
-        retrying = start | cont
-    return out[:horizon]
+        count[:] = np.where(start, 1, np.where(cont, count + 1, 0))
+        pending[:] = np.where(start, t, pending)
+        retrying[:] = start | cont
 
 
-def _slots_loop(u, lam, N, p, out):
-    """The slot loop of :func:`effective_arrivals` per run (compiled): the numpy statements, one run at a time."""
-    slots, runs = out.shape
-    count = np.zeros(runs, dtype=np.int64)
-    pending = np.zeros(runs, dtype=np.int64)
-    retrying = np.zeros(runs, dtype=np.bool_)
-    for t in range(slots):
+def _slots_loop(u, t0, lam, N, p, out, count, pending, retrying):
+    """:func:`_slots_numpy` per run (compiled): the numpy statements, one run at a time."""
+    runs = out.shape[1]
+    for i in range(u.shape[0]):
+        t = t0 + i
         for r in range(runs):
-            succ = u[t, 0, r] < lam
-            ask = u[t, 1, r] < p
+            succ = u[i, 0, r] < lam
+            ask = u[i, 1, r] < p
             if not retrying[r]:
                 out[t, r] = succ
                 start = (not succ) and ask and N > 0

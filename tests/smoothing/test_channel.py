@@ -120,3 +120,39 @@ def test_bernoulli_trace_in_blocks_is_the_whole_draw(monkeypatch, runs, horizon,
     got = ch.sample_trace(r1, runs, horizon).arrival[0]
     assert got.dtype == bool and np.array_equal(got, r2.random((horizon, runs)) < 0.37)
     assert r1.random() == r2.random()
+
+
+def _one_shot_retransmission(rng, runs, horizon, lam, N, p):
+    """The slot loop on one rng.random((horizon + N, 2, runs)) draw (the channel before its uniforms came in blocks)."""
+    slots = horizon + N
+    u = rng.random((slots, 2, runs))
+    out = np.zeros((slots, runs), dtype=bool)
+    count, pending, retrying = np.zeros(runs, dtype=np.int64), np.zeros(runs, dtype=np.int64), np.zeros(runs, dtype=bool)
+    ar = np.arange(runs)
+    for t in range(slots):
+        succ, ask = u[t, 0] < lam, u[t, 1] < p
+        fresh = ~retrying
+        out[t, fresh] = succ[fresh]
+        start = fresh & ~succ & ask & (N > 0)
+        won = retrying & succ
+        out[pending[won], ar[won]] = True
+        cont = retrying & ~succ & ask & (count < N)
+        count = np.where(start, 1, np.where(cont, count + 1, 0))
+        pending = np.where(start, t, pending)
+        retrying = start | cont
+    return out[:horizon]
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=pytest.mark.skipif(
+    importlib.util.find_spec("numba") is None, reason="numba not installed"))])
+@pytest.mark.parametrize("runs,horizon,N,block", [(301, 90, 2, 1 << 18), (301, 90, 2, 1000), (7, 5, 3, 1), (5, 40, 50, 64)])
+def test_retransmission_trace_in_blocks_is_the_one_shot_trace(monkeypatch, backend, runs, horizon, N, block):
+    """effective_arrivals draws its uniforms a block of slots at a time, the loop's state carried across blocks:
+    the same trace as the loop on one rng.random((horizon + N, 2, runs)), and the generator in the same state."""
+    import netkf_cli.channels.retransmission as rt
+
+    monkeypatch.setattr(rt, "UNIFORM_BLOCK", block)
+    r1, r2 = np.random.default_rng(9), np.random.default_rng(9)
+    got = rt.effective_arrivals(r1, runs, horizon, 0.55, N, 0.7, backend=backend)
+    assert np.array_equal(got, _one_shot_retransmission(r2, runs, horizon, 0.55, N, 0.7))
+    assert r1.random() == r2.random()
