@@ -246,6 +246,9 @@ def new_figure(ncols: int = 1, nrows: int = 1, width: float = 6.4, height: float
 
     ``width`` is per column when ``ncols > 1``, ``height`` per row (as before)."""
     plt = _mpl().plt
+    # at the dpi ``save`` writes by default: a text measured before the save (a legend's width) is then laid out
+    # and its mathtext parsed once, at the dpi of the layout and of the file
+    kw.setdefault("dpi", STYLE["savefig.dpi"])
     with plt.rc_context(STYLE):
         fig, ax = plt.subplots(nrows, ncols, figsize=(width * ncols if ncols > 1 else width, height * nrows), **kw)
     for a in (ax.flat if hasattr(ax, "flat") else [ax]):
