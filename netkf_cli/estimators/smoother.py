@@ -586,43 +586,14 @@ def _forget_forward(key) -> None:
 
 def _forward_stream(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, want: list[int]) -> Iterator[tuple[int, np.ndarray]]:
     """Yield ``(k, P_{k|k})`` for k in ``want``: ``f.run(P0, gamma, want, ("filtered",), backend="numba")``
-    — the same numbers, bit for bit (a test) — streamed, one step's covariances at a time. kf's generated
-    kernel (:func:`kalman_codegen.kernel`) runs twice over ``want``: first only to note the step at which
-    each run is first flagged for the rescue (nothing kept but the packed state), then reporting every step;
-    the flagged runs go once through the numpy core from P0 (:meth:`kalman.Filter.step`) in step with the
-    second pass, their covariances from their first flagged step on replacing the kernel's — what
-    :class:`kalman.FlaggedRuns` does at each step, without restarting the newly flagged runs from P0 at every
-    step (under bursty loss many runs are flagged at different steps: the restarts cost O(flagged runs ×
-    steps²)), and without holding the whole horizon (issue 20: 19 MB per 5000 runs × 500 steps, n = 1)."""
-    n, runs = f.A.shape[0], gamma.shape[-1]
-    if not want:
-        return
+    streamed, one step's covariances at a time (:meth:`kalman.Filter.stream_generated`: kf's generated kernel
+    and the rescue's numpy redo of flagged runs), without holding the whole horizon (issue 20: 19 MB per
+    5000 runs × 500 steps, n = 1); the first-flagged pass is shared by the engine's smoothers on one trace
+    (:func:`_first_flagged`)."""
+    runs = gamma.shape[-1]
     P_init = np.array(np.repeat(np.asarray(P0, dtype=float)[:, :, None], runs, axis=2), dtype=float, order="C")
-    adv = kc.kernel(f.A, f.C, f.Q, f.R, f.groups, f.rescue.limit)
-    gam = np.ascontiguousarray(gamma)
-    flagged = _first_flagged(f, adv, P_init, gam, want[-1])
-    idx = np.flatnonzero(flagged <= want[-1])
-    # a run flagged at step t is reported from the numpy core from the first step of want ≥ t on (the flag stays)
-    k0 = np.asarray(want, dtype=np.int64)[np.searchsorted(want, flagged[idx])]
-    Pn, tn = P_init[:, :, idx], 0
-    T, flag, t = kc.pack(P_init), np.zeros(runs, dtype=np.bool_), 0
-    iu = [(q, i, j) for q, (i, j) in enumerate(zip(*np.triu_indices(n)))]
-    for k in want:  # the kernel's calls, reported; the flagged runs on the numpy core
-        adv(T, gam, t, k, flag)
-        t = k
-        Pk = np.empty((n, n, runs))  # kc.unpack without recomputing the triangle's indices every step
-        for q, i, j in iu:
-            Pk[i, j] = T[q]
-            if i != j:
-                Pk[j, i] = T[q]
-        if idx.size:
-            while tn < k:
-                Pn = f.step(Pn, gamma[:, tn][:, idx])[1]
-                tn += 1
-            sel = k0 <= k
-            if sel.any():
-                Pk[:, :, idx[sel]] = Pn[:, :, sel]
-        yield k, Pk
+    yield from f.stream_generated(P_init, gamma, want,
+                                  flagged=lambda adv, P, gam, upto: _first_flagged(f, adv, P, gam, upto))
 
 
 def _first_flagged(f: kalman.Filter, adv, P_init: np.ndarray, gam: np.ndarray, upto: int) -> np.ndarray:
@@ -635,12 +606,7 @@ def _first_flagged(f: kalman.Filter, adv, P_init: np.ndarray, gam: np.ndarray, u
     got = getattr(_TLS, "flagged", None)
     if got is not None and got[0] == key and got[1] >= upto:
         return np.minimum(got[2], upto + 1)
-    runs = gam.shape[-1]
-    first = np.full(runs, upto + 1, dtype=np.int64)
-    T, flag = kc.pack(P_init), np.zeros(runs, dtype=np.bool_)
-    for t in range(upto):
-        adv(T, gam, t, t + 1, flag)
-        first[flag & (first > upto)] = t + 1
+    first = kalman.first_flagged(adv, P_init, gam, upto)
     if np.all(P_init == P_init[:, :, :1]):  # (one P0 for every run: the key holds it)
         _TLS.flagged = (key, upto, first)
         try:

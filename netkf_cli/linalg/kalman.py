@@ -362,32 +362,28 @@ class Filter:
 
     def _run_compiled(self, P, gamma, want, qs):
         """The numba path of :meth:`run`: a kernel generated for this system where it can be
-        (:mod:`netkf_cli.linalg.kalman_codegen`: n ≤ 6, sensor groups of ≤ 2 rows), the generic compiled
-        step otherwise; runs flagged by the rescue test continue on the numpy core from their start."""
-        from netkf_cli.linalg import kalman_numba as kn  # optional dependency (numba): compiled primitives
-
+        (:mod:`netkf_cli.linalg.kalman_codegen`: n ≤ 6, sensor groups of ≤ 4 rows; :meth:`stream_generated`),
+        the generic compiled step otherwise; runs flagged by the rescue test continue on the numpy core
+        from their start."""
         n = self.A.shape[0]
         P = np.array(P, dtype=float, order="C")
+        if kc.supported(n, self.groups):
+            for k, Pk in self.stream_generated(P, gamma, want):
+                yield k, report(Pk, qs, self.A, self.Q)
+            return
+        from netkf_cli.linalg import kalman_numba as kn  # optional dependency (numba): compiled primitives
+
         P_init = P.copy()  # the flagged runs restart from their own P0
         flag = np.zeros(P.shape[-1], dtype=np.bool_)
-        if kc.supported(n, self.groups):
-            adv = kc.kernel(self.A, self.C, self.Q, self.R, self.groups, self.rescue.limit)
-            T = kc.pack(P)
-            gam = np.ascontiguousarray(gamma)
+        if any(list(g) != list(range(g[0], g[0] + len(g))) for g in self.groups):
+            raise ValueError("compiled filter: sensor groups must be contiguous rows")
+        gam_r = np.ascontiguousarray(gamma.transpose(2, 0, 1))  # run-major for the compiled loop
+        starts = np.array([g[0] for g in self.groups], dtype=np.int64)
+        lens = np.array([len(g) for g in self.groups], dtype=np.int64)
 
-            def advance(t0, t1):
-                adv(T, gam, t0, t1, flag)
-                return kc.unpack(T, n)
-        else:
-            if any(list(g) != list(range(g[0], g[0] + len(g))) for g in self.groups):
-                raise ValueError("compiled filter: sensor groups must be contiguous rows")
-            gam_r = np.ascontiguousarray(gamma.transpose(2, 0, 1))  # run-major for the compiled loop
-            starts = np.array([g[0] for g in self.groups], dtype=np.int64)
-            lens = np.array([len(g) for g in self.groups], dtype=np.int64)
-
-            def advance(t0, t1):
-                kn.filter_advance(P, self.A, self.C, self.Q, self.R, gam_r, starts, lens, t0, t1, self.rescue.limit, flag)
-                return P.copy()
+        def advance(t0, t1):
+            kn.filter_advance(P, self.A, self.C, self.Q, self.R, gam_r, starts, lens, t0, t1, self.rescue.limit, flag)
+            return P.copy()
 
         redo = FlaggedRuns(P_init, lambda Pk, tt, ix: self.step(Pk, gamma[:, tt][:, ix])[1])
         t = 0
@@ -395,6 +391,67 @@ class Filter:
             out = redo.fill(advance(t, k), flag, k)
             t = k
             yield k, report(out, qs, self.A, self.Q)
+
+
+    def generated_kernel(self):
+        """kf's kernel generated for this system (:func:`kalman_codegen.kernel`: ``adv(T, gam, t0, t1, flag)``)."""
+        return kc.kernel(self.A, self.C, self.Q, self.R, self.groups, self.rescue.limit)
+
+    def stream_generated(self, P_init: np.ndarray, gamma: np.ndarray, want: list[int],
+                         flagged=None) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(k, P_{k|k})`` (a new array each step) for k in ``want`` on the generated kernel, from
+        ``P_init`` (n, n, runs). A run the kernel flags for the :class:`Rescue` at step t is reported from
+        the numpy core (:meth:`step` from its own P0, bit for bit the numpy path) from the first step of
+        ``want`` ≥ t on. One kernel pass while no run is flagged; at the first flag, the step at which
+        each run is first flagged comes from a second pass from ``P_init`` (``flagged(adv, P_init, gam,
+        upto)``, default :func:`first_flagged`), and the runs it names advance once through the numpy core
+        in step with the reporting pass — no restart from P0 when runs are flagged at many different
+        steps (bursty loss: O(flagged runs × steps²) numpy steps), no per-step index set arithmetic."""
+        n, runs = self.A.shape[0], gamma.shape[-1]
+        if not want:
+            return
+        P_init = np.array(P_init, dtype=float, order="C")
+        adv = self.generated_kernel()
+        gam = np.ascontiguousarray(gamma)
+        idx = k0 = Pn = None
+        tn = 0
+        T, flag, t = kc.pack(P_init), np.zeros(runs, dtype=np.bool_), 0
+        iu = [(q, i, j) for q, (i, j) in enumerate(zip(*np.triu_indices(n)))]
+        for k in want:  # the kernel's calls, reported; the flagged runs on the numpy core
+            adv(T, gam, t, k, flag)
+            t = k
+            Pk = np.empty((n, n, runs))  # kc.unpack without recomputing the triangle's indices every step
+            for q, i, j in iu:
+                Pk[i, j] = T[q]
+                if i != j:
+                    Pk[j, i] = T[q]
+            if idx is None and flag.any():  # the first flag: when is every run first flagged?
+                first = (flagged or first_flagged)(adv, P_init, gam, want[-1])
+                idx = np.flatnonzero(first <= want[-1])
+                # a run flagged at step t is reported from the numpy core from the first step of want ≥ t on
+                k0 = np.asarray(want, dtype=np.int64)[np.searchsorted(want, first[idx])]
+                Pn = P_init[:, :, idx]
+            if idx is not None:
+                while tn < k:
+                    Pn = self.step(Pn, gamma[:, tn][:, idx])[1]
+                    tn += 1
+                sel = k0 <= k
+                if sel.any():
+                    Pk[:, :, idx[sel]] = Pn[:, :, sel]
+            yield k, Pk
+
+
+def first_flagged(adv, P_init: np.ndarray, gam: np.ndarray, upto: int) -> np.ndarray:
+    """Per run, the first step t ≤ ``upto`` after which the generated kernel ``adv`` (:meth:`Filter.generated_kernel`)
+    has flagged it for the rescue (``upto`` + 1: never), from the kernel one step at a time (its flag is
+    deterministic per step and stays set)."""
+    runs = gam.shape[-1]
+    first = np.full(runs, upto + 1, dtype=np.int64)
+    T, flag = kc.pack(P_init), np.zeros(runs, dtype=np.bool_)
+    for t in range(upto):
+        adv(T, gam, t, t + 1, flag)
+        first[flag & (first > upto)] = t + 1
+    return first
 
 
 class FlaggedRuns:

@@ -11,6 +11,7 @@ import pytest
 
 from netkf_cli import engine
 from netkf_cli.linalg import kalman
+from netkf_cli.linalg import kalman_codegen as kc
 from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
 from netkf_cli.estimators import smoother as sm
 from netkf_cli.estimators.smoother import SmootherEstimator
@@ -134,19 +135,39 @@ def test_compiled_backward_pass_equals_numpy(name):
 
 
 @pytest.mark.skipif(numba_missing, reason="numba not installed")
-@pytest.mark.parametrize("name", ["scalar", "2-state"])
-def test_two_pass_forward_is_kfs_compiled_run_bit_for_bit(name):
-    """_forward_compiled = Filter.run(backend numba) (kf's kernel and the rescue's numpy redo of flagged runs),
-    on bursty loss where runs are flagged at many different steps."""
+@pytest.mark.parametrize("name", ["scalar", "2-state", "huge"])
+def test_compiled_run_reports_flagged_runs_from_the_numpy_core(name):
+    """Filter.run(backend numba) on the generated kernel (kalman.Filter.stream_generated), on bursty loss where
+    runs are flagged at many different steps: at step k a run the kernel has flagged by k carries the numpy
+    core's P_{k|k} bit for bit (from its own P0), every other run the kernel's own state bit for bit; and the
+    same numbers as the one-pass FlaggedRuns algorithm (restart from P0 when flagged) that it replaced, and as
+    the smoother's _forward_compiled (one shared first-flagged pass)."""
     s = SYSTEMS[name]
     g = _bursty(300, 120, 6, burst=12.0)
     f = kalman.Filter.of(s, 1)
     P0 = sm.initial_covariance(s)
+    runs = g.shape[-1]
+    Pr = np.array(np.repeat(P0[:, :, None], runs, axis=2), order="C")
+    adv = f.generated_kernel()
     for want in (list(range(1, 121)), [3, 40, 41, 42, 120]):
         a = dict(f.run(P0, g, want, ("filtered",), backend="numba"))
+        ref = dict(f.run(P0, g, want, ("filtered",), backend="numpy"))
         b = sm._forward_compiled(f, P0, g, want)
+        T, flag, t = kc.pack(Pr), np.zeros(runs, dtype=np.bool_), 0
+        redo = kalman.FlaggedRuns(Pr.copy(), lambda Pk, tt, ix: f.step(Pk, g[:, tt][:, ix])[1])
+        seen = 0
         for k in want:
-            assert np.array_equal(a[k]["filtered"], b[k]["filtered"]), k
+            adv(T, np.ascontiguousarray(g), t, k, flag)
+            t = k
+            own = kc.unpack(T, s.n)
+            got = a[k]["filtered"]
+            assert np.array_equal(got[:, :, flag], ref[k]["filtered"][:, :, flag], equal_nan=True), k
+            assert np.array_equal(got[:, :, ~flag], own[:, :, ~flag], equal_nan=True), k
+            assert np.array_equal(got, redo.fill(own.copy(), flag, k), equal_nan=True), k
+            assert np.array_equal(got, b[k]["filtered"], equal_nan=True), k
+            seen = max(seen, len(np.unique(kalman.first_flagged(adv, Pr, np.ascontiguousarray(g), k))))
+        if name != "huge" and len(want) > 100:
+            assert seen > 10  # flagged at many different steps: the case the two passes are for (huge: all at step 1)
 
 
 @pytest.mark.skipif(numba_missing, reason="numba not installed")
