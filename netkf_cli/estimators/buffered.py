@@ -58,7 +58,7 @@ class BufferedEstimator(EstimatorModel):
     backend: BackendKind = Field(
         "auto",
         description="numpy (the core, reference) | numba (the core's compiled filter, kalman.Filter.run: equal "
-        "to rounding) | auto = numba for chunks of ≥ 2e6 run-steps when numba is importable (kalman.choose_backend)",
+        "to rounding) | auto = numba for chunks of ≥ 1e6 run-steps when numba is importable (kalman.choose_backend)",
     )
 
     def span(self, s: LinearSystem) -> int:

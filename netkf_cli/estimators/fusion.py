@@ -144,7 +144,7 @@ class FusionEstimator(EstimatorModel):
                             "count update, IBF's count steps from the full-information P, OLPEF's τ-histogram form, "
                             "equal to rounding; identical sensors, or MF = kf's compiled filter) | auto = numba for "
                             "chunks of ≥ 4e4 run-steps when numba is importable (identical sensors: the kernels read "
-                            "the system's numbers from a vector, one compile per zero pattern; else kf's rule, ≥ 2e6)")
+                            "the system's numbers from a vector, one compile per zero pattern; else kf's rule, ≥ 1e6)")
 
     def check(self, system, channel) -> None:
         """The channel's streams must be the system's sensors; OLPEF needs identical sensors and a stable A."""
@@ -243,7 +243,7 @@ loaded).
 They read the system's numbers from a vector (``kalman_codegen`` symbolic kernels: the source depends on
 the shapes and the zero / ±1 pattern only), so a grid over Q or the loss shares one compile per machine; what a process pays is numba's start (~0.3–0.8 s, once), which
 the compiled IBF/OLPEF (3–6× numpy) repay within one 1000-run × 200-step chunk of the paper's figures.
-(``kalman.AUTO_MIN_RUN_STEPS``, 2e6, is for kf's per-system kernels.)"""
+(``kalman.AUTO_MIN_RUN_STEPS``, 1e6, is for kf's per-system kernels.)"""
 
 
 def _mf_backend(backend: str, sens: Sensors, run_steps: int) -> str:

@@ -41,7 +41,7 @@ class KalmanFilterEstimator(EstimatorModel):
     kind: Literal["kf"]
     backend: Literal["auto", "numpy", "numba"] = Field(
         "auto", description="numpy (the core, reference) | numba (a kernel generated for the system from the core's "
-                            "equations, equal to rounding, ~10× faster) | auto = numba for chunks of ≥ 2e6 run-steps "
+                            "equations, equal to rounding, ~10× faster) | auto = numba for chunks of ≥ 1e6 run-steps "
                             "when numba is importable")
 
     accepts: ClassVar[frozenset[str]] = frozenset({"arrival"})

@@ -531,7 +531,7 @@ FORWARD_BYTES = 24 * 2**20
 """Largest forward pass (P_{t|t} at the rows of every requested step) kept for the next estimator on the same
 trace when a request is cut into blocks (:func:`_forward_kept`; a larger one is redone by each estimator).
 The engine's smoothers of one trace (Table I: lags 0 … 4) would otherwise redo it each: kf's numpy pass (batches
-under ``kalman.AUTO_MIN_RUN_STEPS`` = 2e6 run-steps) costs ~0.3 ms per step in numpy's per-call overhead
+under ``kalman.AUTO_MIN_RUN_STEPS`` = 1e6 run-steps) costs ~0.3 ms per step in numpy's per-call overhead
 whatever the batch, the compiled one ~20 µs per step. 24 MB holds the configs' chunks at n = 1 (5000 runs ×
 504 rows: 20 MB)."""
 

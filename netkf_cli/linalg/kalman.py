@@ -485,11 +485,12 @@ class FlaggedRuns:
         return out
 
 
-AUTO_MIN_RUN_STEPS = 2_000_000
-"""``backend: auto`` compiles only chunks of at least this many run-steps (a default chunk of 20 000
-runs × 100 steps): a new system's kernel costs ~2 s to generate and compile once per machine, then
-~1 s to load per process, which the compiled recursion (~10× the numpy core, benchmarks/) repays
-within the first few such chunks; small test-sized runs stay on numpy."""
+AUTO_MIN_RUN_STEPS = 1_000_000
+"""``backend: auto`` compiles only chunks of at least this many run-steps (20 000 runs × 50 steps): a new
+system's kernel costs ~2 s to generate and compile once per machine, then ~0.5 s per process to import
+numba and load it (measured 2026-12-04: 0.26 + 0.24 s), which the compiled recursion (~10× the numpy core
+at n = 4, benchmarks/) repays within the first few such chunks (Shi Fig. 9, 10 chunks of 20 000 × 60 on
+the 4-state vehicle: `netkf run` 5.1 -> 4.8 s wall, the same CSVs); small test-sized runs stay on numpy."""
 
 
 def numba_available() -> bool:
