@@ -121,7 +121,7 @@ class SmootherEstimator(EstimatorModel):
         return int(self.lag) if quantity == "smoothed" else 1
 
     def conventions(self, system, channel) -> dict[str, str]:
-        return {"lag": f"N = {self.lag} (smoothed = P_{{k-{self.lag}|k}}; filtered, predicted = kf's)"}
+        return {"smoothed": f"{self.label} (lag N = {self.lag})", "filtered, predicted": "kf's"}
 
     def check(self, system, channel) -> None:
         kinds = getattr(channel, "trace_kinds", frozenset())

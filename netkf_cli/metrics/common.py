@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from typing import Any, Literal
 
 import numpy as np
@@ -97,9 +98,28 @@ def p0_label(system) -> str:
     return "P0 = P̄ (steady state, every packet received)" if system.P0 is None else "P0 = system.P0"
 
 
+_PLAIN_MATH = re.compile(  # the plain-text math of CSV labels, one alternation so nothing is typeset twice
+    r"(?P<Etr>E\[tr )?(?:P_\{(?P<sub>[^{}$]*)\}|P_(?P<kk1>k\|k-1))(?(Etr)\])"  # (E[tr) P_{k-1|k} / P_k|k-1 (])
+    r"|(?P<one>1-)?\(1-λ\)\^(?:\((?P<exp>[^()$]*)\)|(?P<k1>k1)\b)")  # (1-)(1-λ)^(k1+N+1), (1-λ)^k1
+
+
+def _typeset(m: re.Match) -> str:
+    if m.group("exp") is not None or m.group("k1") is not None:
+        power = re.sub(r"\bk1\b", "k_1", m.group("exp") or m.group("k1"))
+        return "$" + (m.group("one") or "") + r"(1-\lambda)^{" + power + "}$"
+    P = "P_{" + (m.group("sub") or m.group("kk1")).replace("|", r" \mid ") + "}"
+    return r"$\mathrm{E}[\mathrm{tr}\," + P + "]$" if m.group("Etr") else "$" + P + "$"
+
+
 def math_text(label: str) -> str:
-    """A CSV label for a figure: P̄ (a combining macron most fonts drop) as mathtext."""
-    return label.replace("P̄", r"$\bar{P}$").replace("P0 =", "$P_0$ =")
+    """A CSV label for a figure: P̄ (a combining macron most fonts drop) as mathtext, and the plain-text math
+    of labels and conventions typeset (``P_{k-1|k}``, ``E[tr P_k|k-1]``, ``1-(1-λ)^(k1+N+1)``; mathtext draws
+    a bare ``|`` in a subscript like an l, hence ``\\mid``); what is already between ``$`` is left alone."""
+    parts = str(label).split("$")
+    for i in range(0, len(parts), 2):  # the text outside $…$
+        seg = _PLAIN_MATH.sub(_typeset, parts[i])
+        parts[i] = seg.replace("P̄", r"$\bar{P}$").replace("P0 =", "$P_0$ =")
+    return "$".join(parts)
 
 
 def channel_words(ch) -> str:
@@ -169,7 +189,7 @@ def conventions_note(labels_by_estimator: dict[str, str]) -> str:
     common = [p for p in next(iter(parts.values())) if all(p in v for v in parts.values())]
     extra = [f"{lab}: " + "; ".join(p for p in v if p not in common) for lab, v in parts.items()
              if any(p not in common for p in v)]
-    return "; ".join(common) + ("" if not extra else " — " + " | ".join(extra))
+    return math_text("; ".join(common) + ("" if not extra else " — " + " | ".join(extra)))
 
 
 def quantity_text(quantity: str, what: str = "P_k") -> str:

@@ -317,7 +317,7 @@ class TimeAverage(GenericMetric):
             # on top of the Monte Carlo (zorder) with hollow markers: a closed form that agrees with the
             # Monte Carlo to the last digit (Fig. 6's scenario 2) stays visible around the filled points
             style = dict(ls=dash, color=colour, lw=1.1, marker=REF_MARKERS[j % len(REF_MARKERS)], ms=8, mfc="none",
-                         mew=1.3, zorder=3, label=f"{(lab + ': ') if lab else ''}{name}")
+                         mew=1.3, zorder=3, label=math_text(f"{(lab + ': ') if lab else ''}{name}"))
             if x is None:
                 ax.plot(np.arange(len(keys)), np.full(len(keys), vals[0]), **style)
             else:

@@ -258,9 +258,13 @@ def new_figure(ncols: int = 1, nrows: int = 1, width: float = 6.4, height: float
     return fig, ax
 
 
+FOOTNOTE_X = 0.01
+"""A footnote's left margin, and its right one (:func:`_wrapped_text`), as a fraction of the figure's width."""
+
+
 def footnote(fig: Figure, text: str) -> None:
     """A provenance line under the axes (convention, sample counts …); wrapped to the width."""
-    t = fig.text(0.01, 0.005, text, fontsize=MIN_FONT_PT, color="0.3", ha="left", va="bottom", wrap=True)
+    t = fig.text(FOOTNOTE_X, 0.005, text, fontsize=MIN_FONT_PT, color="0.3", ha="left", va="bottom", wrap=True)
     fig._netkf_footnotes = [*getattr(fig, "_netkf_footnotes", []), t]
 
 
@@ -296,7 +300,7 @@ def _fit_titles(fig: Figure) -> None:
                 shrink -= 0.1
 
 
-def _wrapped_text(t) -> str:
+def _wrapped_text(t, margin: float = 0.0) -> str:
     """matplotlib's ``Text._get_wrapped_text``, the same line breaks with a fraction of its measurements.
 
     matplotlib breaks each line before the first word whose prefix ``" ".join(words[:i])``, i = 2, 3, …, is wider
@@ -306,10 +310,11 @@ def _wrapped_text(t) -> str:
     as mathtext (a row of boxes) —, so within each run of prefixes drawn the same way (``cbook.is_math_text``) one
     measurement of the run's last prefix says whether the break lies in it, and a bisection finds it: the first
     prefix too wide, as matplotlib's scan finds it. The prefixes are measured by matplotlib's own
-    ``_get_rendered_text_width`` (its renderer, rounding and cache), with its ``_get_wrap_line_width``."""
+    ``_get_rendered_text_width`` (its renderer, rounding and cache), with its ``_get_wrap_line_width`` less
+    ``margin`` pixels (the room kept free at the right edge)."""
     is_math = _mpl().matplotlib.cbook.is_math_text
     width = t._get_rendered_text_width
-    room = t._get_wrap_line_width()
+    room = t._get_wrap_line_width() - margin
     lines = []
     for unwrapped in t.get_text().split("\n"):  # the user's line breaks are kept
         words = unwrapped.split(" ")
@@ -355,38 +360,53 @@ def _wrap_once(t, renderer) -> None:
         return
     try:
         t._renderer = renderer  # what get_window_extent(renderer) binds: the renderer the wrapping measures with
-        wrapped = _wrapped_text(t)  # matplotlib's private helpers: if they move, keep matplotlib's wrapping on
+        # matplotlib's room runs to the canvas edge, where a footnote's last word then touches it (Mostofi Thm 4's
+        # "Y_t"): the left margin is kept on the right too
+        wrapped = _wrapped_text(t, FOOTNOTE_X * t.get_figure().bbox.width)  # matplotlib's private helpers: if they
+        # move, keep matplotlib's wrapping on
     except AttributeError:  # pragma: no cover - another matplotlib
         return
     t.set_text(wrapped)
     t.set_wrap(False)
 
 
-@functools.cache
-def _plain_log_formatter(ticker):
-    """``ticker.LogFormatter`` writing every label as ``%g`` ("0.4", "2"; its own writes "4e-01" below 1)."""
-    class PlainLogFormatter(ticker.LogFormatter):
-        def _num_to_string(self, x, vmin, vmax):
-            return f"{x:g}"
+NICE_LOG_TICKS = ((1, 1.5, 2, 3, 4, 5, 6, 8), (1, 2, 3, 5), (1, 2, 5))
+"""Mantissas a short log axis is labelled at (:func:`plain_log_labels`), the first set with at most
+:data:`MAX_LOG_TICKS` ticks in view."""
+MAX_LOG_TICKS = 8
 
-    return PlainLogFormatter
+
+def _nice_log_ticks(lo: float, hi: float) -> list[float]:
+    """Ticks m·10ⁿ in [lo, hi] for the first mantissa set of :data:`NICE_LOG_TICKS` giving ≤ MAX_LOG_TICKS of them."""
+    decades = range(int(np.floor(np.log10(lo))), int(np.floor(np.log10(hi))) + 1)
+    for subs in NICE_LOG_TICKS:
+        ticks = [float(f"{m * 10.0 ** d:.12g}") for d in decades for m in subs if lo <= m * 10.0 ** d <= hi]
+        if len(ticks) <= MAX_LOG_TICKS:
+            return ticks
+    return ticks
 
 
 def plain_log_labels(fig: Figure) -> None:
-    """Plain-number tick labels ("1.5 2 3 4 6") on every log axis that spans less than a factor 20 between 10⁻³
-    and 10⁴: there matplotlib labels the minor ticks "2×10⁰ 3×10⁰ 4×10⁰ …", wide enough to collide
-    (Leong burstiness, L_B = 1.25 … 8; ``lint`` reports overlapping tick labels). An axis with a formatter of
-    its own, or a wider span (where only the decades 10ⁿ are labelled), is left as it is."""
+    """Plain-number tick labels ("1.5 2 3 4 5 6 8") on every log axis that spans less than a factor 20 between
+    10⁻³ and 10⁴: there matplotlib labels the minor ticks "2×10⁰ 3×10⁰ 4×10⁰ …", wide enough to collide, and
+    leaves the ends of the axis unlabelled (Leong burstiness, L_B = 1.25 … 8: its 8 had no label; ``lint``
+    reports overlapping tick labels). The labelled ticks are the nice numbers of :data:`NICE_LOG_TICKS` in
+    view (the minor log ticks stay, unlabelled). An axis with a formatter of its own, a wider span (where
+    only the decades 10ⁿ are labelled), or fewer than two nice numbers in view is left as it is."""
     ticker = _mpl().matplotlib.ticker
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
             if axis.get_scale() != "log" or type(axis.get_major_formatter()) is not ticker.LogFormatterSciNotation:
                 continue
             lo, hi = sorted(axis.get_view_interval())
-            if 1e-3 <= lo and hi <= 1e4 and hi < 20 * lo:
-                # matplotlib's log formatter (its choice of which minor ticks to label), numbers as %g
-                axis.set_major_formatter(_plain_log_formatter(ticker)())
-                axis.set_minor_formatter(_plain_log_formatter(ticker)(labelOnlyBase=False))
+            if not (1e-3 <= lo and hi <= 1e4 and hi < 20 * lo):
+                continue
+            ticks = _nice_log_ticks(lo, hi)
+            if len(ticks) < 2:
+                continue
+            axis.set_major_locator(ticker.FixedLocator(ticks))
+            axis.set_major_formatter(ticker.FuncFormatter(lambda v, _pos: f"{v:g}"))
+            axis.set_minor_formatter(ticker.NullFormatter())
 
 
 def _layout(fig: Figure) -> None:

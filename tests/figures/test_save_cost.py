@@ -31,6 +31,29 @@ def test_footnote_breaks_are_matplotlibs(text, width):
     theirs = t._get_wrapped_text()  # matplotlib's scan over every prefix
     assert theirs.count("\n") > text.count("\n")  # the case wraps at all
     assert P._wrapped_text(t) == theirs
+    # with a right margin: matplotlib's scan over a room that much narrower
+    room = t._get_wrap_line_width()
+    margin = P.FOOTNOTE_X * fig.bbox.width
+    ours = P._wrapped_text(t, margin)
+    t._get_wrap_line_width = lambda: room - margin
+    assert ours == t._get_wrapped_text()
+    P._mpl().plt.close(fig)
+
+
+def test_a_footnote_keeps_its_left_margin_on_the_right():
+    """matplotlib wraps to the canvas edge: this text's widest line ends 6 px from it (past the left margin's
+    width); netkf's footnote lines end at least FOOTNOTE_X of the width before it."""
+    text = " ".join(["kept", "iff", "Υ_t", "≥", "Υ_T"] * 40)
+    fig, _ = P.new_figure(width=6.4)
+    P.footnote(fig, text)
+    (t,) = fig._netkf_footnotes
+    t.get_window_extent(fig.canvas.get_renderer())
+    x0, right = P.FOOTNOTE_X * fig.bbox.width, (1 - P.FOOTNOTE_X) * fig.bbox.width
+    theirs = [x0 + t._get_rendered_text_width(line) for line in t._get_wrapped_text().split("\n")]
+    assert max(theirs) > right  # the case: matplotlib's own breaks run into the right margin
+    P._layout(fig)  # what save does first: the footnote's breaks frozen
+    ours = [x0 + t._get_rendered_text_width(line) for line in t.get_text().split("\n")]
+    assert len(ours) > 1 and max(ours) <= right
     P._mpl().plt.close(fig)
 
 

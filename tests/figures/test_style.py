@@ -155,7 +155,9 @@ def test_save_labels_a_short_log_axis_with_plain_numbers(tmp_path, monkeypatch):
     P.save(fig, tmp_path / "f.png")
     assert json.loads((lint_dir / "f.json").read_text(encoding="utf-8"))["problems"] == []
     labels = [t.get_text() for t in ax.get_xticklabels(minor=True) + ax.get_xticklabels() if t.get_text()]
-    assert {"2", "3", "4", "6"} <= set(labels), labels
+    assert labels == ["1.5", "2", "3", "4", "5", "6", "8"], labels  # the last grid point, 8, labelled too
+    assert P._nice_log_ticks(0.013, 0.2) == [0.02, 0.03, 0.05, 0.1, 0.2]  # more than MAX_LOG_TICKS: a coarser set
+    assert P._nice_log_ticks(1.1, 1.4) == []  # nothing nice in view: matplotlib's ticks stay
     # a log axis over several decades keeps matplotlib's 10ⁿ labels
     fig, ax = P.new_figure()
     ax.loglog([1e-3, 1e2], [1, 2], label="wide")

@@ -93,7 +93,8 @@ def test_first_step_and_conventions():
     assert est(3).first_step("smoothed") == 3 and est(3).first_step("filtered") == 1
     assert est(0).first_step("smoothed") == 0
     assert SmootherEstimator.quantities == QS
-    assert "P_{k-3|k}" in est(3).conventions(None, None)["lag"]
+    assert est(3).conventions(None, None)["smoothed"] == "P_{k-3|k} (lag N = 3)"
+    assert est(0).conventions(None, None)["smoothed"] == "P_{k|k} (lag N = 0)"
     with pytest.raises(ConfigError, match="does not report"):
         list(est(1).covariances(LinearSystem.create(1.3, 1, 0.5, 1), Trace(runs=1, horizon=2, arrival=np.ones((1, 2, 1), bool)),
                                 [1], ("bogus",)))
