@@ -22,6 +22,7 @@ from pydantic import Field
 
 from netkf_cli.core.spec import ChannelModel, NonNegInt, Probability
 from netkf_cli.core.trace import Trace
+from netkf_cli.linalg.kalman import numba_available
 
 MAX_BUDGET = 50
 
@@ -50,7 +51,7 @@ def effective_arrivals(rng: np.random.Generator, runs: int, horizon: int, lam: f
     :data:`AUTO_MIN_SLOTS` run-slots when it is installed. The uniforms come in blocks of slots
     (:data:`UNIFORM_BLOCK`), the loop's state carried from one block to the next."""
     slots = horizon + N
-    compiled = backend == "numba" or (backend == "auto" and runs * slots >= AUTO_MIN_SLOTS and _numba_available())
+    compiled = backend == "numba" or (backend == "auto" and runs * slots >= AUTO_MIN_SLOTS and numba_available())
     loop = _compiled() if compiled else _slots_numpy
     out = np.zeros((slots, runs), dtype=np.bool_)
     count = np.zeros(runs, dtype=np.int64)    # retransmissions used so far for the pending measurement
@@ -102,14 +103,6 @@ def _slots_loop(u, t0, lam, N, p, out, count, pending, retrying):
             if start:
                 pending[r] = t
             retrying[r] = start or cont
-
-
-def _numba_available() -> bool:
-    try:
-        import numba  # noqa: F401  (optional: probed only)
-    except ImportError:
-        return False
-    return True
 
 
 def _compiled():

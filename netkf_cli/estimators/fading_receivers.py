@@ -52,6 +52,7 @@ from pydantic import Field
 from scipy import special
 
 from netkf_cli.linalg import kalman
+from netkf_cli.linalg.kalman import numba_available  # noqa: F401  (re-exported: the one probe)
 from netkf_cli.analysis import fading as fa
 from netkf_cli.channels.fading import IidCorrelation, NoiseFn, Snr, sample_gain, snr_given_kept  # noqa: F401
 from netkf_cli.core.errors import ConfigError
@@ -364,15 +365,6 @@ def true_cov(state):
 
 
 # --------------------------------------------------------------------------- the batched engine (numpy | numba)
-
-def numba_available() -> bool:
-    """True iff numba can be imported (``backend: auto`` then compiles)."""
-    try:
-        import numba  # noqa: F401  (optional: probed only, never required)
-    except ImportError:
-        return False
-    return True
-
 
 def resolve_backend(backend: str, n: int | None = None) -> str:
     """``auto`` → ``numba`` when importable and measured faster, else ``numpy``; ``numba`` without numba

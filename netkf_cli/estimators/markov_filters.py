@@ -61,6 +61,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from netkf_cli.linalg import batched, kalman
+from netkf_cli.linalg.kalman import numba_available  # noqa: F401  (re-exported: the one probe)
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators import _markov_codegen
 from netkf_cli.core.tolerances import FIXED_GAIN_PRECISION, PSD_INPUT_TOL, ZERO_INNOVATION_RTOL
@@ -620,14 +621,6 @@ def linear_filter_covariances(model: AugmentedModel, filt: LinearFilter, modes: 
 
 # =========================================================================== compiled mode-aware KF
 _NB_KERNEL = None
-
-
-def numba_available() -> bool:
-    try:
-        import numba  # noqa: F401  (optional: probed only, never required)
-    except ImportError:
-        return False
-    return True
 
 
 def resolve_backend(backend: str, m: int | None = None) -> str:

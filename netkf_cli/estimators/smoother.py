@@ -59,6 +59,7 @@ import numpy as np
 from pydantic import Field
 
 from netkf_cli.linalg import batched, kalman
+from netkf_cli.linalg.kalman import numba_available  # noqa: F401  (re-exported: the one probe)
 from netkf_cli.linalg import kalman_codegen as kc
 from netkf_cli.estimators import _smoother_codegen as sc
 from netkf_cli.core.errors import ConfigError
@@ -195,14 +196,6 @@ class SmootherEstimator(EstimatorModel):
 # =============================================================================================
 # the recursion (forward Filter + backward RTS), numpy and compiled
 # =============================================================================================
-
-
-def numba_available() -> bool:
-    try:
-        import numba  # noqa: F401  (optional: probed only, never required)
-    except ImportError:
-        return False
-    return True
 
 
 def resolve_backend(backend: str) -> str:
