@@ -29,7 +29,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from netkf_cli.channels.bernoulli import BernoulliChannel, sample_arrivals
+from netkf_cli.channels.bernoulli import UNIFORM_BLOCK, BernoulliChannel, sample_arrivals
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.core.spec import ChannelModel
 from netkf_cli.core.trace import Trace
@@ -55,14 +55,19 @@ def pi_good_of(p_gb: float, p_bg: float) -> float:
     return p_bg / (p_gb + p_bg) if (p_gb + p_bg) > 0 else 1.0
 
 
-def gilbert_elliott_from_uniforms(u: np.ndarray, p_gb: float, p_bg: float) -> np.ndarray:
+def gilbert_elliott_from_uniforms(u: np.ndarray, p_gb: float, p_bg: float, prev: np.ndarray | None = None,
+                                  out: np.ndarray | None = None) -> np.ndarray:
     """γ (horizon, runs) bool of the stationary Gilbert chain from the uniforms ``u`` (horizon, runs):
-    γ_0 = u_0 < π_good, γ_k = (u_k ≥ p_gb if γ_{k−1} else u_k < p_bg)."""
+    γ_0 = u_0 < π_good, γ_k = (u_k ≥ p_gb if γ_{k−1} else u_k < p_bg). Given ``prev`` (runs,), the state
+    before ``u``'s first step, the chain continues from it (a block of a longer trace); ``out`` is written."""
     horizon, runs = u.shape
-    out = np.empty((horizon, runs), dtype=bool)
+    out = np.empty((horizon, runs), dtype=bool) if out is None else out
     if horizon == 0:
         return out
-    np.less(u[0], pi_good_of(p_gb, p_bg), out=out[0])
+    if prev is None:
+        np.less(u[0], pi_good_of(p_gb, p_bg), out=out[0])
+    else:
+        out[0] = np.where(prev, u[0] >= p_gb, u[0] < p_bg)
     for k in range(1, horizon):
         # good stays good with prob 1 − p_gb; bad becomes good with prob p_bg
         out[k] = np.where(out[k - 1], u[k] >= p_gb, u[k] < p_bg)
@@ -169,9 +174,19 @@ class GilbertElliottChannel(ChannelModel):
 
     def sample_trace(self, rng: np.random.Generator, runs: int, horizon: int) -> Trace:
         """``Trace.arrival`` (1, horizon, runs) from :func:`gilbert_elliott_from_uniforms` of :meth:`uniforms`
-        (the draws of :func:`sample_gilbert_elliott_tm`, stationary start)."""
+        (the draws of :func:`sample_gilbert_elliott_tm`, stationary start). The uniforms are drawn a block of
+        steps at a time, the chain's state carried (consecutive ``rng.random`` calls continue one stream: the
+        same trace as from ``rng.random((horizon, runs))`` at once, without 8 bytes per run-step: 18 MB for
+        Leong's 4000 runs × 560 steps)."""
+        if runs < 0 or horizon < 0:
+            raise ValueError(f"runs and horizon must be ≥ 0, got {runs}, {horizon}")
         p_gb, p_bg = self.transition
-        arr = self.arrivals_from_uniforms(self.uniforms(rng, runs, horizon))
+        arr = np.empty((horizon, runs), dtype=bool)
+        step = max(1, UNIFORM_BLOCK // max(runs, 1))
+        for t0 in range(0, horizon, step):
+            t1 = min(horizon, t0 + step)
+            gilbert_elliott_from_uniforms(rng.random((t1 - t0, runs)), p_gb, p_bg,
+                                          prev=arr[t0 - 1] if t0 else None, out=arr[t0:t1])
         return Trace(runs=runs, horizon=horizon, arrival=arr[None],
                      meta={"channel": "gilbert_elliott", "p_gb": p_gb, "p_bg": p_bg, "arrival": self.arrival})
 

@@ -122,6 +122,23 @@ def test_bernoulli_trace_in_blocks_is_the_whole_draw(monkeypatch, runs, horizon,
     assert r1.random() == r2.random()
 
 
+@pytest.mark.parametrize("runs,horizon,block", [(1, 1, 1), (7, 3, 1), (7, 3, 3), (4000, 560, 1 << 18), (300_000, 5, 1 << 18),
+                                                (1, 10_000, 64), (3, 0, 1)])
+def test_gilbert_elliott_trace_in_blocks_is_the_whole_draw(monkeypatch, runs, horizon, block):
+    """sample_trace draws its uniforms a block of steps at a time, the chain's state carried: the same arrivals
+    as gilbert_elliott_from_uniforms of one rng.random((horizon, runs)), and the same generator state after."""
+    import netkf_cli.channels.gilbert_elliott as ge
+
+    monkeypatch.setattr(ge, "UNIFORM_BLOCK", block)
+    ch = ge.GilbertElliottChannel(kind="gilbert_elliott", loss_rate=0.45, mean_burst=4.0)
+    p_gb, p_bg = ch.transition
+    r1, r2 = np.random.default_rng(5), np.random.default_rng(5)
+    got = ch.sample_trace(r1, runs, horizon).arrival[0]
+    want = ge.gilbert_elliott_from_uniforms(r2.random((horizon, runs)), p_gb, p_bg)
+    assert got.dtype == bool and got.shape == (horizon, runs) and np.array_equal(got, want)
+    assert r1.random() == r2.random()
+
+
 def _one_shot_retransmission(rng, runs, horizon, lam, N, p):
     """The slot loop on one rng.random((horizon + N, 2, runs)) draw (the channel before its uniforms came in blocks)."""
     slots = horizon + N
