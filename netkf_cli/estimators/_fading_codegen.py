@@ -93,15 +93,6 @@ def pack(X: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(X[:, iu[0], iu[1]].T)
 
 
-def unpack(T: np.ndarray, n: int) -> np.ndarray:
-    """(…, n(n+1)/2, B) → (…, n, n, B), symmetric."""
-    iu = np.triu_indices(n)
-    P = np.empty(T.shape[:-2] + (n, n, T.shape[-1]))
-    P[..., iu[0], iu[1], :] = T
-    P[..., iu[1], iu[0], :] = T
-    return P
-
-
 def _p(name, i, j):
     return f"{name}{min(i, j)}_{max(i, j)}"
 

@@ -57,6 +57,7 @@ from netkf_cli.analysis import fading as fa
 from netkf_cli.channels.fading import IidCorrelation, NoiseFn, Snr, sample_gain, snr_given_kept  # noqa: F401
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators import _fading_codegen as fcg
+from netkf_cli.linalg import kalman_codegen as kc
 from netkf_cli.linalg.riccati import initial_covariance
 from netkf_cli.core.spec import EstimatorModel
 
@@ -520,13 +521,13 @@ class Stepper:
                 keep, s2, s2u_, mu_, P, Fk, U, Uf, G, flags, rec_, recs["true"], recs["filtered"],
                 recs.get("cond", nil), recs.get("cond_filtered", nil))
             flags = np.where(flags & 2, 2, np.where(flags & 1, 1, 0)).astype(np.int8)
-            self._Pt = np.ascontiguousarray(np.moveaxis(fcg.unpack(P, n), 2, 0))
-            self._Ft = np.ascontiguousarray(np.moveaxis(fcg.unpack(Fk, n), 2, 0))
+            self._Pt = np.ascontiguousarray(np.moveaxis(kc.unpack(P, n), 2, 0))
+            self._Ft = np.ascontiguousarray(np.moveaxis(kc.unpack(Fk, n), 2, 0))
             if self._mode == 2:
-                self._Pf = np.ascontiguousarray(np.moveaxis(fcg.unpack(G, n), 2, 0))
+                self._Pf = np.ascontiguousarray(np.moveaxis(kc.unpack(G, n), 2, 0))
             if self.want_u:
-                self._U = np.ascontiguousarray(np.moveaxis(fcg.unpack(U, n), 2, 0))
-                self._Uf = np.ascontiguousarray(np.moveaxis(fcg.unpack(Uf, n), 2, 0))
+                self._U = np.ascontiguousarray(np.moveaxis(kc.unpack(U, n), 2, 0))
+                self._Uf = np.ascontiguousarray(np.moveaxis(kc.unpack(Uf, n), 2, 0))
             out = {k: np.moveaxis(v, 3, 0) for k, v in recs.items()}  # run-major views
         else:
             out = self._records(rec, B)  # run-major (B, slots, n, n) while the kernel writes them

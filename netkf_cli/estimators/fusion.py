@@ -314,7 +314,7 @@ def _mf_compiled(sens: Sensors, P: np.ndarray, counts: np.ndarray, want, qs):
     t = 0
     for k in want:
         adv(T, cnt, t, k, flag, sv)
-        out = redo.fill(_unpack(T, n), flag, k)
+        out = redo.fill(kc.unpack(T, n), flag, k)
         t = k
         yield k, kalman.report(out, qs, A, Q)
 
@@ -333,11 +333,6 @@ def _cached(strategy: str, sens: Sensors, P0, make):
             _MODELS.clear()
         _MODELS[key] = make()
     return _MODELS[key]
-
-
-def _unpack(T: np.ndarray, n: int) -> np.ndarray:
-    """kalman_codegen.unpack, with a copy-reshape for n = 1."""
-    return T[:, None, :].copy() if n == 1 else kc.unpack(T, n)
 
 
 def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
@@ -380,7 +375,7 @@ def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
             else:
                 worst = kern(blk, off, last, s0, s1, *tab, out, vals, cnts)
         if strat == "ibf":
-            P = _unpack(out, n)
+            P = kc.unpack(out, n)
             idx = np.flatnonzero(flag)
             if idx.size:
                 P[:, :, idx] = model.at(tt - last[:, idx], tt)
@@ -389,7 +384,7 @@ def _history_compiled(strat: str, sens: Sensors, model, trace, want, qs):
                 model._extend(int(worst))
                 tab = tabs()
                 kern(blk, off, last, k, k, *tab, out, vals, cnts)
-            P = _unpack(out, n)
+            P = kc.unpack(out, n)
         t = k
         yield k, kalman.report(P, qs, A, Q)
 

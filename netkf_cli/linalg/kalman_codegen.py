@@ -461,10 +461,17 @@ def pack(P: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(P[iu[0], iu[1], :])
 
 
+_TRIU: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+
 def unpack(T: np.ndarray, n: int) -> np.ndarray:
-    """(n(n+1)/2, runs) → (n, n, runs), symmetric."""
-    iu = np.triu_indices(n)
-    P = np.empty((n, n, T.shape[-1]))
-    P[iu[0], iu[1]] = T
-    P[iu[1], iu[0]] = T
+    """(…, n(n+1)/2, runs) → (…, n, n, runs), symmetric (a new array; n = 1 a reshaped copy)."""
+    if n == 1:
+        return T[..., None, :].copy()
+    iu = _TRIU.get(n)
+    if iu is None:
+        iu = _TRIU[n] = np.triu_indices(n)
+    P = np.empty(T.shape[:-2] + (n, n, T.shape[-1]))
+    P[..., iu[0], iu[1], :] = T
+    P[..., iu[1], iu[0], :] = T
     return P

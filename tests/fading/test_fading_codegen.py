@@ -8,6 +8,7 @@ import pytest
 
 from netkf_cli.channels.fading import FadingChannel
 from netkf_cli.estimators import _fading_codegen as fcg
+from netkf_cli.linalg import kalman_codegen as kc
 from netkf_cli.estimators import fading_receivers as fr
 from netkf_cli.estimators.fading_receivers import ReceiverEstimator
 from netkf_cli.core.system import LinearSystem
@@ -138,14 +139,14 @@ def test_kernel_step_equals_scalar_kernel(mode, name):
             np.testing.assert_array_equal((fg & 1) > 0, fl == 1)
         assert not (fg & 2).any() and not (fl == 2).any()
         ok = fl == 0
-        _close(fcg.unpack(P, n)[..., ok], np.moveaxis(Pt, 0, 2)[..., ok])
-        _close(fcg.unpack(F, n)[..., ok], np.moveaxis(Ft, 0, 2)[..., ok])
+        _close(kc.unpack(P, n)[..., ok], np.moveaxis(Pt, 0, 2)[..., ok])
+        _close(kc.unpack(F, n)[..., ok], np.moveaxis(Ft, 0, 2)[..., ok])
         if mode == 2:
-            _close(fcg.unpack(G, n)[..., ok], np.moveaxis(Pf, 0, 2)[..., ok])
+            _close(kc.unpack(G, n)[..., ok], np.moveaxis(Pf, 0, 2)[..., ok])
         for j in range(4 if want_u else 2):
             _close(rg[j][..., ok], np.moveaxis(rs[j], 0, 3)[..., ok])
         if want_u:
-            _close(fcg.unpack(Uv, n)[..., ok], np.moveaxis(U, 0, 2)[..., ok])
+            _close(kc.unpack(Uv, n)[..., ok], np.moveaxis(U, 0, 2)[..., ok])
 
 
 def _close(y, x, bound=1e-9):
