@@ -386,13 +386,24 @@ def _nice_log_ticks(lo: float, hi: float) -> list[float]:
     return ticks
 
 
+@functools.cache
+def _plain_log_formatter(ticker):
+    """``ticker.LogFormatter`` writing every label as ``%g`` ("0.4", "2"; its own writes "4e-01" below 1)."""
+    class PlainLogFormatter(ticker.LogFormatter):
+        def _num_to_string(self, x, vmin, vmax):
+            return f"{x:g}"
+
+    return PlainLogFormatter
+
+
 def plain_log_labels(fig: Figure) -> None:
     """Plain-number tick labels ("1.5 2 3 4 5 6 8") on every log axis that spans less than a factor 20 between
     10⁻³ and 10⁴: there matplotlib labels the minor ticks "2×10⁰ 3×10⁰ 4×10⁰ …", wide enough to collide, and
     leaves the ends of the axis unlabelled (Leong burstiness, L_B = 1.25 … 8: its 8 had no label; ``lint``
     reports overlapping tick labels). The labelled ticks are the nice numbers of :data:`NICE_LOG_TICKS` in
-    view (the minor log ticks stay, unlabelled). An axis with a formatter of its own, a wider span (where
-    only the decades 10ⁿ are labelled), or fewer than two nice numbers in view is left as it is."""
+    view (the minor log ticks stay, unlabelled); with fewer than two in view, matplotlib's ticks are written as
+    plain numbers. An axis with a formatter of its own, or a wider span (where only the decades 10ⁿ are
+    labelled), is left as it is."""
     ticker = _mpl().matplotlib.ticker
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
@@ -402,7 +413,9 @@ def plain_log_labels(fig: Figure) -> None:
             if not (1e-3 <= lo and hi <= 1e4 and hi < 20 * lo):
                 continue
             ticks = _nice_log_ticks(lo, hi)
-            if len(ticks) < 2:
+            if len(ticks) < 2:  # too narrow for two nice numbers: matplotlib's choice of ticks, written as %g
+                axis.set_major_formatter(_plain_log_formatter(ticker)())
+                axis.set_minor_formatter(_plain_log_formatter(ticker)(labelOnlyBase=False))
                 continue
             axis.set_major_locator(ticker.FixedLocator(ticks))
             axis.set_major_formatter(ticker.FuncFormatter(lambda v, _pos: f"{v:g}"))

@@ -157,7 +157,14 @@ def test_save_labels_a_short_log_axis_with_plain_numbers(tmp_path, monkeypatch):
     labels = [t.get_text() for t in ax.get_xticklabels(minor=True) + ax.get_xticklabels() if t.get_text()]
     assert labels == ["1.5", "2", "3", "4", "5", "6", "8"], labels  # the last grid point, 8, labelled too
     assert P._nice_log_ticks(0.013, 0.2) == [0.02, 0.03, 0.05, 0.1, 0.2]  # more than MAX_LOG_TICKS: a coarser set
-    assert P._nice_log_ticks(1.1, 1.4) == []  # nothing nice in view: matplotlib's ticks stay
+    assert P._nice_log_ticks(1.1, 1.4) == []  # nothing nice in view: matplotlib's ticks stay, in plain numbers
+    fig2, ax2 = P.new_figure()
+    ax2.plot([1.1, 1.4], [1, 2])
+    ax2.set_xscale("log")
+    ax2.set_xlim(1.1, 1.4)
+    P.plain_log_labels(fig2)
+    assert type(ax2.xaxis.get_minor_formatter()).__name__ == "PlainLogFormatter"
+    P._mpl().plt.close(fig2)
     # a log axis over several decades keeps matplotlib's 10ⁿ labels
     fig, ax = P.new_figure()
     ax.loglog([1e-3, 1e2], [1, 2], label="wide")
