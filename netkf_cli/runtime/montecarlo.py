@@ -362,6 +362,10 @@ def run_chunked(
     # the sums are still taken in chunk order.
     in_parent = mode == "process"
     window = max(2, 2 * (ex.workers() if in_parent else ex.jobs))
+    # chunks queued on the pool: with the parent computing too, one per worker — two per worker left the parent
+    # nothing to do at the end of a short run (2 chunks: both went to the one worker of --jobs 2, the parent
+    # waited; 4 chunks: the parent computed 1), so a few-chunk run barely ran in parallel
+    queued = ex.workers() if in_parent else window
     pending: dict[int, object] = {}
     done: dict[int, dict] = {}  # chunks the parent computed ahead of the one summed next
     nxt = 0  # next chunk index to submit (or compute here)
@@ -373,7 +377,7 @@ def run_chunked(
 
     def fill() -> None:
         nonlocal nxt
-        while nxt < len(chunks) and len(pending) < window:
+        while nxt < len(chunks) and len(pending) < queued:
             cn = chunks[nxt]
             if _load(_cache_path(ex, call, label, cn)) is None:
                 pending[cn.index] = submit(cn)

@@ -135,6 +135,28 @@ def test_jobs2_is_the_parent_and_one_worker_with_identical_numbers():
     assert ran["chunks"] == 6 and ran["processes"] == 2 and 1 <= ran["chunks_in_parent"] <= 5, ran
 
 
+class Steady:
+    """Every chunk takes the same time wherever it runs (a sleep): how the chunks are shared is the schedule's."""
+
+    def __call__(self, rng, n):
+        import time
+
+        time.sleep(0.2)
+        return {"s": rng.random(n).sum(), "n": n}
+
+
+@pytest.mark.parametrize("chunks", [2, 4])
+def test_a_short_run_is_shared_between_the_parent_and_its_worker(chunks):
+    """--jobs 2 on a run of 2 or 4 equal chunks: the parent computes half of them. (Queuing two chunks per
+    worker gave both chunks of a 2-chunk run to the one worker while the parent waited, and 1 of 4.)"""
+    ref = montecarlo.run_chunked(Flaky(0), chunks * 1000, 1000, seed=5)
+    with montecarlo.execution("process", jobs=2) as ex:
+        got = montecarlo.run_chunked(Steady(), chunks * 1000, 1000, seed=5)
+        ran = ex.report()
+    assert got["s"] == ref["s"] and got["n"] == chunks * 1000
+    assert ran["chunks"] == chunks and ran["chunks_in_parent"] == chunks // 2, ran
+
+
 def test_a_closure_kernel_is_refused_on_worker_processes():
     def closure(rng, n):
         return {"n": n}
