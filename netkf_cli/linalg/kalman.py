@@ -392,7 +392,6 @@ class Filter:
             t = k
             yield k, report(out, qs, self.A, self.Q)
 
-
     def generated_kernel(self):
         """kf's kernel generated for this system (:func:`kalman_codegen.kernel`: ``adv(T, gam, t0, t1, flag)``)."""
         return kc.kernel(self.A, self.C, self.Q, self.R, self.groups, self.rescue.limit)
@@ -416,15 +415,10 @@ class Filter:
         idx = k0 = Pn = None
         tn = 0
         T, flag, t = kc.pack(P_init), np.zeros(runs, dtype=np.bool_), 0
-        iu = [(q, i, j) for q, (i, j) in enumerate(zip(*np.triu_indices(n)))]
         for k in want:  # the kernel's calls, reported; the flagged runs on the numpy core
             adv(T, gam, t, k, flag)
             t = k
-            Pk = np.empty((n, n, runs))  # kc.unpack without recomputing the triangle's indices every step
-            for q, i, j in iu:
-                Pk[i, j] = T[q]
-                if i != j:
-                    Pk[j, i] = T[q]
+            Pk = kc.unpack(T, n)
             if idx is None and flag.any():  # the first flag: when is every run first flagged?
                 first = (flagged or first_flagged)(adv, P_init, gam, want[-1])
                 idx = np.flatnonzero(first <= want[-1])
