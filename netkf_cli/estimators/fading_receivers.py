@@ -838,6 +838,38 @@ def gaussian_factor(autocorr: np.ndarray, nugget: float) -> np.ndarray:
     return np.linalg.cholesky(S / (1.0 + nugget))
 
 
+ZERO_LOG_CDF = -800.0
+"""Below this log bound the non-central χ²₂ cdf is 0 in double precision (e^−745 is the smallest subnormal)."""
+
+
+def drop_cdf(x: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """``special.chndtr(x, 2, lam)`` (the non-central χ²₂ cdf), computed only where it can be non-zero.
+
+    Pr[|v|² ≤ x] for v ~ N(m, I₂), |m|² = λ, is 0 at x = 0 and, for √x < √λ, at most
+    Pr[|ζ| ≥ √λ − √x] = exp(−(√λ − √x)²/2) (ζ ~ N(0, I₂): |ζ|² is exponential with mean 2); below
+    e^{ZERO_LOG_CDF} that is far under the smallest subnormal, so the value is exactly 0 and Boost is not
+    called there (most particles of a long forced-drop burst: ~85 % of the calls in Fig. 7). Elsewhere the
+    same function on the same inputs: the same bits (tests/fading/test_burst_mean.py checks both)."""
+    out = np.zeros(np.broadcast(x, lam).shape)
+    sx, sl = np.sqrt(x), np.sqrt(lam)
+    live = (x > 0) & ~((sx < sl) & (-0.5 * (sl - sx) ** 2 < ZERO_LOG_CDF))
+    if live.all():
+        return special.chndtr(x, 2.0, lam)
+    out[live] = special.chndtr(x[live], 2.0, lam[live])
+    return out
+
+
+def drop_quantile(p: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """``special.chndtrix(p, 2, lam)`` (the non-central χ²₂ quantile), 0 where ``p`` = 0 without calling it
+    (the quantile of probability 0 is the support's end, 0: a particle whose drop probability underflowed)."""
+    live = p > 0
+    if live.all():
+        return special.chndtrix(p, 2.0, lam)
+    out = np.zeros(p.shape)
+    out[live] = special.chndtrix(p[live], 2.0, lam[live])
+    return out
+
+
 class BurstSMCKernel:
     """E P[H] of scenario 2 (invertible C) on a Gaussian-process fading channel by sequential Monte Carlo.
 
@@ -856,7 +888,10 @@ class BurstSMCKernel:
     (non-central χ²₂ cdf) — a fully adapted particle filter for the event "L drops in a row".
     With normalized weights w_i, Ẑ_t = Ẑ_{t−1} Σ_i w_i p_t^i estimates Pr[kept, then t drops] and
     Ẑ_{t−1} Σ_i w_i p_t^i σ_n²(Υ_0^i) the σ_n² moment, both UNBIASED (Del Moral 2004, Thm 7.4.2);
-    particles are resampled (systematic) when the effective sample size falls below K/2. A second
+    particles are resampled (systematic) when the effective sample size falls below K/2. A cloud whose Ẑ
+    reaches 0 (every particle's drop probability underflowed: at Υ_T = 0 at once, on a correlated channel
+    within a few steps for most clouds) contributes exactly 0 from then on and is dropped from the arrays, its
+    particles no longer moved (no random numbers spent on them); the loop ends when no cloud is left. A second
     cloud does the same from t = 0 for the all-drop term. The kept clouds' initial SNRs are stratified
     (K strata of Pr[Υ_0 | kept], finer at low SNR, each particle weighted by its stratum's probability). Each Monte Carlo "run" is one independent
     pair of clouds, so the standard error over runs is honest. The L = 0 term needs only the
@@ -887,20 +922,25 @@ class BurstSMCKernel:
         n = self.M1.shape[1]
         R = runs
         ngroups = 2 * G * R  # (path type, threshold, run); path type 0: kept start, 1: all drops
+        half = ngroups // 2
+        # the clouds still alive (Ẑ > 0), by their index in [0, ngroups) (ascending: the kept ones first); a cloud
+        # whose Ẑ reached 0 (every particle's drop probability underflowed, or the product did) contributes
+        # exactly 0 at every later step, so it is dropped from the arrays — at Υ_T = 0 every cloud dies at once
+        gid = np.arange(ngroups)
         C = ngroups * K
         rho2 = np.repeat(np.tile(np.repeat(2.0 * T / self.snr_avg, R), 2), K)  # per particle
         kept_path = np.arange(C) < C // 2
         Zx = np.zeros((C, H))
         Zy = np.zeros((C, H))
         w = np.full(C, 1.0 / K)
-        Zhat = np.ones(ngroups)
+        Zhat = np.ones(ngroups)  # of the live clouds
+        Zall = np.ones(ngroups)  # of every cloud (the dead ones' last value, 0)
         g0 = np.zeros(C)
         X = np.zeros((n, n, G * R))
         wl = np.zeros((G, len(self.burst_lags)))
         wl2 = np.zeros((G, len(self.burst_lags)))
         ess_min = np.full(ngroups, float(K))
         lag_pos = {L: i for i, L in enumerate(self.burst_lags)}
-        half = ngroups // 2
         thr = np.repeat(T, R)
         mean_g = self.noise.mean_given_kept(thr, self.snr_avg)
         pk = np.exp(-thr / self.snr_avg)
@@ -911,6 +951,8 @@ class BurstSMCKernel:
                 wl[:, lag_pos[0]] += pk.reshape(G, R).sum(1)
                 wl2[:, lag_pos[0]] += (pk * pk).reshape(G, R).sum(1)
             for t in range(H):
+                ng = len(gid)
+                nk = int(np.searchsorted(gid, half))  # live kept clouds: the first nk
                 if Lf is None or t == 0:
                     mx = np.zeros(C)
                     my = np.zeros(C)
@@ -924,31 +966,42 @@ class BurstSMCKernel:
                 lam = (mx * mx + my * my) / (s * s)
                 xlim = rho2 / (s * s)
                 central = Lf is None or t == 0  # m = 0: the central χ²₂ is exponential (closed forms)
-                p = -np.expm1(-xlim / 2.0) if central else special.chndtr(xlim, 2.0, lam)
+                p = -np.expm1(-xlim / 2.0) if central else drop_cdf(xlim, lam)
                 if t == 0:
                     p = np.where(kept_path, np.exp(-xlim / 2.0), p)
-                wp = (w * p).reshape(ngroups, K)
+                wp = (w * p).reshape(ng, K)
                 inc = wp.sum(1)  # Σ_i w_i p_i per group
-                if t >= 1:
+                if t >= 1 and nk:
                     # contribution of "kept at 0, then t drops": the kept clouds only
-                    zprev = Zhat[:half]
-                    mom = (wp[:half] * g0.reshape(ngroups, K)[:half]).sum(1)
+                    zprev = Zhat[:nk]
+                    mom = (wp[:nk] * g0.reshape(ng, K)[:nk]).sum(1)
                     Xt = self.M1[t][:, :, None] * (zprev * mom)[None, None, :] \
-                        + self.M2[t][:, :, None] * (zprev * inc[:half])[None, None, :]
-                    X += Xt
+                        + self.M2[t][:, :, None] * (zprev * inc[:nk])[None, None, :]
+                    X[:, :, gid[:nk]] += Xt
                 Zhat = Zhat * inc
+                Zall[gid] = Zhat
                 if t >= 1 and t in lag_pos:
-                    zr = Zhat[:half].reshape(G, R)
+                    zr = Zall[:half].reshape(G, R)
                     wl[:, lag_pos[t]] += zr.sum(1)
                     wl2[:, lag_pos[t]] += (zr * zr).sum(1)
                 # reweight; resample (systematic) where the effective sample size < K/2
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    wn = np.where(inc[:, None] > 0, wp / inc[:, None], 1.0 / K)
+                wn = np.where(inc[:, None] > 0, wp / inc[:, None], 1.0 / K)
                 ess = 1.0 / (wn * wn).sum(1)
-                ess_min = np.minimum(ess_min, ess)
+                ess_min[gid] = np.minimum(ess_min[gid], ess)
                 res = ess < K / 2.0
                 w = wn.ravel()
-                if Lf is not None and np.any(res) and t + 1 < H:
+                if t + 1 == H:
+                    break
+                live = Zhat != 0
+                if not live.all():  # drop the dead clouds (before resampling: no draws spent on them)
+                    if not live.any():
+                        break
+                    lp = np.repeat(live, K)
+                    gid, Zhat, res = gid[live], Zhat[live], res[live]
+                    Zx, Zy, g0, w, rho2, kept_path = Zx[lp], Zy[lp], g0[lp], w[lp], rho2[lp], kept_path[lp]
+                    mx, my, lam, p, xlim, wn = mx[lp], my[lp], lam[lp], p[lp], xlim[lp], wn[live]
+                    ng, C = len(gid), len(gid) * K
+                if Lf is not None and np.any(res):
                     gidx = np.nonzero(res)[0]
                     cw = np.cumsum(wn[gidx], axis=1)
                     cw[:, -1] = 1.0
@@ -962,22 +1015,20 @@ class BurstSMCKernel:
                     Zy[dst, :t] = Zy[src, :t]
                     g0[dst] = g0[src]
                     mx[dst], my[dst], lam[dst], p[dst] = mx[src], my[src], lam[src], p[src]
-                    w.reshape(ngroups, K)[gidx] = 1.0 / K
-                if t + 1 == H:
-                    break
+                    w.reshape(ng, K)[gidx] = 1.0 / K
                 # move: forced drop (or, at t = 0 for the kept clouds, a kept packet)
                 u = rng.random(C)
                 if central:
                     q = -2.0 * np.log1p(-np.clip(u * p, 0.0, 1.0))
                 else:
-                    q = special.chndtrix(np.clip(u * p, 0.0, None), 2.0, lam)
+                    q = drop_quantile(np.clip(u * p, 0.0, None), lam)
                 if t == 0:
                     # kept start, stratified within each cloud: |v|² − ρ²/s² ~ Exp(mean 2) by inverse cdf at a
                     # uniform point of stratum k = [e_k, e_{k+1}), e_k = (k/K)³ (fine strata at low SNR, where
                     # σ_n²(Υ_0) is large and varies fast); the particle then carries the weight
                     # e_{k+1} − e_k (stratified sampling: unbiased, far less variance than K plain draws)
                     e = (np.arange(K + 1) / K) ** 3
-                    kk = np.tile(np.arange(K), ngroups)
+                    kk = np.tile(np.arange(K), ng)
                     us = e[kk] + rng.random(C) * (e[kk + 1] - e[kk])
                     q = np.where(kept_path, xlim - 2.0 * np.log1p(-us), q)
                     w = np.where(kept_path, (e[kk + 1] - e[kk]), w)
@@ -990,7 +1041,7 @@ class BurstSMCKernel:
                 Zy[:, t] = r * np.sin(ang) - my / s
                 if t == 0:
                     g0 = self.noise(self.snr_avg * (s * s) * q / 2.0)  # Υ = Υ_ave s²|v|²/2
-            X += self.D[:, :, None] * Zhat[half:][None, None, :]
+            X += self.D[:, :, None] * Zall[half:][None, None, :]
         out = chunk_stats(X, G, R)
         out["w"] = wl
         out["w2"] = wl2

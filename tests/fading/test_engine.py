@@ -261,8 +261,9 @@ def test_memoryless_coefficients_reproduce_eq14_for_iid_bursts():
 
 
 def test_smc_iid_matches_eq14():
-    # independent gains: the SMC weights are exactly (1−μ)μᴸ; only σ_n²(Υ_0) is sampled. 5 s.e. (over clouds)
-    H, Ya, T, R = 60, 100.0, np.array([2.0, 10.0, 20.0, 28.0]), 40
+    # independent gains: the SMC weights are exactly (1−μ)μᴸ; only σ_n²(Υ_0) is sampled. 5 s.e. (over clouds).
+    # Υ_T = 0 first: its clouds die after one step and are dropped, moving every other cloud's index
+    H, Ya, T, R = 60, 100.0, np.array([0.0, 2.0, 10.0, 20.0, 28.0]), 40
     k = fr.BurstSMCKernel(None, T, Ya, NZ, fr.memoryless_coefficients(2.0, 1.0, 1e-3, 1e-8, 1.0, H), H, particles=8)
     st = k(np.random.default_rng(0), R)
     m, se = mean_and_stderr(st["sum"][0, 0], st["sumsq"][0, 0], R)
@@ -277,7 +278,7 @@ def test_smc_iid_matches_eq14():
 def test_smc_jakes_agrees_with_plain_monte_carlo_where_that_is_reliable():
     """Short horizon and a low threshold: the plain sample mean of P[H] has a small, finite variance there.
     The SMC estimate on the same Jakes channel must agree within 5 combined standard errors."""
-    H, Ya, T = 25, 100.0, np.array([4.0, 8.0])
+    H, Ya, T = 25, 100.0, np.array([0.0, 4.0, 8.0])  # Υ_T = 0: its clouds die at once, the others' indices move
     jch = chan(correlation={"model": "jakes", "carrier_hz": 1e9, "speed": {"value": 25, "unit": "mph"}, "interval_s": 0.01})
     r2 = fr.ReceiverModel(2, np.array([[2.0]]), np.array([[1.0]]), np.array([[1e-3]]), np.array([[1e-8]]), NZ)
     N = 20000
@@ -288,6 +289,37 @@ def test_smc_jakes_agrees_with_plain_monte_carlo_where_that_is_reliable():
                             fr.memoryless_coefficients(2.0, 1.0, 1e-3, 1e-8, 1.0, H), H, particles=16)(np.random.default_rng(2), R)
     sm, sse = mean_and_stderr(smc["sum"][0, 0], smc["sumsq"][0, 0], R)
     assert np.all(np.abs(sm - pm) < 5 * np.hypot(sse, pse)), (sm, sse, pm, pse)
+
+
+def test_smc_at_zero_threshold_is_the_exact_no_drop_term():
+    """Υ_T = 0 keeps every packet: E P[H] = M1[0] E[σ_n² | kept] + M2[0] exactly, every burst probability of L ≥ 1
+    is exactly 0 — the clouds, all dead after one step, are dropped and add nothing (s.e. 0 over the runs)."""
+    H, Ya, R = 40, 100.0, 6
+    jch = chan(correlation={"model": "jakes", "carrier_hz": 1e9, "speed": {"value": 25, "unit": "mph"}, "interval_s": 0.01})
+    M1, M2, D = fr.memoryless_coefficients(2.0, 1.0, 1e-3, 1e-8, 1.0, H)
+    for factor in (None, jakes_factor(H, jch.correlation)):
+        k = fr.BurstSMCKernel(factor, [0.0], Ya, NZ, (M1, M2, D), H, particles=8)
+        st = k(np.random.default_rng(3), R)
+        exact = M1[0, 0, 0] * float(NZ.mean_given_kept(np.array([0.0]), Ya)[0]) + M2[0, 0, 0]
+        assert st["sum"][0, 0, 0] / R == pytest.approx(exact, rel=1e-14)
+        assert st["tr2"][0] / R == pytest.approx(exact**2, rel=1e-13)
+        assert np.all(st["w"][0, 1:] == 0) and st["w"][0, 0] == pytest.approx(R)
+
+
+def test_drop_cdf_and_quantile_are_scipys_where_they_compute_and_zero_where_they_skip():
+    """fading_receivers.drop_cdf / drop_quantile skip Boost only where its answer is 0: the same bits everywhere,
+    on a grid running from x = 0 and λ = 0 deep into the region the bound e^{−(√λ−√x)²/2} < e^{−800} skips."""
+    from scipy import special
+
+    x, lam = np.meshgrid(np.r_[0.0, np.geomspace(1e-8, 400.0, 60)], np.r_[0.0, np.geomspace(1e-8, 1e7, 80)])
+    x, lam = x.ravel(), lam.ravel()
+    skipped = (np.sqrt(x) < np.sqrt(lam)) & (-0.5 * (np.sqrt(lam) - np.sqrt(x)) ** 2 < fr.ZERO_LOG_CDF)
+    assert skipped.sum() > 1000 and (~skipped).sum() > 1000
+    np.testing.assert_array_equal(fr.drop_cdf(x, lam), special.chndtr(x, 2.0, lam))
+    u = np.random.default_rng(0).random(x.size)
+    target = u * special.chndtr(x, 2.0, lam)
+    assert (target == 0).sum() > 1000 and (target > 0).sum() > 1000
+    np.testing.assert_array_equal(fr.drop_quantile(target, lam), special.chndtrix(target, 2.0, lam))
 
 
 @needs_numba
