@@ -76,10 +76,10 @@ from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
-import yaml
 from pydantic import Field, model_validator
 from scipy.special import ndtr, stdtrit
 
+from netkf_cli.config.loader import safe_load
 from netkf_cli.core.spec import StrictModel
 from netkf_cli.core.tolerances import GOLDEN_CLOSED_ATOL, GOLDEN_CLOSED_RTOL, MC_SIGMAS
 
@@ -164,7 +164,7 @@ def rules_for_topic(root: Path, topic: str) -> dict[str, list[GoldenRule]]:
     f = Path(root) / "experiments" / topic / "published.yaml"
     if not f.exists():
         return {}
-    data = yaml.safe_load(f.read_text(encoding="utf-8")) or {}
+    data = safe_load(f.read_text(encoding="utf-8")) or {}
     return parse_rules(data.get("golden"))
 
 

@@ -50,14 +50,13 @@ from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
-import yaml
 from pydantic import Field, ValidationError, model_validator
 from rich.table import Table
 
 from netkf_cli.app import golden as golden_mod
 from netkf_cli.runtime import montecarlo, plotting
 from netkf_cli.core.errors import ConfigError, NetkfError, Problem
-from netkf_cli.config.loader import line_index, load_scenario, validation_problems
+from netkf_cli.config.loader import line_index, load_scenario, safe_load, validation_problems
 from netkf_cli.app.report import write_report as _write
 from netkf_cli.app.runner import run_scenario
 from netkf_cli.core.spec import StrictModel
@@ -286,10 +285,10 @@ def discover(root: Path, topics: list[str]) -> tuple[list[Artefact], dict[str, P
             published[t] = Published()
             continue
         try:
-            published[t] = Published.model_validate(yaml.safe_load(f.read_text(encoding="utf-8")) or {})
+            published[t] = Published.model_validate(safe_load(f.read_text(encoding="utf-8")) or {})
         except ValidationError as exc:
             text = f.read_text(encoding="utf-8")
-            problems.extend(validation_problems(exc, yaml.safe_load(text), line_index(text), str(f)))
+            problems.extend(validation_problems(exc, safe_load(text), line_index(text), str(f)))
             continue
         ids = set()
         for key, entries in (("printed", published[t].printed), ("claims", published[t].claims)):
