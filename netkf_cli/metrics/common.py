@@ -181,6 +181,37 @@ def horizon_of(scenario, metric) -> int:
     return step_of(at, scenario.montecarlo.horizon) if at is not None else scenario.montecarlo.horizon
 
 
+def grid_conventions(table) -> dict[str, str]:
+    """Per estimator, the convention label of a whole table (every point of an ``over`` grid): a part shared by
+    every point once, the parts that change along the grid as ``first … last (along the grid)`` — a retransmission
+    grid over p is not "asked with p = 0" (its first point), nor a grid over λ "bernoulli λ = 0.95" (its last)."""
+    out: dict[str, str] = {}
+    if "conventions" not in table or "estimator" not in table:
+        return out
+    for lab, g in table.groupby("estimator", sort=False):
+        labels = list(dict.fromkeys(str(c) for c in g.conventions if isinstance(c, str) and c))
+        if len(labels) <= 1:
+            out[lab] = labels[0] if labels else ""
+            continue
+        parts = [[p for p in c.split("; ") if p] for c in labels]
+        same = [p for p in parts[0] if all(p in q for q in parts)]
+        first, last = ("; ".join(p for p in q if p not in same) for q in (parts[0], parts[-1]))
+        out[lab] = "; ".join(same + [_span(first, last)])
+    return out
+
+
+_NUMBER = re.compile(r"(-?\d+(?:\.\d+)?(?:e[-+]?\d+)?)")
+
+
+def _span(first: str, last: str) -> str:
+    """``bernoulli channel (arrival = 0.35 … 0.78 along the grid, …)`` from the labels of a grid's first and last
+    points when they differ only in numbers; else ``first … last (along the grid)``."""
+    a, b = _NUMBER.split(first), _NUMBER.split(last)
+    if len(a) != len(b) or a[0::2] != b[0::2]:
+        return f"{first} … {last} (along the grid)"
+    return "".join(x if i % 2 == 0 or x == y else f"{x} … {y} along the grid" for i, (x, y) in enumerate(zip(a, b)))
+
+
 def conventions_note(labels_by_estimator: dict[str, str]) -> str:
     """One footnote line from per-estimator convention labels: what all share once, then what each adds."""
     parts = {lab: [p for p in str(c).split("; ") if p] for lab, c in labels_by_estimator.items()}

@@ -533,7 +533,8 @@ class CriticalAnalysis(AnalysisModel):
         fig.suptitle(paper_title(TOPIC, None, f"critical arrival rate — {what}"), fontsize=10)
         n = m.n.dropna()
         decided = str(rates.decided_by.iloc[0]).split(":")[0] if "decided_by" in rates else ""
-        footnote(fig, f"{PAPER}, Thms 3–5: λ_min ≤ λ_c ≤ λ_max; tr S̄ ≤ lim tr E[P_k|k-1] ≤ tr V̄. λ_c: {decided}. "
+        footnote(fig, f"{PAPER}, Thms 3–5: " + r"$\lambda_{min} \leq \lambda_c \leq \lambda_{max}$; "
+                      r"tr $\bar{S}$ ≤ lim tr E[$P_{k \mid k-1}$] ≤ tr $\bar{V}$. $\lambda_c$: " + f"{decided}. "
                       f"Monte Carlo: {int(n.iloc[0]) if len(n) else 0} runs per λ (time average after burn-in). "
                       f"Markov LMI: constant-gain predictor, mean-square stable under the Gilbert chain.")
         return fig

@@ -34,7 +34,7 @@ from netkf_cli.analysis import delay_exact as dx
 from netkf_cli.channels.delay import delay_label
 from netkf_cli.estimators.buffered import packet_span
 from netkf_cli.core.errors import ConfigError
-from netkf_cli.metrics.common import (fold_over, LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels, m_values,
+from netkf_cli.metrics.common import (fold_over, LABEL_COLUMNS, backends, conventions_note, grid_conventions, describe, GenericMetric, horizon_of, labels, m_values,
                                       math_text, MGrid, n_runs_of, needs, PaperRef, quantity_text, step_of)
 from netkf_cli.core.stats import mean_se, proportion_stderr, wilson_interval
 from netkf_cli.runtime.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
@@ -252,7 +252,7 @@ class Distribution(GenericMetric):
         legend_outside(ax, loc="below", ncol=1)
         k = int(t.k.iloc[0])
         lab = t.iloc[0]
-        conv = conventions_note(dict(zip(t.estimator, t.conventions))) if "conventions" in t else ""
+        conv = conventions_note(grid_conventions(t)) if "conventions" in t else ""
         footnote(fig, f"{self.quantity} ${pk}$ at k = {k}" + (" (stationary: after the burn-in from P0)" if self.at == "stationary" else "")
                  + (f"; {math_text(lab.P0)}\n{conv}" if "P0" in t else ""))
         return fig

@@ -20,7 +20,7 @@ from pydantic import Field
 
 from netkf_cli import engine
 from netkf_cli.core.stats import FLAG_REASONS, flag_reason
-from netkf_cli.metrics.common import (fold_over, LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric, horizon_of, labels,
+from netkf_cli.metrics.common import (fold_over, LABEL_COLUMNS, backends, conventions_note, grid_conventions, describe, GenericMetric, horizon_of, labels,
                                       math_text, n_runs_of, PaperRef, quantity_text)
 from netkf_cli.runtime.plotting import footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.core.artefact import Artefact, RunContext
@@ -150,7 +150,7 @@ class MeanVsTime(GenericMetric):
         n = int(t.n.max()) if len(t) else 0
         lab0 = t.iloc[0] if len(t) else None
         labels_ = (f"{self.quantity} ${quantity_text(self.quantity)}$; {math_text(lab0.P0)}; "
-                   f"{conventions_note(dict(zip(t.estimator, t.conventions)))}"
+                   f"{conventions_note(grid_conventions(t))}"
                    if lab0 is not None and "P0" in t else "")
         footnote(fig, ("one run: the covariance sequence itself" if one else f"n = {n:,} runs per step")
                  + (f"; {left_out} unreliable step means not drawn (heavy-tailed or rare-event dominated: CSV columns "

@@ -39,7 +39,7 @@ from pydantic import Field
 from netkf_cli.engine import state
 from netkf_cli.core.artefact import Artefact, RunContext
 from netkf_cli.core.errors import ConfigError
-from netkf_cli.metrics.common import (LABEL_COLUMNS, GenericMetric, PaperRef, Quantity, conventions_note, describe, labels,
+from netkf_cli.metrics.common import (LABEL_COLUMNS, GenericMetric, PaperRef, Quantity, conventions_note, grid_conventions, describe, labels,
                                       math_text, needs, quantity_text)
 from netkf_cli.runtime.plotting import footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.core.spec import Matrix, NonNegInt, PositiveInt
@@ -250,7 +250,7 @@ class StateError(GenericMetric):
         lab0 = t.iloc[0] if len(t) else None
         note = f"n = {n:,} runs per step; {q} ${_qtext(q)}$"
         if lab0 is not None:
-            note += f"; {math_text(lab0.P0)}; {conventions_note(dict(zip(t.estimator, t.conventions)))}"
+            note += f"; {math_text(lab0.P0)}; {conventions_note(grid_conventions(t))}"
         if comps:
             note += "; trajectories: run 0 of the reserved stream 2³⁰ (+ the point's stream)"
         footnote(fig, note)

@@ -20,6 +20,7 @@ quantity (rows marked ``statistic: norm_of_mean``), else the config is refused.
 
 from __future__ import annotations
 
+import re
 from typing import Literal
 
 import numpy as np
@@ -32,7 +33,7 @@ from netkf_cli.core.artefact import Artefact, RunContext
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.metrics import derived
 from netkf_cli.metrics import norm_of_mean as nm
-from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, describe, GenericMetric,
+from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, grid_conventions, describe, GenericMetric,
                                       kf_tail_exponent, labels, math_text, PaperRef, Quantity)
 from netkf_cli.core.spec import PositiveInt
 from netkf_cli.runtime.plotting import LINESTYLES, MARKERS, MIN_FONT_PT, PALETTE, footnote, legend_outside, new_figure, paper_title
@@ -228,10 +229,14 @@ class TimeAverage(GenericMetric):
         fig, axes = new_figure(nrows=len(panels), width=10.5, height=4.4 * len(panels))
         axes = np.atleast_1d(axes)
         flagged = 0
+        undrawn: list[str] = []
         for ax, series in zip(axes, panels):
-            flagged += self._panel(ax, t, series, x)
+            log = series == main and self.log_y and bool((t[(t.series == main)].value.replace(np.inf, np.nan) > 0).all())
+            f, u = self._panel(ax, t, series, x, log)
+            flagged += f
+            undrawn += u
             ax.set_ylabel(self._ylabel(series))
-            if series == main and self.log_y and (t[(t.series == main)].value.replace(np.inf, np.nan) > 0).all():
+            if log:
                 ax.set_yscale("log")
             if x is not None:
                 ax.set_xlabel(self.x_label or x)
@@ -253,14 +258,14 @@ class TimeAverage(GenericMetric):
                                  what), fontsize=11)
         mcr = t[t.source == "monte_carlo"]
         n = int(mcr.n.max()) if len(mcr) else 0
-        first = mcr[mcr[x] == mcr[x].iloc[0]] if x is not None and len(mcr) else mcr
-        note = dict(zip(first.estimator, first.conventions))
+        note = grid_conventions(mcr)
         per_run = (f"each run's P at k = {self.at}" if self.at is not None else
                    f"each averaged over k in (burn-in {scenario.montecarlo.burn_in}, horizon {scenario.montecarlo.horizon}]")
         footnote(fig, f"Monte Carlo: n = {n:,} runs, {per_run}; error bars ±1.96 s.e."
                  + ("; ‖E P‖₂ = λ_max of the mean matrix, s.e. by the delta method" if main == NORM else "")
                  + (f"; {flagged} unreliable means drawn hollow, off the line (CSV heavy_tail / rare_event / flag_reason)" if flagged else "")
                  + (f"; dashed, hollow markers on top: closed form ({', '.join(self.references)})" if self.references else "")
+                 + (f"; not drawn (≤ 0 on the log axis): {'; '.join(undrawn)}" if undrawn else "")
                  + (f"\n{math_text(mcr.P0.iloc[0])}; {conventions_note(note)}" if len(mcr) else ""))
         return fig
 
@@ -273,21 +278,25 @@ class TimeAverage(GenericMetric):
             return avg + r"$\mathrm{E}[\mathrm{tr}\,P]$" + when
         return avg + r"$\Pr[P \leq M]$" + when
 
-    def _panel(self, ax, t, series, x) -> int:
+    def _panel(self, ax, t, series, x, log: bool = False) -> tuple[int, list[str]]:
+        """Draw one panel; (the number of unreliable means drawn hollow, the closed forms a log axis cannot
+        show: every value ≤ 0, e.g. Leong's max |g(n) − 1| = 0 — said in the footnote, not in the legend)."""
         mc = t[(t.source == "monte_carlo") & (t.series == series)]
         ref = t[(t.source == "closed_form") & ((t.series != PROB) if series in (TRACE, NORM) else (t.M.notna()))]
         if series in (TRACE, NORM):
             ref = ref[ref.M.isna()]
         keys = list(dict.fromkeys(zip(mc.estimator, mc.quantity, mc.M.fillna(-1))))
+        conv_of = dict(zip(mc.estimator, mc.conventions)) if "conventions" in mc else {}
         colour_of = {}
         flagged = 0
+        undrawn: list[str] = []
         for i, (lab, q, m) in enumerate(keys):
             g = mc[(mc.estimator == lab) & (mc.quantity == q) & (mc.M.fillna(-1) == m)]
             colour = PALETTE[i % len(PALETTE)]
             colour_of.setdefault(lab, colour)
             colour_of.setdefault((lab, q), colour)
             colour_of[(lab, q, m)] = colour  # a Pr[P <= M] reference takes its M's colour
-            name = f"{lab} · {_sym(q)}" + ("" if m < 0 else f", M = {m:g}")
+            name = f"{lab} · {_sym(q, conv_of.get(lab))}" + ("" if m < 0 else f", M = {m:g}")
             bad = _unreliable(g)
             flagged += int(bad.sum())
             if x is None:
@@ -310,9 +319,14 @@ class TimeAverage(GenericMetric):
             colour = colour_of.get((lab, q, m_ref), colour_of.get((lab, q), colour_of.get(lab, "black")))
             j = drawn[(lab, q)] = drawn.get((lab, q), -1) + 1
             dash = LINESTYLES[1:][j % (len(LINESTYLES) - 1)]
-            name = f"{name} · {_sym(q)}" if several_q else name
+            name = f"{name} · {_sym(q, conv_of.get(lab))}" if several_q else name
             vals = g.value.to_numpy(dtype=float)
             if not np.isfinite(vals).any():
+                continue
+            if log and not (vals > 0).any():
+                shown = sorted(set(float(v) for v in vals))
+                undrawn.append(math_text(f"{name} = {shown[0]:.3g}" + (" at every point" if len(shown) == 1 and x else "")
+                                         if len(shown) == 1 else f"{name} in [{shown[0]:.3g}, {shown[-1]:.3g}]"))
                 continue
             # on top of the Monte Carlo (zorder) with hollow markers: a closed form that agrees with the
             # Monte Carlo to the last digit (Fig. 6's scenario 2) stays visible around the filled points
@@ -325,9 +339,9 @@ class TimeAverage(GenericMetric):
                 ax.plot(g[x].astype(float), g.value.astype(float), markevery=max(1, len(g) // 25), **style)
         if x is None and keys:
             ax.set_xticks(range(len(keys)))
-            ax.set_xticklabels([f"{lab}\n{_sym(q)}" + ("" if m < 0 else f"\nM = {m:g}")
+            ax.set_xticklabels([f"{lab}\n{_sym(q, conv_of.get(lab))}" + ("" if m < 0 else f"\nM = {m:g}")
                                 for lab, q, m in keys], fontsize=MIN_FONT_PT)
-        return flagged
+        return flagged, undrawn
 
 
 REF_MARKERS = ("D", "s", "v", "p")  # closed forms: hollow, unlike the Monte Carlo's filled MARKERS and the flagged "o"
@@ -341,8 +355,15 @@ def _unreliable(g) -> np.ndarray:
             | ~np.isfinite(g.value.to_numpy()) | gap)
 
 
-def _sym(q: str) -> str:
-    return f"${kalman.SYMBOL.get(q, q)}$".replace("|", r" \mid ")  # mathtext draws a bare | in a subscript as an l
+def _sym(q: str, conventions: str | None = None) -> str:
+    """The quantity's symbol in mathtext; ``smoothed`` as the estimator's own P_{k−N|k} where its conventions
+    name it (``smoothed: P_{k-2|k} (lag N = 2)``), so a legend says which lag it draws."""
+    sym = kalman.SYMBOL.get(q, q)
+    if q == "smoothed" and isinstance(conventions, str):
+        m = re.search(r"smoothed: (P_\{[^}]*\})", conventions)
+        if m:
+            sym = m.group(1)
+    return f"${sym}$".replace("|", r" \mid ")  # mathtext draws a bare | in a subscript as an l
 
 
 def _constant(st: dict, c: int) -> bool:
