@@ -14,36 +14,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import special
 
 from netkf_cli.analysis import delay_bounds as db
 from netkf_cli.analysis import delay_exact as dx
+from netkf_cli.analysis.laws import poisson_cdf
 from netkf_cli.core.errors import ConfigError
 
 UPDATES = "E[MKF runs per step], closed form (Prop. 3.1)"
 EXACT = "exact Pr[P_k <= M] (certified)"
 LOWER = "lower bound 1 - theta(k1, D) (Thm 3.8)"
 UPPER = "upper bound 1 - theta(k2, D) (Thm 3.8)"
-
-
-def poisson_cdf(i, mu: float):
-    """F(i) = Σ_{j ≤ i} μʲ e^{−μ} / j! of Poisson delays (eq. 3, Example 3.10): ``scipy.special.pdtr`` at ⌊i⌋,
-    0 below the support, 1 at +∞, NaN for a NaN i or μ < 0 — what ``scipy.stats.poisson.cdf`` computes (the same
-    function on the same arguments: the same bits, tested), without importing scipy.stats (~20 MB per process)."""
-    k = np.asarray(i)
-    out = np.zeros(k.shape, dtype=float)
-    if not float(mu) >= 0.0:
-        out[...] = np.nan
-        return out[()] if out.ndim == 0 else out
-    if k.dtype.kind == "f":
-        out[np.isposinf(k)] = 1.0
-        out[np.isnan(k)] = np.nan
-        good = (k >= 0) & np.isfinite(k)
-    else:
-        good = k >= 0
-    if np.any(good):
-        out[good] = np.clip(special.pdtr(np.floor(k[good]), float(mu)), 0, 1)
-    return out[()] if out.ndim == 0 else out
 
 
 @dataclass(frozen=True)

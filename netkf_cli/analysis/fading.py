@@ -23,8 +23,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import integrate, optimize, special
+from scipy import special
 from scipy.linalg import solve_discrete_lyapunov
+
+from netkf_cli.core.lazy import scipy_integrate as integrate
+from netkf_cli.core.lazy import scipy_optimize as optimize
 
 # --------------------------------------------------------------------------- units
 

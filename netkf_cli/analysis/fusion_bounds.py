@@ -29,6 +29,7 @@ from functools import cached_property, lru_cache
 import numpy as np
 import scipy.linalg
 
+from netkf_cli.analysis.laws import binom_pmf
 from netkf_cli.linalg import kalman
 from netkf_cli.core.errors import ConfigError
 
@@ -260,13 +261,6 @@ def mf_lower_bound(loss: float, model: ScalarFusionModel) -> tuple[float, float]
 # ----------------------------------------------------------------------------------------
 
 
-def _binom_pmf(k, n, p):
-    """Binomial(n, p) probabilities at k (scipy.stats, imported here only: it costs ~20 MB in every process)."""
-    from scipy.stats import binom  # here: scipy.stats costs ~20 MB in every process
-
-    return binom.pmf(k, n, p)
-
-
 @lru_cache(maxsize=256)
 def backward_transition(N: int, loss: float) -> np.ndarray:
     """T[ℓ, ℓ'] = p(ℓ_{t−k−1} = ℓ' | ℓ_{t−k} = ℓ) = Binom(N−ℓ, 1−λ) at ℓ'−ℓ (Sec. III-C).
@@ -277,7 +271,7 @@ def backward_transition(N: int, loss: float) -> np.ndarray:
     """
     T = np.zeros((N + 1, N + 1))
     for l in range(N + 1):
-        T[l, l:] = _binom_pmf(np.arange(N - l + 1), N - l, 1.0 - loss)
+        T[l, l:] = binom_pmf(np.arange(N - l + 1), N - l, 1.0 - loss)
     T.flags.writeable = False
     return T
 
@@ -309,7 +303,7 @@ def ibf_lower_bound(k: int, loss: float, model: ScalarFusionModel) -> tuple[floa
     for j in range(k - 2, 0, -1):
         U = model.l_lb(U, ells)  # apply L^LB(·, ℓ_{t−j})
         U = T @ U  # E[· | ℓ_{t−j+1}]  (ℓ_{t−j} given ℓ_{t−j+1})
-    w = _binom_pmf(np.arange(N + 1), N, p_arr)  # law of ℓ_t
+    w = binom_pmf(np.arange(N + 1), N, p_arr)  # law of ℓ_t
     pred = float(w @ model.l_lb(U, ells))
     filt = float(w @ model.lf_lb(U, ells))
     return pred, filt
@@ -365,7 +359,7 @@ def ibf_truncated_exact(k: int, loss: float, model: ScalarFusionModel) -> tuple[
     """
     N, pm = model.N, model.pm
     T = backward_transition(N, loss)
-    w0 = _binom_pmf(np.arange(N + 1), N, 1.0 - loss)
+    w0 = binom_pmf(np.arange(N + 1), N, 1.0 - loss)
     # paths as arrays: prob, current (oldest so far) ℓ, and the list of ℓ's newest→oldest
     prob = w0.copy()
     cur = np.arange(N + 1)

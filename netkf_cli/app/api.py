@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 
 from netkf_cli.runtime import montecarlo
 from netkf_cli.app import runner

@@ -75,7 +75,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 from pydantic import Field, model_validator
 from scipy.special import ndtr, stdtrit
 

@@ -49,7 +49,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 from pydantic import Field, ValidationError, model_validator
 from rich.table import Table
 

@@ -17,7 +17,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 
 from netkf_cli.runtime import io, montecarlo
 from netkf_cli.config import sweep

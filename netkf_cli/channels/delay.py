@@ -20,7 +20,7 @@ from pydantic import Field, model_validator
 
 # the buffer rule is the paper's (closed forms use it too): defined with them, one layer down
 from netkf_cli.analysis.delay_bounds import CONVENTION_HELP, DEFAULT_CONVENTION, Convention, max_kept_delay  # noqa: F401
-from netkf_cli.analysis.delay_references import poisson_cdf
+from netkf_cli.analysis.laws import poisson_cdf
 from netkf_cli.linalg.kalman import AUTO_MIN_RUN_STEPS
 from netkf_cli.core.spec import ChannelModel, NonNegFloat, PositiveInt, Probability, StrictModel
 from netkf_cli.core.trace import LOST, Trace  # LOST: the delay of a packet that never arrives

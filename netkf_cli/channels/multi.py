@@ -37,10 +37,12 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
 
+from netkf_cli.analysis.laws import binom_cdf
 from netkf_cli.linalg import kalman
 from netkf_cli.linalg import kalman_codegen as kc
 from netkf_cli.core.spec import ChannelModel, PositiveInt, Probability
 from netkf_cli.core.trace import Trace
+from netkf_cli.runtime.montecarlo import run_cache
 
 
 def sample_multi_arrivals(
@@ -106,11 +108,13 @@ MATERIALIZE_MAX = 1 << 24
 sensors × 200 steps is 5 MB) is drawn whole on its first read and kept, so the estimators of one chunk
 share one draw; a larger one is drawn block by block for each reader (memory O(RAW_BLOCK))."""
 
-_DRAWN: dict = {}
+_DRAWN: dict = run_cache({})
 """The last small per-sensor traces a process drew (read-only, ≤ MATERIALIZE_MAX arrivals in all), by generator
 state, class, loss and size: an ``over`` grid that leaves the channel alone (Fusion Fig. 1 over Q: stream 0 at
 every point, common random numbers) samples chunk i's trace once per process, not once per point — the same
-bits, since the trace is a function of exactly these."""
+bits, since the trace is a function of exactly these. A trace of another loss or size evicts them (a grid over
+the channel, Fusion Fig. 3 over the loss, never reads them again: they were 15 of a chunk's 21 MB there); the
+run's end (:func:`~netkf_cli.runtime.montecarlo.run_cache`) empties the store."""
 
 
 # ----------------------------------------------------------------------------------------
@@ -127,9 +131,7 @@ def count_tables(N: int, p: float) -> tuple[np.ndarray, np.ndarray]:
     P(raw < thr_k) = Pr[ℓ ≤ k] (exact to 2⁻⁵³ relative, as :func:`_raw_threshold`), so the count
     ℓ = #{k : raw ≥ thr_k}; ``cell`` (2¹⁶,) uint8 the count of every raw draw in the cell of its top
     16 bits, or 255 where a threshold falls inside the cell (those draws are resolved exactly)."""
-    from scipy.stats import binom  # here, not at module level: scipy.stats costs ~20 MB in every process
-
-    cdf = binom.cdf(np.arange(N), N, p)
+    cdf = binom_cdf(np.arange(N), N, p)
     thr = _raw_threshold(cdf)
     if p >= 1.0:
         thr = np.zeros(N, dtype=np.uint64)  # every sensor arrives: ℓ = N for every draw
@@ -280,6 +282,8 @@ class SensorTrace(_LazyArrival):
             out[:, t0 : t0 + b] = self._draw_steps(t0, min(self.horizon, t0 + b))
         if small:
             out.flags.writeable = False  # shared by every trace drawn from this state
+            for old in [k for k in _DRAWN if k[0] != key[0] or k[3:] != key[3:]]:
+                del _DRAWN[old]  # another loss or size: an over grid through the channel, never read again
             _DRAWN[key] = out
             while sum(x.size for x in _DRAWN.values()) > MATERIALIZE_MAX:
                 _DRAWN.pop(next(iter(_DRAWN)))

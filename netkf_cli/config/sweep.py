@@ -16,7 +16,7 @@ import itertools
 from typing import Any, Literal
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 from pydantic import Field, model_validator
 
 from netkf_cli.core.errors import ConfigError, Problem

@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 
 
 @dataclass

@@ -92,7 +92,7 @@ def simulate(system, trace, rng: np.random.Generator, S: np.ndarray | None = Non
     return States(x, y, v, received(trace, y, v, comm))
 
 
-BLOCK_STEPS = 16
+BLOCK_STEPS = 8
 """Steps per block of :class:`StateBlocks` (and of the :class:`StateErrorKernel` pass over them): a chunk's
 per-run state arrays exist for one block of steps at a time. The numbers do not depend on it (tested)."""
 

@@ -392,10 +392,11 @@ def _designed(key: tuple, make):
 def _modes_of(trace) -> np.ndarray:
     """(horizon, runs) 0-based modes: the trace's mode path, or — for a one-stream arrival trace — mode 1
     where the packet arrived and mode 3 (noise only: nothing about x) where it did not."""
-    if trace.mode is not None:
-        return np.asarray(trace.mode, dtype=np.int64)
+    if trace.mode is not None:  # the trace's own integers (int8): every consumer indexes or compares them, the
+        mode = np.asarray(trace.mode)  # compiled kernels copy a block of steps to int64 (an int64 copy here: 8 MB a chunk)
+        return mode if np.issubdtype(mode.dtype, np.integer) else mode.astype(np.int8)
     if trace.arrival is not None and trace.arrival.shape[0] == 1:
-        return np.where(np.asarray(trace.arrival[0], bool), 0, 2).astype(np.int64)
+        return np.where(np.asarray(trace.arrival[0], bool), 0, 2).astype(np.int8)
     raise ConfigError.at("channel.kind", "markov_lmi needs a mode trace (channel kind markov_modes) or a one-stream "
                                          "arrival trace (a lost packet is mode 3, noise only)")
 

@@ -34,7 +34,7 @@ import math
 from typing import ClassVar, Literal
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 from pydantic import Field
 
 from netkf_cli.core.artefact import Artefact, RunContext

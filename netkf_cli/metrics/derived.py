@@ -22,7 +22,7 @@ picks one number.
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 
 from netkf_cli.core.tolerances import PSD_TOL
 

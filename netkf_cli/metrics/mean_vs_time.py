@@ -15,7 +15,7 @@ import warnings
 from typing import Literal
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 from pydantic import Field
 
 from netkf_cli import engine

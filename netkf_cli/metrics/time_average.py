@@ -24,7 +24,7 @@ import re
 from typing import Literal
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 from pydantic import Field, model_validator
 
 from netkf_cli import engine

@@ -16,7 +16,7 @@ import math
 from typing import Literal
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 from pydantic import Field, model_validator
 
 from netkf_cli.analysis import fading as fa

@@ -16,7 +16,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 from pydantic import Field
 
 from netkf_cli.analysis import fusion_bounds as fb

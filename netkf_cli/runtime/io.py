@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
+from netkf_cli.core.lazy import pandas as pd
 
 from netkf_cli.core._version import __version__
 from netkf_cli.core.errors import BusyError, NetkfError, OutputError, ResultExistsError

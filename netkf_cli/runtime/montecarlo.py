@@ -215,6 +215,16 @@ class Execution:
 
 _EXEC: contextvars.ContextVar[Execution] = contextvars.ContextVar("netkf_execution", default=Execution())
 
+_RUN_CACHES: list[dict] = []
+
+
+def run_cache(cache: dict) -> dict:
+    """Register a module-level cache of data that only the current run can read again (a chunk's trace,
+    by generator state): it is emptied when the :func:`execution` block ends, before the run writes its
+    tables and figure (fusion/fig3: 10 MB of the last point's traces were still held while drawing)."""
+    _RUN_CACHES.append(cache)
+    return cache
+
 
 @contextmanager
 def execution(executor: str = "serial", jobs: int = 1, scheduler: str | None = None, cache_dir: Path | None = None,
@@ -234,6 +244,8 @@ def execution(executor: str = "serial", jobs: int = 1, scheduler: str | None = N
     finally:
         _EXEC.reset(token)
         ex.close()
+        for cache in _RUN_CACHES:
+            cache.clear()
 
 
 def usable_cores() -> int:

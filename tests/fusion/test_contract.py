@@ -611,24 +611,39 @@ def test_a_small_lazy_trace_is_drawn_once_on_first_read_with_the_same_bits(monke
 
 def test_small_traces_drawn_from_the_same_state_are_drawn_once_per_process(monkeypatch):
     """An over grid that leaves the channel alone draws chunk i's trace once per process (multi._DRAWN): the
-    same state, loss and size give the same read-only array; another loss or state draws anew (the bits of
-    the eager sampler either way); the kept traces stay within MATERIALIZE_MAX arrivals."""
+    same state, loss and size give the same read-only array, and every chunk's trace of that loss is kept
+    (Fusion Fig. 1: two chunks, 18 points over Q); another loss or size draws anew and evicts the others (a
+    grid over the loss never reads them again); the bits are the eager sampler's either way; the kept traces
+    stay within MATERIALIZE_MAX arrivals; the end of a run (montecarlo.execution) empties the store."""
     from netkf_cli.channels import multi
+    from netkf_cli.runtime.montecarlo import _RUN_CACHES, execution
 
     monkeypatch.setattr(multi, "_DRAWN", {})
+    monkeypatch.setattr("netkf_cli.runtime.montecarlo._RUN_CACHES", [*_RUN_CACHES, multi._DRAWN])
     ch = MultiChannel(kind="multi", sensors=5, loss=0.4)
-    a = ch.sample_trace(np.random.default_rng(np.random.SeedSequence(3, spawn_key=(0, 1))), 300, 20).arrival
-    b = ch.sample_trace(np.random.default_rng(np.random.SeedSequence(3, spawn_key=(0, 1))), 300, 20).arrival
-    assert b is a and not a.flags.writeable
-    ref = sample_multi_trace_arrivals(np.random.default_rng(np.random.SeedSequence(3, spawn_key=(0, 1))), 300, 20,
-                                      np.full(5, 0.4))
-    np.testing.assert_array_equal(a, ref)
-    c = ch.with_loss(0.5).sample_trace(np.random.default_rng(np.random.SeedSequence(3, spawn_key=(0, 1))), 300, 20)
-    d = ch.sample_trace(np.random.default_rng(np.random.SeedSequence(3, spawn_key=(0, 2))), 300, 20)
-    assert c.arrival is not a and d.arrival is not a and len(multi._DRAWN) == 3
-    monkeypatch.setattr(multi, "MATERIALIZE_MAX", 2 * 5 * 20 * 300)
-    ch.sample_trace(np.random.default_rng(9), 300, 20).arrival
-    assert sum(x.size for x in multi._DRAWN.values()) <= multi.MATERIALIZE_MAX
+
+    def rng(i):
+        return np.random.default_rng(np.random.SeedSequence(3, spawn_key=(0, i)))
+
+    with execution("serial"):
+        a = ch.sample_trace(rng(1), 300, 20).arrival
+        b = ch.sample_trace(rng(1), 300, 20).arrival
+        assert b is a and not a.flags.writeable
+        np.testing.assert_array_equal(a, sample_multi_trace_arrivals(rng(1), 300, 20, np.full(5, 0.4)))
+        a2 = ch.sample_trace(rng(2), 300, 20).arrival  # the next chunk, the same loss: both kept
+        assert len(multi._DRAWN) == 2 and ch.sample_trace(rng(1), 300, 20).arrival is a
+        c = ch.with_loss(0.5).sample_trace(rng(1), 300, 20).arrival  # the grid moves the loss: the old ones go
+        assert c is not a and len(multi._DRAWN) == 1
+        np.testing.assert_array_equal(c, sample_multi_trace_arrivals(rng(1), 300, 20, np.full(5, 0.5)))
+        d = ch.sample_trace(rng(2), 300, 20).arrival  # back to 0.4: drawn anew, the same bits
+        assert d is not a2 and len(multi._DRAWN) == 1
+        np.testing.assert_array_equal(d, a2)
+        monkeypatch.setattr(multi, "MATERIALIZE_MAX", 2 * 5 * 20 * 300)
+        ch.sample_trace(np.random.default_rng(9), 300, 20).arrival
+        ch.sample_trace(np.random.default_rng(10), 300, 20).arrival
+        ch.sample_trace(np.random.default_rng(11), 300, 20).arrival
+        assert sum(x.size for x in multi._DRAWN.values()) <= multi.MATERIALIZE_MAX and multi._DRAWN
+    assert multi._DRAWN == {}
 
 
 @needs_numba

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from netkf_cli.analysis.delay_references import DelayLaw, poisson_cdf
+from netkf_cli.analysis.delay_references import DelayLaw
+from netkf_cli.analysis.laws import poisson_cdf
 
 
 @pytest.mark.parametrize("mu", [0.0, 0.01, 3.0, 5.0, 5.5, 30.0, 200.0])
