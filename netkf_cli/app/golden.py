@@ -79,7 +79,7 @@ from netkf_cli.core.lazy import pandas as pd
 from pydantic import Field, model_validator
 from scipy.special import ndtr, stdtrit
 
-from netkf_cli.config.loader import safe_load
+from netkf_cli.config.compat import safe_load
 from netkf_cli.core.spec import StrictModel
 from netkf_cli.core.tolerances import GOLDEN_CLOSED_ATOL, GOLDEN_CLOSED_RTOL, MC_SIGMAS
 

@@ -56,7 +56,8 @@ from rich.table import Table
 from netkf_cli.app import golden as golden_mod
 from netkf_cli.runtime import montecarlo, plotting
 from netkf_cli.core.errors import ConfigError, NetkfError, Problem
-from netkf_cli.config.loader import line_index, load_scenario, safe_load, validation_problems
+from netkf_cli.config.compat import safe_load
+from netkf_cli.config.loader import line_index, load_scenario, validation_problems
 from netkf_cli.app.report import write_report as _write
 from netkf_cli.app.runner import run_scenario
 from netkf_cli.core.spec import StrictModel

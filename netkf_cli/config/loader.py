@@ -121,13 +121,6 @@ level (``[{-:?``; the largest shipped file has 569); others go to the pure-Pytho
 nesting with a message."""
 
 
-def safe_load(text: str) -> Any:
-    """``yaml.safe_load(text)`` (PyYAML's safe schema, for the files that are not scenarios: published.yaml)
-    on libyaml's parser when PyYAML has it — the same data, ~4x faster (the six published.yaml files were
-    a third of the reproduction's discovery)."""
-    return yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
-
-
 def _loader(text: str, fast: bool = True):
     """The loader of ``text``: libyaml's when available and the text cannot nest deeply, else pure Python."""
     if fast and _CLineLoader is not None and sum(text.count(c) for c in "[{-:?") < C_PARSE_MAX_NESTERS:

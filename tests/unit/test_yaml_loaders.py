@@ -55,11 +55,17 @@ def test_a_text_that_could_nest_deeply_goes_to_the_pure_python_loader_and_deep_n
     assert L.line_index(deep) == {}
 
 
-def test_safe_load_is_pyyamls_safe_load_on_every_published_file():
+def test_safe_load_is_pyyamls_safe_load_on_every_published_and_example_file():
+    """compat.safe_load (libyaml) reads what yaml.safe_load reads: published.yaml (the reproduction's discovery)
+    and every example scenario `netkf list` reads for its compatibility table."""
     import yaml
+
+    from netkf_cli.config.compat import safe_load
 
     files = sorted(ROOT.glob("experiments/*/published.yaml"))
     assert len(files) >= 6
-    for f in files:
+    examples = sorted(ROOT.glob("configs/**/*.yaml")) + sorted(ROOT.glob("experiments/*/*.yaml"))
+    assert len(examples) >= 40
+    for f in files + examples:
         text = f.read_text(encoding="utf-8")
-        assert L.safe_load(text) == yaml.safe_load(text), f
+        assert safe_load(text) == yaml.safe_load(text), f
