@@ -35,7 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from netkf_cli.runtime import montecarlo  # noqa: E402
+from netkf_cli.runtime import montecarlo, workers  # noqa: E402
 from benchmarks.bench_memory import TARGET_MB, measure  # noqa: E402
 
 TARGET = {"numpy": 2e7, "compiled": 1e8}
@@ -128,8 +128,10 @@ def timed(fn, repeat: int) -> float:
 
 
 def one_core(kernel, runs: int, repeat: int) -> float:
+    """One process, one BLAS thread (numpy was imported before netkf here: its OpenBLAS would use every core)."""
     rng = np.random.default_rng(0)
-    return timed(lambda: kernel(rng, runs), repeat)
+    with workers.limit_blas():
+        return timed(lambda: kernel(rng, runs), repeat)
 
 
 def two_cores(kernel, runs: int, repeat: int) -> float:

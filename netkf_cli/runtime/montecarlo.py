@@ -36,7 +36,7 @@ import numpy as np
 from netkf_cli.core.stats import mean_se, proportion_stderr, wilson_interval  # noqa: F401 (re-exported: one statistics module)
 from netkf_cli.core.errors import NetkfError
 from netkf_cli.runtime.workers import pool_kwargs  # pool workers ignore Ctrl-C and die with this process
-from netkf_cli.runtime.workers import release_free_memory
+from netkf_cli.runtime.workers import limit_blas, release_free_memory
 
 Stats = Mapping[str, np.ndarray | float | int]
 Kernel = Callable[[np.random.Generator, int], Stats]
@@ -240,7 +240,8 @@ def execution(executor: str = "serial", jobs: int = 1, scheduler: str | None = N
                    cache_dir=Path(cache_dir) if cache_dir else None, progress=progress, add_total=add_total)
     token = _EXEC.set(ex)
     try:
-        yield ex
+        with limit_blas():  # one BLAS thread here, as in every worker, whatever was imported first
+            yield ex
     finally:
         _EXEC.reset(token)
         ex.close()
