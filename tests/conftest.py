@@ -1,3 +1,4 @@
+import netkf_cli  # noqa: F401  (first: its one-BLAS-thread default must reach OpenBLAS before numpy loads it)
 import matplotlib
 
 matplotlib.use("Agg")
