@@ -1,11 +1,12 @@
 """plotting.save's cheaper figure (issue 20): laid out at the dpi it is saved at, one draw per format, the footnote wrapped by bisection with
-matplotlib's own line breaks, PNGs at a lower zlib level — and the same pixels as matplotlib's plain path."""
+matplotlib's own line breaks, PNGs as RGB at a lower zlib level — and the same pixels as matplotlib's plain path."""
 
 import io
 
 import numpy as np
 import pytest
 import matplotlib.image as mpimg
+from PIL import Image
 from matplotlib.figure import Figure
 
 from netkf_cli.runtime import plotting as P
@@ -91,5 +92,20 @@ def test_one_draw_per_format_and_the_pixels_of_matplotlibs_path(tmp_path, monkey
     fig.savefig(buf, format="png", dpi=P.STYLE["savefig.dpi"])
     P._mpl().plt.close(fig)
     ours, theirs = mpimg.imread(png), mpimg.imread(io.BytesIO(buf.getvalue()), format="png")
-    assert ours.shape == theirs.shape and np.array_equal(ours, theirs)
-    assert png.read_bytes() != buf.getvalue()  # another zlib level: other bytes, the same pixels
+    # matplotlib writes RGBA whatever the figure holds; ours is RGB when every pixel is opaque (a netkf figure's face)
+    assert theirs.shape[2] == 4 and (theirs[:, :, 3] == 1.0).all()
+    assert ours.shape == theirs.shape[:2] + (3,) and np.array_equal(ours, theirs[:, :, :3])
+    assert png.read_bytes() != buf.getvalue()  # RGB at another zlib level: other bytes, the same pixels
+    with Image.open(png) as im, Image.open(io.BytesIO(buf.getvalue())) as mpl_im:
+        assert im.mode == "RGB" and im.info["dpi"] == pytest.approx(mpl_im.info["dpi"])
+        assert im.info["Software"] == mpl_im.info["Software"]
+
+
+def test_a_figure_with_transparent_pixels_keeps_its_alpha(tmp_path):
+    fig, ax = P.new_figure()
+    fig.patch.set_alpha(0.0)  # a see-through face: RGB would paint it black
+    ax.plot([0, 1], [0, 1], label="x")
+    ax.set_title("t")
+    (png,) = P.save(fig, tmp_path / "f.png")
+    with Image.open(png) as im:
+        assert im.mode == "RGBA" and im.getextrema()[3][0] < 255
