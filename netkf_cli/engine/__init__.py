@@ -319,34 +319,42 @@ class PairKernel:
         """The chunk in fused kernels: the channel's uniforms (its own draw: the same numbers as
         ``sample_trace``) → per estimator, arrivals and filter steps compiled up to each reported step →
         the reducer's compiled ``update_tri`` on the packed state (or, for a reducer without one, its
-        ``update`` on the unpacked P). Rescue-flagged runs are carried on the numpy core
-        (:class:`kalman.FlaggedRuns`, as the compiled filter does) and written over their packed columns."""
+        ``update`` on the unpacked P). Rescue-flagged runs are carried on the numpy core from P0 and written over
+        their packed columns, as the compiled filter does (:meth:`kalman.Filter.stream_generated`): at the first
+        flag, a second kernel pass finds when each run is first flagged (:meth:`FusedFilter.first_flagged`) and
+        those runs advance once through the numpy core in step with the reporting pass."""
         u = self.channel.uniforms(rng, runs, self.horizon)
         q, red = self.quantity, self.reducer
         tri = hasattr(red, "update_tri")
         stats: dict = {}
         gam = None
         for j, fz in enumerate(fzs):
-            f, n = fz.f, fz.f.A.shape[0]
+            f = fz.f
+            n = f.A.shape[0]
             T, gprev, flag = fz.start(runs)
             X = T if q == "filtered" else np.empty_like(T)
-            redo = buf = None
-            t = 0
+            idx = k0 = Pn = None
+            t = tn = 0
             for k in self.steps:
                 fz.advance(T, u, gprev, flag, t, k)
                 t = k
                 if q != "filtered":
                     fz.predicted(T, X)
-                if flag.any():
-                    if redo is None:
-                        if gam is None:
-                            gam = self.channel.arrivals_from_uniforms(u)[None]
-                        P0 = np.broadcast_to(fz.P0[:, :, None], fz.P0.shape + (runs,))
-                        redo = kalman.FlaggedRuns(P0, lambda Pk, tt, ix, f=f: f.step(Pk, gam[:, tt][:, ix])[1])
-                        buf = np.empty((n, n, runs))
-                    redo.fill(buf, flag, k)
-                    Pq = kalman.report(buf[:, :, redo.idx], (q,), f.A, f.Q)[q]
-                    X[:, redo.idx] = kc.pack(Pq)
+                if idx is None and flag.any():  # the first flag: when is every run first flagged?
+                    if gam is None:
+                        gam = self.channel.arrivals_from_uniforms(u)[None]
+                    first = fz.first_flagged(u, self.steps[-1])
+                    idx = np.flatnonzero(first <= self.steps[-1])
+                    # a run flagged at step t is reported from the numpy core from the first step ≥ t on
+                    k0 = np.asarray(self.steps, dtype=np.int64)[np.searchsorted(self.steps, first[idx])]
+                    Pn = np.repeat(fz.P0[:, :, None], idx.size, axis=2)
+                if idx is not None:
+                    while tn < k:
+                        Pn = f.step(Pn, gam[:, tn][:, idx])[1]
+                        tn += 1
+                    sel = k0 <= k
+                    if sel.any():
+                        X[:, idx[sel]] = kc.pack(kalman.report(Pn[:, :, sel], (q,), f.A, f.Q)[q])
                 if tri:
                     red.update_tri(stats, j, k, X, n)
                 else:

@@ -95,6 +95,17 @@ class FusedFilter:
         pa, pb, pc = self.params
         self.adv(T, u, gprev, pa, pb, pc, t0, t1, flag)
 
+    def first_flagged(self, u, upto: int) -> np.ndarray:
+        """Per run, the first step t ≤ ``upto`` after which this kernel has flagged it for the rescue (``upto`` + 1:
+        never): :func:`kalman.first_flagged` on a second pass over the same uniforms ``u`` from P0."""
+        pa, pb, pc = self.params
+        gprev = np.zeros(u.shape[-1], dtype=np.bool_)
+
+        def adv(T, uu, t0, t1, flag):
+            self.adv(T, uu, gprev, pa, pb, pc, t0, t1, flag)
+
+        return kalman.first_flagged(adv, np.broadcast_to(self.P0[:, :, None], self.P0.shape + (u.shape[-1],)), u, upto)
+
     def predicted(self, T, out=None):
         """A P Aᵀ + Q of the packed T (into ``out``)."""
         out = np.empty_like(T) if out is None else out

@@ -28,8 +28,8 @@ over a fitted log-range Δ a line through it can tilt by that much at any sample
 The theoretical φ is attached for the ``kf`` estimator where a theorem (or the derived degenerate 2×2 law) gives it
 (:func:`netkf_cli.analysis.critical.tail_exponent`).
 
-The module also holds the critical recipe's time-averaged Monte Carlo kernel (:class:`TimeAverageKernel`), so both
-use only the stable contracts: ``channel.sample_trace``, ``estimator.covariances`` and ``montecarlo.run_chunked``.
+The module also holds the critical recipe's time-averaged Monte Carlo mean (:func:`time_average_mean`: the engine's
+``TimeAverageReducer``, so a ``kf`` on a bernoulli channel runs in its fused kernel).
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ from netkf_cli.core.lazy import pandas as pd
 from pydantic import Field, model_validator
 from scipy.special import stdtrit
 
+from netkf_cli import engine
 from netkf_cli.analysis import critical as cr
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.kf import KalmanFilterEstimator
@@ -467,29 +468,8 @@ class TailMetric(AnalysisModel):
 
 
 # =============================================================================================
-# The critical recipe's Monte Carlo: time-averaged E[tr P] on the stable contracts
+# The critical recipe's Monte Carlo: time-averaged E[tr P] on the engine
 # =============================================================================================
-
-
-class TimeAverageKernel:
-    """Per run, the average of tr P (``quantity``) over steps burn_in+1 … horizon; sums of it and its powers."""
-
-    def __init__(self, system, channel, estimator, horizon: int, burn_in: int, quantity: str = "predicted"):
-        self.system, self.channel, self.estimator = system, channel, estimator
-        self.horizon, self.burn_in, self.quantity = int(horizon), int(burn_in), quantity
-
-    def __call__(self, rng: np.random.Generator, runs: int) -> dict:
-        trace = self.channel.sample_trace(rng, runs, self.horizon)
-        steps = list(range(self.burn_in + 1, self.horizon + 1))
-        acc = np.zeros(runs)
-        with np.errstate(over="ignore", invalid="ignore"):
-            for k, P in covariances(self.estimator, self.system, trace, steps, self.quantity):
-                acc += np.einsum("iir->r", P) / len(steps)
-        ok = np.isfinite(acc)
-        a = np.where(ok, acc, 0.0)
-        with np.errstate(over="ignore"):
-            return {"s1": np.asarray(a.sum()), "s2": np.asarray((a * a).sum()), "s3": np.asarray((a**3).sum()),
-                    "s4": np.asarray((a**4).sum()), "bad": np.asarray(float((~ok).sum())), "n": np.asarray(float(runs))}
 
 
 HEAVY_TAIL_RSE = 0.5
@@ -498,16 +478,22 @@ HEAVY_TAIL_RSE = 0.5
 
 def time_average_mean(system, channel, estimator, *, runs: int, horizon: int, burn_in: int, seed: int, chunk: int,
                       stream: int, progress=None, quantity: str = "predicted") -> dict:
-    """Mean over runs of the per-run time average of tr P, its s.e., and the 4th-moment heavy-tail flag."""
-    st = run_chunked(TimeAverageKernel(system, channel, estimator, horizon, burn_in, quantity), runs, chunk, seed,
-                     stream=stream, progress=progress, label="time_average_mean")
+    """Mean over runs of the per-run time average of tr P (``quantity``) over steps burn_in+1 … horizon, its s.e., and
+    the 4th-moment heavy-tail flag. The per-run averages are the engine's (:class:`engine.TimeAverageReducer`, the
+    fused kernel where the estimator has one: chunks of ≥ 1e6 run-steps of ``kf`` on a bernoulli channel); the
+    summary is this module's, from their power sums."""
+    steps = list(range(burn_in + 1, horizon + 1))
+    st = engine.simulate(system, channel, [estimator], engine.TimeAverageReducer(steps), steps=steps, runs=runs,
+                         horizon=horizon, seed=seed, chunk=chunk, stream=stream, progress=progress,
+                         label="time_average_mean", quantity=quantity)
     n = float(st["n"])
-    bad = int(st["bad"])
+    bad = int(st["nonfinite_avg"])
+    s1, s2, s3, s4 = (float(st[k]) for k in ("sum_avg", "sumsq_avg", "sum3_avg", "sum4_avg"))
     m = max(n - bad, 1.0)
     with np.errstate(over="ignore", invalid="ignore"):
-        mu = float(st["s1"]) / m
-        var = max(float(st["s2"]) / m - mu * mu, 0.0)
-        c4 = float(st["s4"]) / m - 4 * mu * float(st["s3"]) / m + 6 * mu**2 * float(st["s2"]) / m - 3 * mu**4
+        mu = s1 / m
+        var = max(s2 / m - mu * mu, 0.0)
+        c4 = s4 / m - 4 * mu * s3 / m + 6 * mu**2 * s2 / m - 3 * mu**4
         rse = math.sqrt(max(c4 - var * var, 0.0) / m) / var if var > 0 else 0.0
     se = math.sqrt(var * m / max(m - 1, 1) / m)
     heavy = bad > 0 or not math.isfinite(rse) or rse > HEAVY_TAIL_RSE

@@ -1,0 +1,110 @@
+"""The critical topic's fast paths give the numbers of the paths they replaced, bit for bit.
+
+* the critical recipe's Monte Carlo time average on the engine (its fused kernel: uniforms → arrivals → filter →
+  trace, compiled) = the former trace → generated kernel → numpy prediction → trace pass (:class:`_FormerKernel`);
+* the engine's fused kernel carries rescue-flagged runs on the numpy core exactly as the compiled (non-fused)
+  filter does (a second kernel pass finds when each run is first flagged).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from netkf_cli import engine
+from netkf_cli.channels.bernoulli import BernoulliChannel
+from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
+from netkf_cli.core.system import LinearSystem
+from netkf_cli.estimators.kf import KalmanFilterEstimator
+from netkf_cli.metrics.tail import covariances, kf_for, time_average_mean
+from netkf_cli.runtime.montecarlo import run_chunked
+
+SYSTEMS = {  # (A, C, Q, R) of configs/critical/*.yaml
+    "vehicle": (np.array([[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1.0]]),
+                np.array([[1, 0, 0, 0], [0, 1, 0, 0.0]]), 0.01 * np.eye(4), 0.001 * np.eye(2)),
+    "two_unstable": (np.array([[1.25, 0], [1, 1.1]]), np.array([[0, 1.0]]), np.eye(2), np.eye(1)),
+    "degenerate_parity": (np.diag([2.0, -2.0]), np.array([[1.0, 1.0]]), np.eye(2), np.eye(1)),
+    "scalar_a2": (np.array([[2.0]]), np.array([[1.0]]), np.eye(1), np.eye(1)),
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# Monte Carlo time average on the engine's fused kernel
+# ---------------------------------------------------------------------------------------------
+
+
+class _FormerKernel:
+    """The critical recipe's former Monte Carlo chunk (metrics.tail.TimeAverageKernel): per run, the average of
+    tr P_{k+1|k} over k in (burn_in, horizon] from ``estimator.covariances``; sums of it and its powers."""
+
+    def __init__(self, system, channel, estimator, horizon, burn_in):
+        self.system, self.channel, self.estimator = system, channel, estimator
+        self.horizon, self.burn_in = horizon, burn_in
+
+    def __call__(self, rng, runs):
+        trace = self.channel.sample_trace(rng, runs, self.horizon)
+        steps = list(range(self.burn_in + 1, self.horizon + 1))
+        acc = np.zeros(runs)
+        with np.errstate(over="ignore", invalid="ignore"):
+            for _, P in covariances(self.estimator, self.system, trace, steps, "predicted"):
+                acc += np.einsum("iir->r", P) / len(steps)
+        ok = np.isfinite(acc)
+        a = np.where(ok, acc, 0.0)
+        with np.errstate(over="ignore"):
+            return {"s1": np.asarray(a.sum()), "s2": np.asarray((a * a).sum()), "s3": np.asarray((a**3).sum()),
+                    "s4": np.asarray((a**4).sum()), "bad": np.asarray(float((~ok).sum())), "n": np.asarray(float(runs))}
+
+
+@pytest.mark.parametrize("name, lam", [("vehicle", 0.3), ("two_unstable", 0.5), ("degenerate_parity", 0.8),
+                                        ("degenerate_parity", 0.97), ("scalar_a2", 0.78)])
+def test_time_average_mean_is_the_former_kernel_bit_for_bit(name, lam):
+    """Chunks of ≥ 1e6 run-steps: the former pass ran the generated kernel, the engine runs the fused one."""
+    pytest.importorskip("numba")
+    s = LinearSystem.create(*SYSTEMS[name])
+    ch = BernoulliChannel(kind="bernoulli", arrival=lam)
+    est = kf_for("predicted")
+    runs, horizon, burn_in, chunk = 7000, 300, 200, 3500
+    old = run_chunked(_FormerKernel(s, ch, est, horizon, burn_in), runs, chunk, 11, stream=3)
+    new = time_average_mean(s, ch, est, runs=runs, horizon=horizon, burn_in=burn_in, seed=11, chunk=chunk, stream=3)
+    n, bad = float(old["n"]), int(old["bad"])
+    m = max(n - bad, 1.0)
+    mu = float(old["s1"]) / m
+    se = math.sqrt(max(float(old["s2"]) / m - mu * mu, 0.0) * m / max(m - 1, 1) / m)
+    assert new["n"] == n and new["nonfinite"] == bad
+    assert new["mean_trace"] == (mu if bad == 0 else math.inf) and new["stderr"] == se
+
+
+# ---------------------------------------------------------------------------------------------
+# the engine's fused kernel: rescue-flagged runs
+# ---------------------------------------------------------------------------------------------
+
+RESCUE = LinearSystem.create(np.diag([2.0, -2.0]), np.array([[1.0, 1.0]]), np.eye(2), np.eye(1))
+CHANNELS = {"bernoulli": BernoulliChannel(kind="bernoulli", arrival=0.6),
+            "gilbert_elliott": GilbertElliottChannel(kind="gilbert_elliott", p_gb=0.3, p_bg=0.6)}
+
+
+@pytest.mark.parametrize("ch", list(CHANNELS))
+@pytest.mark.parametrize("quantity", ["filtered", "predicted"])
+def test_fused_flagged_runs_equal_the_compiled_filter(ch, quantity):
+    """Many runs flagged at many different steps (long loss bursts of a degenerate system): the fused chunk
+    equals the compiled filter's (stream_generated) bit for bit on statistics that read the diagonal."""
+    pytest.importorskip("numba")
+    c = CHANNELS[ch]
+    H, R = 120, 3000
+    steps = list(range(31, H + 1))
+    out = []
+    for fused in (True, False):
+        ker = engine.PairKernel(RESCUE, c, [KalmanFilterEstimator(kind="kf", backend="numba")], H, steps,
+                                engine.TimeAverageReducer(steps), quantity)
+        if not fused:
+            ker._fused_cache[R] = None  # the trace → compiled covariances → reducer path
+        out.append(ker(np.random.default_rng(8), R))
+        assert out[-1][engine.FUSED_CHUNKS].tolist() == [int(fused)]
+    for key in ("sum_avg", "sumsq_avg", "sum3_avg", "sum4_avg", "max_avg", "nonfinite_avg"):
+        assert np.array_equal(out[0][key], out[1][key]), key
+    fz = KalmanFilterEstimator(kind="kf", backend="numba").fused(RESCUE, c, 1)
+    first = fz.first_flagged(c.uniforms(np.random.default_rng(8), R, H), H)
+    flagged_at = np.unique(first[first <= H])
+    assert flagged_at.size > 10 and (first <= H).sum() > 30  # flags at many steps: the numpy redo was exercised
