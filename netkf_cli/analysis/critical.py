@@ -89,6 +89,11 @@ def _sym(X: np.ndarray) -> np.ndarray:
     return 0.5 * (X + X.T)
 
 
+def _t(X: np.ndarray) -> np.ndarray:
+    """Xᵀ over the last two axes (a stack of matrices stays a stack)."""
+    return np.swapaxes(X, -1, -2)
+
+
 def lambda_min(A: np.ndarray) -> float:
     """λ_min = 1 − 1/ρ(A)² (Sinopoli et al. 2004, Thm 3), 0 when A is Schur stable."""
     rho = spectral_radius(A)
@@ -280,19 +285,19 @@ class _SinopoliLMI:
         self.vars = [sdp.Var((n, n), symmetric=True), sdp.Var((n, m))]
 
     def psi(self, Y, Z, lam):
+        """Ψ_λ(Y, Z) (Thm 5); over the last two axes, so stacked (Y, Z) give stacked Ψ."""
         A, C = self.A, self.C
-        n = A.shape[0]
         B = Y @ A + Z @ C
-        O = np.zeros((n, n))
+        O = np.zeros_like(Y)
         a, b = math.sqrt(lam), math.sqrt(max(0.0, 1 - lam))
-        return np.block([[Y, a * B, b * Y @ A], [a * B.T, Y, O], [b * (Y @ A).T, O, Y]])
+        return np.block([[Y, a * B, b * Y @ A], [a * _t(B), Y, O], [b * _t(Y @ A), O, Y]])
 
     def margin(self, lam: float) -> tuple[float, str, bool]:
         """(t*, solver status, certified): certified = the returned (Y, Z) satisfies the strict LMI."""
         n = self.A.shape[0]
         try:
             sol = sdp.max_margin(self.vars, lambda v: [(self.psi(v[0], v[1], lam), True), (v[0], True),
-                                                       (np.eye(n) - v[0], False)])
+                                                       (np.eye(n) - v[0], False)], stacked=True)
         except sdp.SDPError as exc:  # pragma: no cover - solver crash
             raise CriticalRateError(f"LMI solve failed at λ = {lam:.6g}: {exc}") from None
         st = sol.status
@@ -442,11 +447,12 @@ class _MarkovLMI:
         self.vars = [sdp.Var((n, n), symmetric=True), sdp.Var((n, n), symmetric=True), sdp.Var((n, m))]
 
     def blocks(self, P0, P1, W, T) -> tuple[np.ndarray, np.ndarray]:
-        """The two Schur-complement matrices M₀, M₁ at (P₀, P₁, W) and transition matrix T."""
+        """The two Schur-complement matrices M₀, M₁ at (P₀, P₁, W) and transition matrix T (over the last two axes:
+        stacked values give stacked matrices)."""
         A, C = self.A, self.C
         E0, E1 = T[0, 0] * P0 + T[0, 1] * P1, T[1, 0] * P0 + T[1, 1] * P1
         M0 = np.block([[P0, A.T @ E0], [E0 @ A, E0]])
-        M1 = np.block([[P1, A.T @ E1 - C.T @ W.T], [E1 @ A - W @ C, E1]])
+        M1 = np.block([[P1, A.T @ E1 - C.T @ _t(W)], [E1 @ A - W @ C, E1]])
         return M0, M1
 
     def solve(self, p: float, q: float) -> sdp.Solution:
@@ -459,7 +465,7 @@ class _MarkovLMI:
             return [(M0, True), (M1, True), (v[0], True), (v[1], True), (I - v[0], False), (I - v[1], False)]
 
         try:
-            return sdp.max_margin(self.vars, lmis)
+            return sdp.max_margin(self.vars, lmis, stacked=True)
         except sdp.SDPError as exc:  # pragma: no cover
             raise CriticalRateError(f"Markov LMI solve failed at p = {p:.6g}, q = {q:.6g}: {exc}") from None
 

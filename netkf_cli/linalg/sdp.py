@@ -7,7 +7,8 @@ the critical-rate analysis (Sinopoli et al. 2004, Thm 5; the Markov LMI of Costa
 Thm 3.9) have this form: feasible ⇔ t* > 0.
 
 F_c is given as a numpy function of the variables' values; being affine, it is read off by probing,
-F_c(x) = F_c(0) + Σ_k x_k (F_c(e_k) − F_c(0)), one probe per scalar unknown (a few dozen here). The conic
+F_c(x) = F_c(0) + Σ_k x_k (F_c(e_k) − F_c(0)), one probe per scalar unknown (a few dozen here); a function that
+accepts stacked values (a leading probe axis: ``stacked=True``) is called once for all probes. The conic
 form goes to Clarabel as ``A x̃ + s = b, s ∈ K`` with one PSD-triangle cone per LMI: s = svec(F_c(x) − t I),
 svec = the upper triangle by columns with the off-diagonal entries × √2 (Clarabel's convention), symmetrized
 first. This is what cvxpy would hand Clarabel for the same problem, without cvxpy's import (~50 MB and ~1–2 s
@@ -65,9 +66,15 @@ def _svec_index(d: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def svec(M: np.ndarray) -> np.ndarray:
-    """Clarabel's PSD-triangle vector of the symmetric part of M: upper triangle by columns, off-diagonal × √2."""
-    i, j, scale = _svec_index(M.shape[0])
-    return 0.5 * (M[i, j] + M[j, i]) * scale
+    """Clarabel's PSD-triangle vector of the symmetric part of M: upper triangle by columns, off-diagonal × √2
+    (over the last two axes: a stack of matrices gives a stack of vectors)."""
+    i, j, scale = _svec_index(M.shape[-1])
+    return 0.5 * (M[..., i, j] + M[..., j, i]) * scale
+
+
+def _svec_order(length: int) -> int:
+    """d with d(d+1)/2 = ``length``."""
+    return int(round((math.sqrt(8 * length + 1) - 1) / 2))
 
 
 @dataclass
@@ -79,33 +86,50 @@ class Solution:
     status: str
 
 
-def max_margin(variables: list[Var], lmis: Callable[[list[np.ndarray]], list[tuple[np.ndarray, bool]]]) -> Solution:
+def probes(variables: list[Var], lmis: Callable, *, stacked: bool = False) -> list[tuple[np.ndarray, bool]]:
+    """[(V_c, margin), …]: V_c[0] = svec F_c(0) and V_c[1 + k] = svec F_c(e_k) for each basis unknown e_k
+    (:meth:`Var.units`, in order), shaped (1 + unknowns, d(d+1)/2).
+
+    ``stacked``: ``lmis`` is called once with every unknown's values stacked on a leading probe axis (zero at probe
+    0, the k-th basis matrix at probe 1 + k) and returns stacked F_c; else once per probe with plain matrices."""
+    units = [(i, E) for i, v in enumerate(variables) for E in v.units()]  # (which unknown, basis matrix)
+    if stacked:
+        vals = [np.zeros((1 + len(units),) + v.shape) for v in variables]
+        for k, (i, E) in enumerate(units):
+            vals[i][1 + k] = E
+        return [(svec(F), margin) for F, margin in lmis(vals)]
+    zero = [np.zeros(v.shape) for v in variables]
+    base = lmis(zero)
+    out = [[svec(F0)] for F0, _ in base]
+    for i, E in units:
+        vals = [z.copy() for z in zero]
+        vals[i] = E
+        for c, (F, _) in enumerate(lmis(vals)):
+            out[c].append(svec(F))
+    return [(np.stack(o), margin) for o, (_, margin) in zip(out, base)]
+
+
+def max_margin(variables: list[Var], lmis: Callable[[list[np.ndarray]], list[tuple[np.ndarray, bool]]], *,
+               stacked: bool = False) -> Solution:
     """Maximize t subject to the LMIs ``lmis(values)`` = [(F_c, margin), …] and t ≤ 1 (module docstring).
 
-    ``lmis`` must be affine in the values (it is evaluated at 0 and at each basis unknown).
+    ``lmis`` must be affine in the values (it is evaluated at 0 and at each basis unknown: :func:`probes`;
+    ``stacked``: all at once).
     """
     import clarabel  # here, not at module level: only the critical-rate analysis solves an SDP (~2 MB, 0.1 s per process)
 
     units = [(i, E) for i, v in enumerate(variables) for E in v.units()]  # (which unknown, basis matrix)
     zero = [np.zeros(v.shape) for v in variables]
-    base = lmis(zero)
-    base_vec = [svec(F0) for F0, _ in base]
-    cols = []
-    for i, E in units:
-        vals = [z.copy() for z in zero]
-        vals[i] = E
-        cols.append([svec(F) - b0 for (F, _), b0 in zip(lmis(vals), base_vec)])
     nx = len(units)
     rows_A, b, cones = [], [], []
-    for c, (F0, margin) in enumerate(base):
-        d = F0.shape[0]
-        block = np.zeros((d * (d + 1) // 2, nx + 1))
-        for k in range(nx):
-            block[:, k] = -cols[k][c]
+    for V, margin in probes(variables, lmis, stacked=stacked):
+        d = _svec_order(V.shape[1])
+        block = np.zeros((V.shape[1], nx + 1))
+        block[:, :nx] = -(V[1:] - V[0]).T  # the coefficient of unknown k: −(F_c(e_k) − F_c(0))
         if margin:
             block[:, nx] = svec(np.eye(d))
         rows_A.append(block)
-        b.append(base_vec[c])
+        b.append(V[0])
         cones.append(clarabel.PSDTriangleConeT(d))
     t_row = np.zeros((1, nx + 1))
     t_row[0, nx] = 1.0  # s = 1 − t ≥ 0

@@ -1,5 +1,6 @@
 """The critical topic's fast paths give the numbers of the paths they replaced, bit for bit.
 
+* the LMIs' probes stacked on one axis (``sdp.max_margin(stacked=True)``) = one probe per call: the same conic data;
 * the critical recipe's Monte Carlo time average on the engine (its fused kernel: uniforms → arrivals → filter →
   trace, compiled) = the former trace → generated kernel → numpy prediction → trace pass (:class:`_FormerKernel`);
 * the engine's fused kernel carries rescue-flagged runs on the numpy core exactly as the compiled (non-fused)
@@ -14,10 +15,12 @@ import numpy as np
 import pytest
 
 from netkf_cli import engine
+from netkf_cli.analysis import critical as cr
 from netkf_cli.channels.bernoulli import BernoulliChannel
 from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
 from netkf_cli.core.system import LinearSystem
 from netkf_cli.estimators.kf import KalmanFilterEstimator
+from netkf_cli.linalg import sdp
 from netkf_cli.metrics.tail import covariances, kf_for, time_average_mean
 from netkf_cli.runtime.montecarlo import run_chunked
 
@@ -28,6 +31,40 @@ SYSTEMS = {  # (A, C, Q, R) of configs/critical/*.yaml
     "degenerate_parity": (np.diag([2.0, -2.0]), np.array([[1.0, 1.0]]), np.eye(2), np.eye(1)),
     "scalar_a2": (np.array([[2.0]]), np.array([[1.0]]), np.eye(1), np.eye(1)),
 }
+
+
+# ---------------------------------------------------------------------------------------------
+# LMIs: stacked probes
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_stacked_probes_give_the_same_conic_data(name):
+    A, C, _, _ = SYSTEMS[name]
+    n = A.shape[0]
+    lmi = cr._SinopoliLMI(A, C)
+    for lam in (0.0, 0.3, 0.77, 1.0):
+        f = lambda v, lam=lam: [(lmi.psi(v[0], v[1], lam), True), (v[0], True), (np.eye(n) - v[0], False)]  # noqa: E731
+        for (a, ma), (b, mb) in zip(sdp.probes(lmi.vars, f), sdp.probes(lmi.vars, f, stacked=True)):
+            assert ma == mb and np.array_equal(a, b)
+    mk = cr._MarkovLMI(A, C)
+    for p, q in ((0.3, 0.6), (0.05, 0.999), (1.0, 0.41)):
+        T = np.array([[1 - q, q], [p, 1 - p]])
+
+        def g(v, T=T):
+            M0, M1 = mk.blocks(v[0], v[1], v[2], T)
+            return [(M0, True), (M1, True), (v[0], True), (v[1], True), (np.eye(n) - v[0], False)]
+
+        for (a, ma), (b, mb) in zip(sdp.probes(mk.vars, g), sdp.probes(mk.vars, g, stacked=True)):
+            assert ma == mb and np.array_equal(a, b)
+
+
+def test_stacked_and_per_probe_solves_agree():
+    A, C, _, _ = SYSTEMS["two_unstable"]
+    lmi = cr._SinopoliLMI(A, C)
+    f = lambda v: [(lmi.psi(v[0], v[1], 0.6), True), (v[0], True), (np.eye(2) - v[0], False)]  # noqa: E731
+    a, b = sdp.max_margin(lmi.vars, f), sdp.max_margin(lmi.vars, f, stacked=True)
+    assert a.t == b.t and a.status == b.status and all(np.array_equal(x, y) for x, y in zip(a.values, b.values))
 
 
 # ---------------------------------------------------------------------------------------------
