@@ -222,6 +222,15 @@ def modified_riccati(X: np.ndarray, A, C, Q, R, lam: float) -> np.ndarray:
     return _sym((1 - lam) * hX + lam * hg)
 
 
+def modified_riccati_batch(X: np.ndarray, A, C, Q, R, lams: np.ndarray) -> np.ndarray:
+    """:func:`modified_riccati` of X (n, n, r) at the rates ``lams`` (r,), one per column: the same operations
+    elementwise on the Kalman core's run axis, so column i is bit for bit g_{λ_i}(X[:, :, i])."""
+    hX = kalman.predict(X, A, Q)
+    hg = kalman.predict(kalman.update(X, C, R), A, Q)
+    Y = (1 - lams) * hX + lams * hg
+    return 0.5 * (Y + Y.swapaxes(0, 1))
+
+
 def _mare_derivative_solve(V, A, C, R, lam, rhs):
     """Solve H − (1−λ) A H Aᵀ − λ A_K H A_Kᵀ = rhs, A_K = A − K C with the gain of g_λ at V."""
     n = A.shape[0]
@@ -240,21 +249,42 @@ def v_bar(A, C, Q, R, lam: float, *, rtol: float = 1e-12, max_iter: int = 200_00
     of g_λ is H ↦ (1−λ) A H Aᵀ + λ A_K H A_Kᵀ). Returns ``inf`` when the iteration diverges
     (λ ≤ λ_max: no fixed point) or does not settle within ``max_iter`` steps.
     """
+    return v_bars(A, C, Q, R, [lam], rtol=rtol, max_iter=max_iter)[0]
+
+
+def v_bars(A, C, Q, R, lams, *, rtol: float = 1e-12, max_iter: int = 200_000) -> list[np.ndarray]:
+    """:func:`v_bar` at each rate of ``lams``: the fixed-point iterations of all rates run together on the Kalman
+    core's run axis (:func:`modified_riccati_batch`, column i bit for bit the iteration at λ_i, each stopped by its
+    own test), then each is polished on its own (:func:`_v_bar_polish`)."""
     A, C, Q, R = (np.atleast_2d(np.asarray(x, float)) for x in (A, C, Q, R))
     n = A.shape[0]
+    lams = np.asarray(lams, dtype=float).reshape(-1)
     inf = np.full((n, n), np.inf)
-    V = np.zeros((n, n))
     scale = 1.0 + float(np.trace(Q))
+    V = np.zeros((n, n, lams.size))
+    live = np.arange(lams.size)  # columns still iterating
+    done: dict[int, np.ndarray | None] = {}  # column → its iterate at the stopping test (None: diverged)
     for _ in range(max_iter):
-        Vn = modified_riccati(V, A, C, Q, R, lam)
-        if not np.all(np.isfinite(Vn)) or np.trace(Vn) > 1e14 * scale:
-            return inf
-        step = np.abs(Vn - V).max()
-        V = Vn
-        if step <= 1e-8 * max(1.0, np.abs(V).max()):
+        if not live.size:
             break
-    else:
-        return inf
+        Vn = modified_riccati_batch(V[:, :, live], A, C, Q, R, lams[live])
+        with np.errstate(over="ignore", invalid="ignore"):
+            bad = ~np.isfinite(Vn).all(axis=(0, 1)) | (np.trace(Vn, axis1=0, axis2=1) > 1e14 * scale)
+            step = np.abs(Vn - V[:, :, live]).max(axis=(0, 1))
+            stop = step <= 1e-8 * np.maximum(1.0, np.abs(Vn).max(axis=(0, 1)))
+        V[:, :, live] = Vn
+        for c, b, st in zip(live, bad, stop):
+            if b or st:
+                done[int(c)] = None if b else V[:, :, c].copy()
+        live = live[~(bad | stop)]
+    return [inf if done.get(i) is None else _v_bar_polish(done[i], A, C, Q, R, float(lams[i]), rtol)
+            for i in range(lams.size)]
+
+
+def _v_bar_polish(V: np.ndarray, A, C, Q, R, lam: float, rtol: float) -> np.ndarray:
+    """Newton steps on g_λ(V) − V from the fixed-point iterate V (:func:`v_bar`); ``inf`` if they fail."""
+    n = A.shape[0]
+    inf = np.full((n, n), np.inf)
     for _ in range(30):
         res = modified_riccati(V, A, C, Q, R, lam) - V
         if np.abs(res).max() <= rtol * max(1.0, np.abs(V).max()):

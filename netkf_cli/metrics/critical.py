@@ -323,11 +323,13 @@ class CriticalAnalysis(AnalysisModel):
         n_mc = int(sum(1 for lam in lams if lam > rep.lam_min and lam < 1)) if do_mc else 0
         ctx.total(runs * n_mc)
         rows, flags = [], []
+        above = [float(lam) for lam in lams if lam > lm.hi]  # where V̄ exists: all fixed points in one iteration
+        v_bars = dict(zip(above, cr.v_bars(s.A, s.C, s.Q, s.R, above)))
         for i, lam in enumerate(lams):
             lam = float(lam)
             base = dict(lam=lam, lambda_min=rep.lam_min, lambda_max=lm.hi)
             S = cr.s_bar(s.A, s.Q, lam)
-            V = cr.v_bar(s.A, s.C, s.Q, s.R, lam) if lam > lm.hi else np.full(s.A.shape, np.inf)
+            V = v_bars.get(lam, np.full(s.A.shape, np.inf))
             for series, X in (("S_bar", S), ("V_bar", V)):
                 tr = float(np.trace(X))
                 rows.append(dict(base, series=series, value=tr if math.isfinite(tr) else np.nan, stderr=0.0,

@@ -1,5 +1,6 @@
 """The critical topic's fast paths give the numbers of the paths they replaced, bit for bit.
 
+* V̄ at every rate in one batched fixed-point iteration (:func:`cr.v_bars`) = the former one-rate loop;
 * the LMIs' probes stacked on one axis (``sdp.max_margin(stacked=True)``) = one probe per call: the same conic data;
 * the critical recipe's Monte Carlo time average on the engine (its fused kernel: uniforms → arrivals → filter →
   trace, compiled) = the former trace → generated kernel → numpy prediction → trace pass (:class:`_FormerKernel`);
@@ -31,6 +32,50 @@ SYSTEMS = {  # (A, C, Q, R) of configs/critical/*.yaml
     "degenerate_parity": (np.diag([2.0, -2.0]), np.array([[1.0, 1.0]]), np.eye(2), np.eye(1)),
     "scalar_a2": (np.array([[2.0]]), np.array([[1.0]]), np.eye(1), np.eye(1)),
 }
+
+
+# ---------------------------------------------------------------------------------------------
+# V̄: batched fixed-point iteration
+# ---------------------------------------------------------------------------------------------
+
+
+def _former_v_bar(A, C, Q, R, lam, *, rtol=1e-12, max_iter=200_000):
+    """The one-rate loop :func:`cr.v_bar` ran before :func:`cr.v_bars` (iteration, then Newton polish)."""
+    n = A.shape[0]
+    V = np.zeros((n, n))
+    scale = 1.0 + float(np.trace(Q))
+    for _ in range(max_iter):
+        Vn = cr.modified_riccati(V, A, C, Q, R, lam)
+        if not np.all(np.isfinite(Vn)) or np.trace(Vn) > 1e14 * scale:
+            return np.full((n, n), np.inf)
+        step = np.abs(Vn - V).max()
+        V = Vn
+        if step <= 1e-8 * max(1.0, np.abs(V).max()):
+            break
+    else:
+        return np.full((n, n), np.inf)
+    return cr._v_bar_polish(V, A, C, Q, R, lam, rtol)
+
+
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_v_bars_equal_the_one_rate_loop_bit_for_bit(name):
+    A, C, Q, R = SYSTEMS[name]
+    lm = cr.lambda_max(A, C, tol=1e-4).hi
+    # above λ_max (converging at very different speeds) and below it (diverging): every column stops on its own
+    lams = [lm + 0.002, lm + 0.05, 0.5 * (lm + 1), 0.99] + ([lm - 0.05] if lm > 0.1 else []) + [lm + 0.01]
+    got = cr.v_bars(A, C, Q, R, lams, max_iter=20_000)
+    for lam, V in zip(lams, got):
+        ref = _former_v_bar(A, C, Q, R, lam, max_iter=20_000)
+        assert np.array_equal(V, ref), (name, lam)
+    assert any(np.isfinite(V).all() for V in got)
+    assert any(np.isinf(V).all() for V in got) == (lm > 0.1)
+    assert np.array_equal(cr.v_bar(A, C, Q, R, lams[1]), got[1])
+
+
+def test_v_bars_stops_at_max_iter_like_the_loop():
+    A, C, Q, R = SYSTEMS["scalar_a2"]
+    got = cr.v_bars(A, C, Q, R, [0.7501, 0.9], max_iter=30)  # 0.7501 needs far more than 30 steps
+    assert np.isinf(got[0]).all() and np.array_equal(got[1], _former_v_bar(A, C, Q, R, 0.9, max_iter=30))
 
 
 # ---------------------------------------------------------------------------------------------
