@@ -47,6 +47,7 @@ from netkf_cli import engine
 from netkf_cli.analysis import critical as cr
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.kf import KalmanFilterEstimator
+from netkf_cli.linalg import kalman
 from netkf_cli.metrics.common import kf_tail_exponent, loss_burst_law, MGrid, PaperRef, labels, m_values, needs
 from netkf_cli.runtime.montecarlo import run_chunked, wilson_interval
 from netkf_cli.runtime.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
@@ -130,28 +131,55 @@ def tilted_params(law, s: float):
     return kind, (1.0 - s * (1.0 - p), q * s)
 
 
-def window_loglik(law, prev: np.ndarray, win: np.ndarray) -> np.ndarray:
-    """log-probability of each run's window (W, runs) given the arrival just before it (runs,)."""
+COMPILED_MIN_RUNS = engine.REDUCE_MIN_RUNS
+"""Windows of at least this many runs get their log-likelihoods from :mod:`netkf_cli.metrics._tail_numba` (the
+same sums compiled) when numba is importable; smaller ones (tests, quick runs) stay on numpy."""
+
+
+def window_loglik(law, prev: np.ndarray, win: np.ndarray, *, backend: str = "auto") -> np.ndarray:
+    """log-probability of each run's window (W, runs) given the arrival just before it (runs,).
+
+    ``backend`` numpy (the reference), numba (the same sums compiled, :mod:`netkf_cli.metrics._tail_numba`) or
+    auto (numba for ≥ :data:`COMPILED_MIN_RUNS` runs when importable)."""
     kind, par = law
+    W, runs = win.shape
+    compiled = backend == "numba" or (backend == "auto" and runs >= COMPILED_MIN_RUNS and kalman.numba_available())
     g = win.astype(bool)
     with np.errstate(divide="ignore"):
-        if kind == "bernoulli_steps":                        # one arrival probability per window step (W,)
-            v = np.asarray(par, float)[-win.shape[0]:, None]
-            return np.where(g, np.log(v), np.log1p(-v)).sum(axis=0)
-        if kind == "bernoulli":
-            lam = par
-            return np.where(g, math.log(lam) if lam > 0 else -np.inf,
-                            math.log1p(-lam) if lam < 1 else -np.inf).sum(axis=0)
+        if kind in ("bernoulli", "bernoulli_steps"):
+            if kind == "bernoulli_steps":                    # one arrival probability per window step (W,)
+                v = np.asarray(par, float)[-W:, None]
+                la, lb = np.log(v), np.log1p(-v)
+            else:
+                lam = par
+                la = math.log(lam) if lam > 0 else -np.inf
+                lb = math.log1p(-lam) if lam < 1 else -np.inf
+            if not compiled:
+                return np.where(g, la, lb).sum(axis=0)
+            out = np.empty(runs)
+            _tail_nb().iid_loglik(g, np.broadcast_to(la, (W, 1))[:, 0].copy(), np.broadcast_to(lb, (W, 1))[:, 0].copy(),
+                                  out)
+            return out
         p, q = par
         lp = {(1, 1): math.log1p(-p) if p < 1 else -np.inf, (1, 0): math.log(p) if p > 0 else -np.inf,
               (0, 1): math.log(q) if q > 0 else -np.inf, (0, 0): math.log1p(-q) if q < 1 else -np.inf}
-        tot = np.zeros(win.shape[1])
+        if compiled:
+            out = np.empty(runs)
+            _tail_nb().markov_loglik(g, np.array(prev, dtype=bool), lp[(1, 1)], lp[(1, 0)], lp[(0, 1)], lp[(0, 0)], out)
+            return out
+        tot = np.zeros(runs)
         a = prev.astype(bool)
-        for t in range(win.shape[0]):
+        for t in range(W):
             b = g[t]
             tot += np.where(a, np.where(b, lp[(1, 1)], lp[(1, 0)]), np.where(b, lp[(0, 1)], lp[(0, 0)]))
             a = b
         return tot
+
+
+def _tail_nb():
+    from netkf_cli.metrics import _tail_numba  # optional dependency (numba): the compiled window sums
+
+    return _tail_numba
 
 
 def sample_window(rng, law, prev: np.ndarray, W: int) -> np.ndarray:

@@ -190,3 +190,29 @@ def test_fused_flagged_runs_equal_the_compiled_filter(ch, quantity):
     first = fz.first_flagged(c.uniforms(np.random.default_rng(8), R, H), H)
     flagged_at = np.unique(first[first <= H])
     assert flagged_at.size > 10 and (first <= H).sum() > 30  # flags at many steps: the numpy redo was exercised
+
+
+# ---------------------------------------------------------------------------------------------
+# the tail metric's importance weights: window log-likelihoods compiled
+# ---------------------------------------------------------------------------------------------
+
+LAWS = [("bernoulli", 0.5), ("bernoulli", 0.97 * 0.3), ("bernoulli", 1.0), ("bernoulli", 0.0),
+        ("bernoulli_steps", np.array([0.97, 0.3, 0.97, 0.3, 0.0, 1.0, 0.5] * 6)),
+        ("gilbert_elliott", (0.2, 0.6)), ("gilbert_elliott", (1 - 0.3 * 0.8, 0.6 * 0.3)),
+        ("gilbert_elliott", (1.0, 0.0)), ("gilbert_elliott", (0.0, 1.0))]
+
+
+@pytest.mark.parametrize("law", LAWS, ids=lambda law: f"{law[0]}")
+@pytest.mark.parametrize("W", [1, 7, 40])
+def test_window_loglik_compiled_equals_numpy(law, W):
+    pytest.importorskip("numba")
+    from netkf_cli.metrics.tail import window_loglik
+
+    rng = np.random.default_rng(W)
+    runs = 3001
+    arr = rng.random((1, 60, runs)) < rng.uniform(0.2, 0.9, runs)  # a trace; windows are views of it, as in TailKernel
+    win, prev = arr[0, 60 - W:], arr[0, 60 - W - 1]
+    a = window_loglik(law, prev, win, backend="numpy")
+    b = window_loglik(law, prev, win, backend="numba")
+    assert np.array_equal(a, b)  # the same sums in the same order, -inf included
+    assert window_loglik(law, prev[:100], win[:, :100]).shape == (100,)  # auto: numpy below COMPILED_MIN_RUNS
