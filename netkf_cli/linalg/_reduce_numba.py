@@ -131,11 +131,14 @@ def lmax_tri(T, n, out):
 
 @nb.njit(**_opts)
 def trace_acc(T, n, L, acc):
-    """TimeAverageReducer at one step: acc (runs,) += tr P / L (non-finite values propagate)."""
-    for r in range(T.shape[1]):
-        tr = 0.0
-        k = 0
-        for i in range(n):
-            tr += T[k, r]
-            k += n - i
-        acc[r] += tr / L
+    """TimeAverageReducer at one step: acc (runs,) += tr P / L (non-finite values propagate). The diagonal is
+    summed in order (0 + P₀₀ + P₁₁ + …, numpy's einsum order) one row of T at a time, so the run loops vectorize."""
+    runs = T.shape[1]
+    tr = np.zeros(runs)
+    k = 0
+    for i in range(n):
+        for r in range(runs):
+            tr[r] += T[k, r]
+        k += n - i
+    for r in range(runs):
+        acc[r] += tr[r] / L

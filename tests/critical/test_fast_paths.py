@@ -216,3 +216,23 @@ def test_window_loglik_compiled_equals_numpy(law, W):
     b = window_loglik(law, prev, win, backend="numba")
     assert np.array_equal(a, b)  # the same sums in the same order, -inf included
     assert window_loglik(law, prev[:100], win[:, :100]).shape == (100,)  # auto: numpy below COMPILED_MIN_RUNS
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_compiled_trace_average_is_numpys_bit_for_bit(n):
+    """engine.TimeAverageReducer's compiled step (_reduce_numba.trace_acc) adds tr P / L as numpy's trace does."""
+    pytest.importorskip("numba")
+    from netkf_cli.linalg import _reduce_numba as rn
+    from netkf_cli.linalg import kalman_codegen as kc
+
+    rng = np.random.default_rng(n)
+    runs = 5001
+    acc_nb, acc_np = np.zeros(runs), np.zeros(runs)
+    for step in range(5):
+        X = rng.standard_normal((n, n, runs)) * 10.0 ** rng.uniform(-8, 8, runs)
+        P = np.einsum("ijr,kjr->ikr", X, X)
+        P[:, :, :3] = [np.inf, np.nan, 1e308][step % 3]  # non-finite and overflowing runs propagate alike
+        rn.trace_acc(kc.pack(P), n, 7.0, acc_nb)
+        with np.errstate(over="ignore", invalid="ignore"):
+            acc_np += np.einsum("iir->r", P) / 7.0
+        assert np.array_equal(acc_nb, acc_np, equal_nan=True)
