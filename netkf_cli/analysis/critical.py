@@ -225,9 +225,9 @@ def modified_riccati(X: np.ndarray, A, C, Q, R, lam: float) -> np.ndarray:
 def modified_riccati_batch(X: np.ndarray, A, C, Q, R, lams: np.ndarray) -> np.ndarray:
     """:func:`modified_riccati` of X (n, n, r) at the rates ``lams`` (r,), one per column: the same operations
     elementwise on the Kalman core's run axis, so column i is bit for bit g_{λ_i}(X[:, :, i])."""
-    hX = kalman.predict(X, A, Q)
-    hg = kalman.predict(kalman.update(X, C, R), A, Q)
-    Y = (1 - lams) * hX + lams * hg
+    r = X.shape[-1]
+    H = kalman.predict(np.concatenate([X, kalman.update(X, C, R)], axis=2), A, Q)  # h(X) and h(g̃(X)) in one call
+    Y = (1 - lams) * H[:, :, :r] + lams * H[:, :, r:]
     return 0.5 * (Y + Y.swapaxes(0, 1))
 
 
@@ -267,16 +267,18 @@ def v_bars(A, C, Q, R, lams, *, rtol: float = 1e-12, max_iter: int = 200_000) ->
     for _ in range(max_iter):
         if not live.size:
             break
-        Vn = modified_riccati_batch(V[:, :, live], A, C, Q, R, lams[live])
+        Vl = V[:, :, live]
+        Vn = modified_riccati_batch(Vl, A, C, Q, R, lams[live])
         with np.errstate(over="ignore", invalid="ignore"):
-            bad = ~np.isfinite(Vn).all(axis=(0, 1)) | (np.trace(Vn, axis1=0, axis2=1) > 1e14 * scale)
-            step = np.abs(Vn - V[:, :, live]).max(axis=(0, 1))
-            stop = step <= 1e-8 * np.maximum(1.0, np.abs(Vn).max(axis=(0, 1)))
+            top = np.abs(Vn).max(axis=(0, 1))  # nan or inf where an entry is not finite
+            bad = ~np.isfinite(top) | (np.trace(Vn, axis1=0, axis2=1) > 1e14 * scale)
+            stop = np.abs(Vn - Vl).max(axis=(0, 1)) <= 1e-8 * np.maximum(1.0, top)
         V[:, :, live] = Vn
-        for c, b, st in zip(live, bad, stop):
-            if b or st:
+        end = bad | stop
+        if end.any():
+            for c, b in zip(live[end], bad[end]):
                 done[int(c)] = None if b else V[:, :, c].copy()
-        live = live[~(bad | stop)]
+            live = live[~end]
     return [inf if done.get(i) is None else _v_bar_polish(done[i], A, C, Q, R, float(lams[i]), rtol)
             for i in range(lams.size)]
 
