@@ -5,7 +5,9 @@
 * the critical recipe's Monte Carlo time average on the engine (its fused kernel: uniforms → arrivals → filter →
   trace, compiled) = the former trace → generated kernel → numpy prediction → trace pass (:class:`_FormerKernel`);
 * the engine's fused kernel carries rescue-flagged runs on the numpy core exactly as the compiled (non-fused)
-  filter does (a second kernel pass finds when each run is first flagged).
+  filter does (a second kernel pass finds when each run is first flagged);
+* the tail metric's window log-likelihoods compiled (metrics/_tail_numba) = numpy's sums;
+* the engine's compiled time-average step (_reduce_numba.trace_acc) = numpy's trace / L.
 """
 
 from __future__ import annotations
