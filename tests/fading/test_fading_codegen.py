@@ -156,3 +156,44 @@ def _close(y, x, bound=1e-9):
     ax = tuple(range(x.ndim - 1))
     err = np.abs(y - x).max(axis=ax) / np.abs(x).max(axis=ax)
     assert err.max(initial=0) <= bound, err.max()
+
+
+@pytest.mark.parametrize("mode,name", [(0, "fig6"), (0, "sec42"), (1, "fig6"), (2, "sec42"), (2, "m2")])
+def test_tiles_are_invisible(mode, name):
+    """The kernel advances runs in tiles of fcg.TILE (the loop over a tile's runs vectorised); with the inline rescue a
+    tile step takes the plain update when no run of the tile needs the rescue, the rescue variant otherwise. Each
+    run's numbers must not depend on its tile: every run alone (B = 1) gives the same bytes as all runs together
+    (B not a multiple of TILE; priors with tr P above and below kalman.Rescue's limit mixed within tiles)."""
+    S = SYSTEMS[name]
+    A, C, R = S["A"], S["C"], S["R"]
+    sc = 3 if mode == 0 else 2
+    rm = fr.ReceiverModel(sc, A, C, Q5, R, None)
+    rng = np.random.default_rng(3)
+    B, T, n = 2 * fcg.TILE + 5, 20, 3
+    keep = rng.random((T, B)) < 0.6
+    s2 = 1e-4 * rng.random((T, B))
+    s2u = 1e-4 * rng.random((T, B))
+    mu = rng.random(B)
+    scale = np.where(rng.random(B) < 0.1, 2.0, 0.05 * rng.random(B))  # a few runs start above the limit
+    P0 = fcg.pack(np.eye(n)[None] * scale[:, None, None])
+    inline = fcg.inline_rescue(mode, C)
+    rec = np.full(T, -1, dtype=np.int64)
+    rec[[4, T - 1]] = [0, 1]
+
+    def go(idx):
+        b = len(idx)
+        P, U = P0[:, idx].copy(), P0[:, idx].copy()
+        G = P0[:, idx].copy() if mode == 2 else np.zeros((6, 1))
+        F, Uf = np.zeros((6, b)), np.zeros((6, b))
+        fl = np.zeros(b, dtype=np.int8)
+        recs = [np.zeros((2, n, n, b)) for _ in range(4)]
+        fcg.kernel(mode, A, C, Q5, R, rm.gain_inv, rm.rescue.limit, True, True, inline)(
+            np.ascontiguousarray(keep[:, idx]), np.ascontiguousarray(s2[:, idx]), np.ascontiguousarray(s2u[:, idx]),
+            mu[idx], P, F, U, Uf, G, fl, rec, *recs)
+        return [P, F, U, Uf, fl[None]] + ([G] if mode == 2 else []) + [r.reshape(-1, b) for r in recs]
+
+    together = go(np.arange(B))
+    for b in range(B):
+        alone = go(np.array([b]))
+        for x, y in zip(together, alone):
+            assert x[:, b].tobytes() == y[:, 0].tobytes(), b
