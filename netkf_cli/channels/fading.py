@@ -22,7 +22,8 @@ SNR values are never guessed: every SNR carries ``unit: linear | dB``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections import OrderedDict
+from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import ClassVar, Literal
 
@@ -169,15 +170,100 @@ def snr_given_kept(snr, threshold: float, snr_avg: float) -> np.ndarray:
     accuracy; given a keep, (F(Υ) − μ)/(1 − μ) is uniform and Υ' = Υ. Either way Υ' ~ Υ | Υ ≥ Υ_T and
     Υ' is independent of the keep decision (the burst-conditioned receiver estimator needs both)."""
     Y = np.asarray(snr, dtype=float)
-    T, a = float(threshold), float(snr_avg)
-    drop = Y < T
-    if T <= 0 or not drop.any():
+    drop = Y < float(threshold)
+    if float(threshold) <= 0 or not drop.any():
         return Y
-    with np.errstate(divide="ignore", invalid="ignore"):
-        e = T / a - np.log(np.expm1((T - Y[drop]) / a)) + np.log(-np.expm1(-T / a))  # −log(1 − V) ~ Exp(1)
     out = Y.copy()
-    out[drop] = T + a * np.maximum(e, 0.0)
+    out[drop] = snr_given_dropped(Y[drop], threshold, snr_avg)
     return out
+
+
+def snr_given_dropped(snr, threshold: float, snr_avg: float) -> np.ndarray:
+    """Υ' of :func:`snr_given_kept` for dropped entries Υ < Υ_T only (Υ_T > 0): Υ_T + Υ_ave·(−log(1 − V))."""
+    Y = np.asarray(snr, dtype=float)
+    T, a = float(threshold), float(snr_avg)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = T / a - np.log(np.expm1((T - Y) / a)) + np.log(-np.expm1(-T / a))  # −log(1 − V) ~ Exp(1)
+    return T + a * np.maximum(e, 0.0)
+
+
+def noise_of_trace(trace: Trace, noise) -> np.ndarray:
+    """σ_n²(Υ) of every entry of ``trace.snr`` (horizon, runs), computed once per drawn sample (shared by the
+    traces of one sample: :class:`DrawnSamples`). Not to be modified. (Kept with the SNR array it was computed
+    from: a trace whose ``snr`` was replaced by another array gets its own.)"""
+    snr = trace.snr
+    got = trace.derived(("noise_of_trace", noise), lambda: (snr, noise(snr)))
+    return got[1] if got[0] is snr else noise(snr)
+
+
+def noise_where_kept(trace: Trace, t: int, k: int, threshold: float, noise) -> np.ndarray:
+    """σ_n²(Υ) of steps t … k−1 where the packet is kept (Υ ≥ Υ_T), σ_n²(1) where dropped (a placeholder the
+    receivers never use), a new array: ``noise(np.where(Υ ≥ Υ_T, Υ, 1.0))`` entry for entry (the same
+    elementwise function), with the kept entries taken from :func:`noise_of_trace`."""
+    Y = trace.snr[t:k]
+    out = noise_of_trace(trace, noise)[t:k].copy()
+    drop = ~(Y >= threshold)
+    if drop.any():
+        out[drop] = noise(np.ones(int(drop.sum())))
+    return out
+
+
+def noise_given_kept(trace: Trace, t: int, k: int, threshold: float, snr_avg: float, noise) -> np.ndarray:
+    """σ_n²(Υ') of steps t … k−1, Υ' = :func:`snr_given_kept` (Υ itself where kept), a new array:
+    ``noise(snr_given_kept(Υ, Υ_T, Υ_ave))`` entry for entry, with the kept entries taken from
+    :func:`noise_of_trace` (only the dropped ones, a fraction μ_ave, are evaluated per threshold)."""
+    Y = trace.snr[t:k]
+    out = noise_of_trace(trace, noise)[t:k].copy()
+    drop = Y < float(threshold)
+    if float(threshold) > 0 and drop.any():
+        out[drop] = noise(snr_given_dropped(Y[drop], threshold, snr_avg))
+    return out
+
+
+@dataclass
+class DrawnSamples:
+    """The SNR samples this process drew, by the state of the generator they were drawn from.
+
+    The points of a sweep with common random numbers (``streams: common``) draw chunk i from the same
+    generator state at every point (Fig. 6: 18 thresholds × 4 chunks, 4 distinct samples). A state seen a
+    second time is kept: its SNR array (read-only), the generator's state after the draw — restored on a hit,
+    so the caller's generator continues exactly as after a fresh draw — and what receivers derive from the
+    sample alone (:func:`noise_of_trace`). A state seen once keeps only its key (a scenario without repeats
+    holds no arrays); at most ``max_bytes`` of arrays, the least recently used dropped first."""
+
+    max_bytes: float = 64e6
+    seen: OrderedDict = field(default_factory=OrderedDict)
+    kept: OrderedDict = field(default_factory=OrderedDict)
+
+    def draw(self, key, rng: np.random.Generator, sample) -> tuple[np.ndarray, dict]:
+        """(snr, derived) for ``key`` (which must name everything the draw depends on besides ``rng``'s state):
+        ``sample()`` draws it from ``rng``."""
+        key = (repr(rng.bit_generator.state),) + tuple(key)
+        hit = self.kept.get(key)
+        if hit is not None:
+            self.kept.move_to_end(key)
+            rng.bit_generator.state = hit[1]
+            return hit[0], hit[2]
+        snr = sample()
+        snr.flags.writeable = False  # (whether kept or not: a trace's SNR is never written in place)
+        derived: dict = {}
+        if key in self.seen:
+            self.kept[key] = (snr, rng.bit_generator.state, derived)
+            while len(self.kept) > 1 and sum(_nbytes(v) for v in self.kept.values()) > self.max_bytes:
+                self.kept.popitem(last=False)
+        else:
+            self.seen[key] = None
+            if len(self.seen) > 4096:
+                self.seen.popitem(last=False)
+        return snr, derived
+
+
+def _nbytes(entry) -> int:
+    return entry[0].nbytes + sum(sum(getattr(x, "nbytes", 0) for x in v) if isinstance(v, tuple)
+                                 else getattr(v, "nbytes", 0) for v in entry[2].values())
+
+
+DRAWN = DrawnSamples()
 
 
 @dataclass(frozen=True)
@@ -273,10 +359,14 @@ class FadingChannel(ChannelModel):
         Same random numbers as :meth:`sample`. A receiver turns Υ_t into the drop (Υ_t < Υ_T, eq. 5)
         and the communication-noise variance σ_n²(Υ_t) of each step.
         """
-        return Trace(runs=runs, horizon=horizon, snr=self.sample(rng, runs, horizon).snr,
-                     meta={"noise": NoiseFn.of(self.noise), "snr_avg": self.mean_snr,
-                           "correlation": self.correlation.model,
-                           "threshold": None if self.threshold is None else self.threshold.linear})
+        snr, derived = DRAWN.draw((runs, horizon, self.mean_snr, repr(self.correlation)), rng,
+                                  lambda: self.sample(rng, runs, horizon).snr)
+        trace = Trace(runs=runs, horizon=horizon, snr=snr,
+                      meta={"noise": NoiseFn.of(self.noise), "snr_avg": self.mean_snr,
+                            "correlation": self.correlation.model,
+                            "threshold": None if self.threshold is None else self.threshold.linear})
+        trace._derived = derived  # what is derived from the sample alone, shared by its traces (DrawnSamples)
+        return trace
 
     def drop_law(self, threshold: float, horizon: int) -> "GaussianDropLaw":
         """The contract of a drop-burst sequential Monte Carlo (``kind: burst_mean``): a packet is dropped iff

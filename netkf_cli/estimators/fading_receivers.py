@@ -55,6 +55,7 @@ from netkf_cli.linalg import kalman
 from netkf_cli.linalg.kalman import numba_available  # noqa: F401  (re-exported: the one probe)
 from netkf_cli.analysis import fading as fa
 from netkf_cli.channels.fading import IidCorrelation, NoiseFn, Snr, sample_gain, snr_given_kept  # noqa: F401
+from netkf_cli.channels.fading import noise_given_kept, noise_where_kept
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators import _fading_codegen as fcg
 from netkf_cli.linalg import kalman_codegen as kc
@@ -222,11 +223,11 @@ class ReceiverEstimator(EstimatorModel):
             if rm.scenario == 1:
                 s2 = np.zeros(Y.shape)
                 s2u = None
-            elif cond:  # = σ_n²(Υ) where kept; the same array for every receiver of this trace (Trace.derived)
-                s2 = trace.derived(("s2_given_kept", t, k, T, Ya, rm.noise), lambda: rm.noise(snr_given_kept(Y, T, Ya)))
+            elif cond:  # = σ_n²(Υ) where kept (σ_n² of the sample's Υ computed once per sample: noise_of_trace)
+                s2 = noise_given_kept(trace, t, k, T, Ya, rm.noise)
                 s2u = None if rb is None else np.full(Y.shape, float(rb))
             else:
-                s2 = trace.derived(("s2_kept", t, k, T, rm.noise), lambda: rm.noise(np.where(keep, Y, 1.0)))
+                s2 = noise_where_kept(trace, t, k, T, rm.noise)
                 s2u = None
             rec = np.full(k - t, -1, dtype=np.int64)
             rec[np.asarray(grp) - t - 1] = np.arange(len(grp))

@@ -59,8 +59,8 @@ def _perfect_trace(kind: str, runs: int, horizon: int) -> Trace:
         tr.arrival[...] = True
     if tr.delay is not None:
         tr.delay[...] = 0
-    if tr.snr is not None:
-        tr.snr[...] = 1e12
+    if tr.snr is not None:  # (a fading channel's SNR array is read-only: shared by the traces of one sample)
+        tr.snr = np.full(tr.snr.shape, 1e12)
     if tr.mode is not None:
         tr.mode[...] = 0
     return tr

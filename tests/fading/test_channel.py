@@ -90,3 +90,58 @@ def test_gain_parts_are_the_complex_gain_bit_for_bit(model):
     assert np.array_equal(re, z.real) and np.array_equal(im, z.imag)
     assert np.array_equal(100.0 * (re**2 + im**2), 100.0 * (z.real**2 + z.imag**2))
     assert r1.random() == r2.random()
+
+
+@pytest.mark.parametrize("model", ["iid", "jakes"])
+def test_a_drawn_sample_is_reused_with_the_generator_state_after_it(model):
+    """DrawnSamples: the second and later draws from one generator state return the first draw's SNR, and leave the
+    generator exactly where a fresh draw leaves it (the next numbers equal); another state or size draws anew."""
+    from netkf_cli.channels import fading as cf
+
+    corr = {"model": "iid"} if model == "iid" else {"model": "jakes", "carrier_hz": 1e9, "interval_s": 0.01,
+                                                      "speed": {"value": 25, "unit": "mph"}}
+    ch = chan(correlation=corr)
+    drawn = []
+    real = ch.sample
+
+    def counted(rng, runs, horizon):
+        drawn.append((runs, horizon))
+        return real(rng, runs, horizon)
+
+    object.__setattr__(ch, "sample", counted)
+    seq = np.random.SeedSequence(9, spawn_key=(0, 3))
+    fresh = np.random.default_rng(seq)
+    ref = real(fresh, 50, 20).snr
+    after = fresh.random(5)
+    for i in range(4):
+        rng = np.random.default_rng(seq)
+        tr = ch.sample_trace(rng, 50, 20)
+        assert tr.snr.tobytes() == ref.tobytes()
+        assert rng.random(5).tobytes() == after.tobytes()
+    assert len(drawn) == 2  # drawn when first seen and when seen again (then kept), reused from then on
+    assert not ch.sample_trace(np.random.default_rng(seq), 50, 20).snr.flags.writeable
+    ch.sample_trace(np.random.default_rng(seq), 50, 21)
+    ch.sample_trace(np.random.default_rng(np.random.SeedSequence(9, spawn_key=(0, 4))), 50, 20)
+    assert len(drawn) == 4
+
+
+def test_noise_helpers_equal_the_noise_of_the_whole_array_bit_for_bit():
+    """noise_given_kept / noise_where_kept (σ_n² of the kept entries from the sample's σ_n²(Υ), only the dropped
+    ones per threshold) = noise(snr_given_kept(Υ)) / noise(np.where(keep, Υ, 1)), byte for byte; fresh arrays."""
+    from netkf_cli.channels.fading import NoiseFn, noise_given_kept, noise_where_kept, snr_given_kept
+
+    ch = chan()
+    tr = ch.sample_trace(np.random.default_rng(np.random.SeedSequence(5)), 400, 30)
+    noise = NoiseFn.of(ch.noise)
+    for T in (0.0, 1.0, 14.0, 60.0):
+        for t, k in ((0, 30), (3, 17)):
+            Y = tr.snr[t:k]
+            got = noise_given_kept(tr, t, k, T, 100.0, noise)
+            assert got.tobytes() == noise(snr_given_kept(Y, T, 100.0)).tobytes()
+            got2 = noise_where_kept(tr, t, k, T, noise)
+            assert got2.tobytes() == noise(np.where(Y >= T, Y, 1.0)).tobytes()
+            got[...] = 0.0  # a new array each time: the shared σ_n²(Υ) is untouched
+            got2[...] = 0.0
+    assert noise_given_kept(tr, 0, 30, 14.0, 100.0, noise).tobytes() == noise(snr_given_kept(tr.snr, 14.0, 100.0)).tobytes()
+    tr.snr = np.full(tr.snr.shape, 1e12)  # another array: its own σ_n²(Υ), not the sample's
+    assert noise_where_kept(tr, 0, 30, 14.0, noise).tobytes() == noise(tr.snr).tobytes()

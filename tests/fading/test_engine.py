@@ -340,8 +340,10 @@ def test_generic_compiled_step_for_four_states_equals_numpy(sc):
 
 @pytest.mark.parametrize("vr", ["none", "conditioned"])
 def test_receivers_of_one_trace_share_its_noise_variances(vr, monkeypatch):
-    """Two receivers reading one trace compute σ_n²(Υ) of each block once (Trace.derived), and their covariances
-    are bit for bit those each gets from a trace of its own."""
+    """Receivers reading one sample compute σ_n²(Υ) of its whole SNR array once (channels.fading.noise_of_trace, shared
+    by every trace of the sample: DrawnSamples), each then only the dropped entries of its threshold; their
+    covariances are bit for bit those each gets from a trace of its own, on a copy of the sample never shared."""
+    from netkf_cli.core.trace import Trace
     from netkf_cli.estimators.fading_receivers import ReceiverEstimator
 
     s = LinearSystem.create(A5, 2 * np.eye(3), Q5, 1e-8 * np.eye(3), np.eye(3))
@@ -349,15 +351,21 @@ def test_receivers_of_one_trace_share_its_noise_variances(vr, monkeypatch):
                                               "threshold": {"value": 10, "unit": "linear"}, "backend": "numpy"})
             for sc in (2, 3)]
     ch = chan()
-    calls = []
+    sizes = []
     real = fr.NoiseFn.__call__
-    monkeypatch.setattr(fr.NoiseFn, "__call__", lambda self, snr: (calls.append(1), real(self, snr))[1])
-    shared = ch.sample_trace(np.random.default_rng(4), 20, 12)
-    got = [dict(e.covariances(s, shared, [3, 12], ("predicted",))) for e in ests]
-    n_shared = len(calls)
-    own = [dict(e.covariances(s, ch.sample_trace(np.random.default_rng(4), 20, 12), [3, 12], ("predicted",)))
-           for e in ests]
-    assert n_shared > 0 and n_shared * 2 == len(calls) - n_shared  # own traces: each receiver computes its own
-    for g, o in zip(got, own):
-        for k in (3, 12):
-            assert np.array_equal(g[k]["predicted"], o[k]["predicted"])
+    monkeypatch.setattr(fr.NoiseFn, "__call__", lambda self, snr: (sizes.append(np.size(snr)), real(self, snr))[1])
+    seq = np.random.SeedSequence(40 + ["none", "conditioned"].index(vr), spawn_key=(0, 1))  # a state not drawn yet
+    shared = [ch.sample_trace(np.random.default_rng(seq), 20, 12) for _ in range(3)]  # one sample, three traces
+    got = [dict(e.covariances(s, tr, [3, 12], ("predicted",))) for tr in shared for e in ests]
+    assert shared[2].snr is shared[1].snr
+    whole = [z for z in sizes if z == 20 * 12]
+    assert 1 <= len(whole) <= 2 and len(sizes) > len(whole)  # (the first draw of a state is not kept: at most 2)
+    assert all(z < 20 * 12 for z in sizes if z != 20 * 12)  # per threshold: only the dropped entries
+    sizes.clear()
+    for i, tr in enumerate(shared):
+        for j, e in enumerate(ests):
+            own = Trace(runs=20, horizon=12, snr=np.array(tr.snr), meta=dict(tr.meta))
+            o = dict(e.covariances(s, own, [3, 12], ("predicted",)))
+            for k in (3, 12):
+                assert np.array_equal(got[2 * i + j][k]["predicted"], o[k]["predicted"])
+    assert sizes.count(20 * 12) == 6  # an unshared trace computes its own σ_n²(Υ)
