@@ -203,16 +203,24 @@ def spectral_norm(X) -> float:
 # --------------------------------------------------------------------------- optimal thresholds, eqs (21)-(26)
 
 
+def _ep_inf_at(T, A, C, Q, snr_avg, alpha, delta, R=None) -> np.ndarray:
+    """E P∞ (eq. 20) at the threshold Υ_T = T: μ_ave and σ²_n,ave of eqs (15)–(16)."""
+    return ep_inf(A, C, Q, float(mu_ave(T, snr_avg)), float(sigma2_n_ave(T, snr_avg, alpha, delta)), R)
+
+
+def _objective_value(kind: str, X) -> float:
+    """‖X‖₂ (kind 'norm', eq. 21) or log det X (kind 'det', eq. 22); inf where X is unbounded."""
+    if not np.all(np.isfinite(X)):
+        return math.inf
+    if kind == "norm":
+        return spectral_norm(X)
+    sign, logdet = np.linalg.slogdet(X)
+    return logdet if sign > 0 else math.inf
+
+
 def _objective(kind: str, A, C, Q, snr_avg, alpha, delta, R=None):
     def f(T):
-        mu = float(mu_ave(T, snr_avg))
-        X = ep_inf(A, C, Q, mu, float(sigma2_n_ave(T, snr_avg, alpha, delta)), R)
-        if not np.all(np.isfinite(X)):
-            return math.inf
-        if kind == "norm":
-            return spectral_norm(X)
-        sign, logdet = np.linalg.slogdet(X)
-        return logdet if sign > 0 else math.inf
+        return _objective_value(kind, _ep_inf_at(T, A, C, Q, snr_avg, alpha, delta, R))
 
     return f
 
@@ -224,16 +232,25 @@ def optimal_threshold(kind: str, A, C, Q, snr_avg: float, alpha: float, delta: f
     Grid scan over [0, Υ_T,max) then a bounded Brent refinement around the best grid point.
     Returns (Υ_T,opt, objective at the optimum: ‖E P∞‖ or log det E P∞).
     """
+    return optimal_thresholds((kind,), A, C, Q, snr_avg, alpha, delta, R, grid, xtol)[kind]
+
+
+def optimal_thresholds(kinds, A, C, Q, snr_avg: float, alpha: float, delta: float, R=None,
+                       grid: int = 400, xtol: float = 1e-9) -> dict[str, tuple[float, float]]:
+    """:func:`optimal_threshold` of each kind in ``kinds``, the grid's E P∞ solved once for all of them."""
     Tmax = max_stable_threshold(snr_avg, rho_max(A))
     hi = Tmax * (1 - 1e-9) if math.isfinite(Tmax) else 50.0 * snr_avg
-    f = _objective(kind, A, C, Q, snr_avg, alpha, delta, R)
     Ts = np.linspace(0.0, hi, grid)
-    vals = np.array([f(t) for t in Ts])
-    i = int(np.argmin(vals))
-    lo_b, hi_b = Ts[max(i - 1, 0)], Ts[min(i + 1, grid - 1)]
-    res = optimize.minimize_scalar(f, bounds=(lo_b, hi_b), method="bounded", options={"xatol": xtol})
-    T, v = (float(res.x), float(res.fun)) if res.fun <= vals[i] else (float(Ts[i]), float(vals[i]))
-    return T, v
+    Xs = [_ep_inf_at(t, A, C, Q, snr_avg, alpha, delta, R) for t in Ts]
+    out = {}
+    for kind in kinds:
+        f = _objective(kind, A, C, Q, snr_avg, alpha, delta, R)
+        vals = np.array([_objective_value(kind, X) for X in Xs])
+        i = int(np.argmin(vals))
+        lo_b, hi_b = Ts[max(i - 1, 0)], Ts[min(i + 1, grid - 1)]
+        res = optimize.minimize_scalar(f, bounds=(lo_b, hi_b), method="bounded", options={"xatol": xtol})
+        out[kind] = (float(res.x), float(res.fun)) if res.fun <= vals[i] else (float(Ts[i]), float(vals[i]))
+    return out
 
 
 def theorem1_assumptions(A, C, Q, tol: float = 1e-12) -> dict[str, bool]:
@@ -263,11 +280,23 @@ def eq26_residual(T, snr_avg, alpha, delta, eigs, varsigma, q):
     return float(np.sum(r2 / (1 - r2 * mu)) - np.sum(1.0 / (norm + q * varsigma**2 / (s * r2))))
 
 
-def _root_in_stable_range(g, Tmax, n=4000):
-    """Sign changes of g on (0, Tmax) that are roots (not the pole at the stability edge)."""
+def eq26_residuals(Ts, snr_avg, alpha, delta, eigs, varsigma, q) -> np.ndarray:
+    """:func:`eq26_residual` at every threshold of the array ``Ts`` (the same operations elementwise, the sums
+    over the eigenvalues in the same order)."""
+    r2 = (np.abs(np.asarray(eigs)) ** 2)[:, None]
+    Ts = np.asarray(Ts, dtype=float)
+    s = sigma2_n(Ts, alpha, delta)
+    mu = mu_ave(Ts, snr_avg)
+    norm = sigma2_n_ave(Ts, snr_avg, alpha, delta) / s
+    return np.sum(r2 / (1 - r2 * mu), axis=0) - np.sum(1.0 / (norm + q * varsigma**2 / (s * r2)), axis=0)
+
+
+def _root_in_stable_range(g, Tmax, n=4000, scan=None):
+    """Sign changes of g on (0, Tmax) that are roots (not the pole at the stability edge). ``scan``: g on an
+    array of thresholds at once (the scan's values; the roots are refined with g)."""
     hi = Tmax * (1 - 1e-7) if math.isfinite(Tmax) else 1e3
     Ts = np.linspace(0.0, hi, n)
-    v = np.array([g(t) for t in Ts])
+    v = np.asarray(scan(Ts), dtype=float) if scan is not None else np.array([g(t) for t in Ts])
     roots = []
     for i in np.nonzero(np.diff(np.sign(v)) != 0)[0]:
         if np.isfinite(v[i]) and np.isfinite(v[i + 1]):
@@ -281,7 +310,8 @@ def eq24_root(snr_avg, alpha, delta, A, varsigma, q) -> float:
     """Υ*_T1 of eq. (24) in the stable range, or 0 when there is no positive root (eq. 23). NaN if several."""
     rho = rho_max(A)
     roots = _root_in_stable_range(lambda t: float(eq24_residual(t, snr_avg, alpha, delta, rho, varsigma, q)),
-                                  max_stable_threshold(snr_avg, rho))
+                                  max_stable_threshold(snr_avg, rho),
+                                  scan=lambda Ts: eq24_residual(Ts, snr_avg, alpha, delta, rho, varsigma, q))
     if not roots:
         return 0.0
     return roots[0] if len(roots) == 1 else math.nan
@@ -293,7 +323,7 @@ def eq26_root(snr_avg, alpha, delta, A, varsigma, q) -> float:
     rho = rho_max(A)
     Tmax = max_stable_threshold(snr_avg, rho)
     g = lambda t: eq26_residual(t, snr_avg, alpha, delta, eigs, varsigma, q)  # noqa: E731
-    roots = _root_in_stable_range(g, Tmax)
+    roots = _root_in_stable_range(g, Tmax, scan=lambda Ts: eq26_residuals(Ts, snr_avg, alpha, delta, eigs, varsigma, q))
     if not roots:
         return 0.0
     return roots[0] if len(roots) == 1 else math.nan

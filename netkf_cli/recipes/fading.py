@@ -213,13 +213,14 @@ class FadingScenario2Steady(AnalysisModel):
             hi = Tmax if math.isfinite(Tmax) else 10 * Ya
             T = np.linspace(0, hi, self.num_thresholds + 1)[:-1]
             mu, s2 = fa.mu_ave(T, Ya), fa.sigma2_n_ave(T, Ya, a, d)
-            v = [fa.spectral_norm(fa.ep_inf(s.A, s.C, s.Q, m_, s_, s.R)) for m_, s_ in zip(mu, s2)]
-            dets = [float(np.linalg.det(fa.ep_inf(s.A, s.C, s.Q, m_, s_, s.R))) for m_, s_ in zip(mu, s2)]
+            EP = [fa.ep_inf(s.A, s.C, s.Q, m_, s_, s.R) for m_, s_ in zip(mu, s2)]  # each once: both curves
+            v = [fa.spectral_norm(X) for X in EP]
+            dets = [float(np.linalg.det(X)) for X in EP]
             base = {"snr_avg": Ya, "snr_avg_db": float(fa.linear_to_db(Ya))}
             rows.append(pd.DataFrame({**base, **_thr_cols(T), "series": "norm_EPinf", "value": v}))
             rows.append(pd.DataFrame({**base, **_thr_cols(T), "series": "det_EPinf", "value": dets}))
-            Tn, vn = fa.optimal_threshold("norm", s.A, s.C, s.Q, Ya, a, d, s.R)
-            Td, vd = fa.optimal_threshold("det", s.A, s.C, s.Q, Ya, a, d, s.R)
+            best = fa.optimal_thresholds(("norm", "det"), s.A, s.C, s.Q, Ya, a, d, s.R)
+            (Tn, vn), (Td, vd) = best["norm"], best["det"]
             r24 = fa.eq24_root(Ya, a, d, s.A, varsigma, q)
             r26 = fa.eq26_root(Ya, a, d, s.A, varsigma, q)
             for quantity, T_, val in (("opt_norm_numerical", Tn, vn), ("opt_det_numerical", Td, math.exp(vd)),

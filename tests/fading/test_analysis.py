@@ -113,3 +113,36 @@ def test_jakes_numbers():
     fd = fa.doppler_hz(25 * fa.MPH, 1e9)
     assert fd == pytest.approx(37.28, abs=0.01)
     assert float(fa.jakes_autocorr(3, fd, 0.01)) == pytest.approx(0.30, abs=0.005)  # "0.3 after three transmissions"
+
+
+def test_batched_scans_give_the_scalar_values_and_roots_bit_for_bit():
+    """The root scans of eqs (24)/(26) evaluate the residual on the whole grid at once: the same bytes as one call
+    per threshold, and the same roots as the scalar scan; optimal_thresholds (the grid's E P∞ solved once for
+    both criteria) = the grid scan + bounded Brent of each criterion on its own."""
+    from scipy import optimize
+
+    a, d = fa.noise_params_from_bits(10, 40 / 2**10)
+    q, vs = 1e-3, 2.0
+    C, Q = vs * np.eye(3), q * np.eye(3)
+    for Y in (31.6, 100.0, 1000.0):
+        rho, eigs = fa.rho_max(A5), np.linalg.eigvals(A5)
+        Tmax = fa.max_stable_threshold(Y, rho)
+        Ts = np.linspace(0.0, Tmax * (1 - 1e-7), 4000)
+        assert fa.eq26_residuals(Ts, Y, a, d, eigs, vs, q).tobytes() == \
+            np.array([fa.eq26_residual(t, Y, a, d, eigs, vs, q) for t in Ts]).tobytes()
+        assert np.asarray(fa.eq24_residual(Ts, Y, a, d, rho, vs, q)).tobytes() == \
+            np.array([float(fa.eq24_residual(t, Y, a, d, rho, vs, q)) for t in Ts]).tobytes()
+        g = lambda t: fa.eq26_residual(t, Y, a, d, eigs, vs, q)  # noqa: E731
+        batched = fa._root_in_stable_range(g, Tmax, scan=lambda x: fa.eq26_residuals(x, Y, a, d, eigs, vs, q))
+        assert batched == fa._root_in_stable_range(g, Tmax) and len(batched) == 1
+        assert fa.eq26_root(Y, a, d, A5, vs, q) == batched[0]
+        both = fa.optimal_thresholds(("norm", "det"), A5, C, Q, Y, a, d)
+        for kind in ("norm", "det"):
+            f = fa._objective(kind, A5, C, Q, Y, a, d)
+            grid = np.linspace(0.0, Tmax * (1 - 1e-9), 400)
+            vals = np.array([f(t) for t in grid])
+            i = int(np.argmin(vals))
+            res = optimize.minimize_scalar(f, bounds=(grid[max(i - 1, 0)], grid[min(i + 1, 399)]), method="bounded",
+                                           options={"xatol": 1e-9})
+            ref = (float(res.x), float(res.fun)) if res.fun <= vals[i] else (float(grid[i]), float(vals[i]))
+            assert both[kind] == ref == fa.optimal_threshold(kind, A5, C, Q, Y, a, d)
