@@ -196,28 +196,50 @@ def noise_of_trace(trace: Trace, noise) -> np.ndarray:
     return got[1] if got[0] is snr else noise(snr)
 
 
+def _per_threshold(trace: Trace, key, params, make) -> np.ndarray:
+    """``make()`` for ``params`` (a threshold's), the same array for every receiver that asks for this trace, ``key``
+    and ``params`` in a row (the receivers of one chunk: computed once). One value per ``key`` among the trace's
+    derived values, replaced when other params come: those are shared by the traces of one sample
+    (:class:`DrawnSamples`), which a sweep reads at every threshold."""
+    d = trace._derived
+    try:
+        got = d.get(key)
+    except TypeError:  # an unhashable part (a caller's own noise function): not shared
+        return make()
+    if got is None or got[0] != params or got[1] is not trace.snr:
+        got = d[key] = (params, trace.snr, make())
+    return got[2]
+
+
 def noise_where_kept(trace: Trace, t: int, k: int, threshold: float, noise) -> np.ndarray:
     """σ_n²(Υ) of steps t … k−1 where the packet is kept (Υ ≥ Υ_T), σ_n²(1) where dropped (a placeholder the
-    receivers never use), a new array: ``noise(np.where(Υ ≥ Υ_T, Υ, 1.0))`` entry for entry (the same
-    elementwise function), with the kept entries taken from :func:`noise_of_trace`."""
-    Y = trace.snr[t:k]
-    out = noise_of_trace(trace, noise)[t:k].copy()
-    drop = ~(Y >= threshold)
-    if drop.any():
-        out[drop] = noise(np.ones(int(drop.sum())))
-    return out
+    receivers never use): ``noise(np.where(Υ ≥ Υ_T, Υ, 1.0))`` entry for entry (the same elementwise function),
+    with the kept entries taken from :func:`noise_of_trace`. Not to be modified (:func:`_per_threshold`)."""
+    def make():
+        Y = trace.snr[t:k]
+        out = noise_of_trace(trace, noise)[t:k].copy()
+        drop = ~(Y >= threshold)
+        if drop.any():
+            out[drop] = noise(np.ones(int(drop.sum())))
+        return out
+
+    return _per_threshold(trace, ("noise_where_kept", t, k, noise), float(threshold), make)
 
 
 def noise_given_kept(trace: Trace, t: int, k: int, threshold: float, snr_avg: float, noise) -> np.ndarray:
-    """σ_n²(Υ') of steps t … k−1, Υ' = :func:`snr_given_kept` (Υ itself where kept), a new array:
+    """σ_n²(Υ') of steps t … k−1, Υ' = :func:`snr_given_kept` (Υ itself where kept):
     ``noise(snr_given_kept(Υ, Υ_T, Υ_ave))`` entry for entry, with the kept entries taken from
-    :func:`noise_of_trace` (only the dropped ones, a fraction μ_ave, are evaluated per threshold)."""
-    Y = trace.snr[t:k]
-    out = noise_of_trace(trace, noise)[t:k].copy()
-    drop = Y < float(threshold)
-    if float(threshold) > 0 and drop.any():
-        out[drop] = noise(snr_given_dropped(Y[drop], threshold, snr_avg))
-    return out
+    :func:`noise_of_trace` (only the dropped ones, a fraction μ_ave, are evaluated per threshold). Not to be
+    modified (:func:`_per_threshold`)."""
+    def make():
+        Y = trace.snr[t:k]
+        out = noise_of_trace(trace, noise)[t:k].copy()
+        drop = Y < float(threshold)
+        if float(threshold) > 0 and drop.any():
+            out[drop] = noise(snr_given_dropped(Y[drop], threshold, snr_avg))
+        return out
+
+    return _per_threshold(trace, ("noise_given_kept", t, k, noise), (float(threshold), float(snr_avg)), make)
 
 
 @dataclass
@@ -259,8 +281,9 @@ class DrawnSamples:
 
 
 def _nbytes(entry) -> int:
-    return entry[0].nbytes + sum(sum(getattr(x, "nbytes", 0) for x in v) if isinstance(v, tuple)
-                                 else getattr(v, "nbytes", 0) for v in entry[2].values())
+    """Bytes of a kept sample: its SNR array and the arrays derived from it (held in tuples beside it)."""
+    arrays = [x for v in entry[2].values() for x in (v if isinstance(v, tuple) else (v,))]
+    return entry[0].nbytes + sum(x.nbytes for x in arrays if isinstance(x, np.ndarray) and x is not entry[0])
 
 
 DRAWN = DrawnSamples()
