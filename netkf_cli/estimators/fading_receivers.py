@@ -901,7 +901,8 @@ class BurstSMCKernel:
     Sampling the restricted 2-D normal: |v|² = |m/s + ζ|² is non-central χ²₂(λ = |m|²/s²) truncated to
     [0, ρ²/s²] (inverse cdf ``chndtrix``), the angle given the radius von Mises around arg m with
     κ = √λ |v|. ``factor=None`` means independent gains (L = I): then p_t = μ_ave for every particle
-    and the estimate is eq. (14) up to the sampling of σ_n²(Υ_0) — the check of the machinery.
+    and the estimate is eq. (14) up to the sampling of σ_n²(Υ_0) — the check of the machinery (the particles
+    are then moved only at the kept start: their later positions would never be read).
 
     Keys: ``sum``/``sumsq``/``tr``/``tr2``/``inf`` of the per-run estimate (n, n, G); ``w`` (G, len(burst_lags))
     Σ over runs of Ẑ_L (Pr[kept, then L drops]) at ``burst_lags`` and ``w2`` Σ Ẑ_L²; ``ess`` (G,) Σ over runs and steps of
@@ -1017,6 +1018,10 @@ class BurstSMCKernel:
                     g0[dst] = g0[src]
                     mx[dst], my[dst], lam[dst], p[dst] = mx[src], my[src], lam[src], p[src]
                     w.reshape(ng, K)[gidx] = 1.0 / K
+                if Lf is None and t > 0:
+                    # independent gains: p_t = μ_ave for every particle whatever its past, so after the kept start
+                    # (g0) the positions are never read again — moving them would only spend random numbers
+                    continue
                 # move: forced drop (or, at t = 0 for the kept clouds, a kept packet)
                 u = rng.random(C)
                 if central:

@@ -275,6 +275,37 @@ def test_smc_iid_matches_eq14():
         np.testing.assert_allclose(st["w"][:, j] / R, (1 - mu) * mu**L, rtol=1e-10)
 
 
+def test_smc_iid_draws_only_for_the_kept_start():
+    """Independent gains: p_t = μ_ave for every particle, so after the kept start the particles' positions are
+    never read and are not moved (no random numbers spent on them). The draws are the start's alone, whatever
+    the horizon, and the estimate does not depend on what the generator would give afterwards (a generator
+    that turns to another stream after the start's draws gives the same bytes)."""
+
+    class Switching:  # the real generator for the first `keep` calls, then another stream
+        def __init__(self, keep):
+            self.calls, self.keep = 0, keep
+            self.a, self.b = np.random.default_rng(3), np.random.default_rng(99)
+
+        def __getattr__(self, name):
+            def call(*args, **kw):
+                self.calls += 1
+                return getattr(self.a if self.calls <= self.keep else self.b, name)(*args, **kw)
+            return call
+
+    T = np.array([2.0, 20.0])
+    outs = []
+    for H in (5, 60):
+        k = fr.BurstSMCKernel(None, T, 100.0, NZ, fr.memoryless_coefficients(2.0, 1.0, 1e-3, 1e-8, 1.0, H), H,
+                              particles=8)
+        g = Switching(keep=4)
+        outs.append(k(g, 6))
+        assert g.calls == 4  # t = 0: the move's uniforms, the kept start's strata, the angles (von Mises, uniform)
+    ref = fr.BurstSMCKernel(None, T, 100.0, NZ, fr.memoryless_coefficients(2.0, 1.0, 1e-3, 1e-8, 1.0, 60), 60,
+                            particles=8)(np.random.default_rng(3), 6)
+    for key in ref:
+        assert ref[key].tobytes() == outs[1][key].tobytes(), key
+
+
 def test_smc_jakes_agrees_with_plain_monte_carlo_where_that_is_reliable():
     """Short horizon and a low threshold: the plain sample mean of P[H] has a small, finite variance there.
     The SMC estimate on the same Jakes channel must agree within 5 combined standard errors."""
