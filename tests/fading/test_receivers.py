@@ -119,3 +119,20 @@ def test_state_level_general_C():
     out = fr.simulate_states(r, rng, rng.exponential(5.0, (25, N)), 1.0, np.eye(2))
     D = np.einsum("ib,jb->ijb", out["e"], out["e"]) - out["P"]
     assert np.all(np.abs(D.mean(-1)) < 5 * D.std(-1) / math.sqrt(N))
+
+
+def test_rescue_is_made_once_per_system_and_equals_a_fresh_one():
+    """ReceiverModel.rescue is kept per (A, C, Q, R) (a model is built per chunk; Sec. 4.2's floor is a DARE): the
+    same limit as kalman.Rescue.of with the floor tr P̄ computed now, for a full-rank and a rank-deficient C."""
+    from netkf_cli.linalg import kalman
+
+    A = np.array([[2, 0.3, 0.45], [0.4, 0.2, 0.5], [1.5, 0.6, 0.34]])
+    Q = 1e-3 * np.eye(3)
+    for C, R in ((2 * np.eye(3), 1e-8 * np.eye(3)), (np.array([[1.0, 2, 3]]), np.array([[1e-8]])),
+                 (np.array([[1.0, 2, 3]]), np.array([[1e-6]]))):
+        a, b = fr.ReceiverModel(3, A, C, Q, R, None), fr.ReceiverModel(2, A.copy(), C.copy(), Q, R, None)
+        fresh = kalman.Rescue.of(np.atleast_2d(C), np.atleast_2d(R), kalman.pbar_trace(A, np.atleast_2d(C), Q,
+                                                                                       np.atleast_2d(R)))
+        assert a.rescue is b.rescue
+        assert a.rescue.limit == fresh.limit
+        assert np.array_equal(a.rescue.C, fresh.C) and np.array_equal(a.rescue.R, fresh.R)
