@@ -38,7 +38,7 @@ from netkf_cli.config.kinds import describe
 from netkf_cli.config.loader import attribute, locate, parse_overrides
 from netkf_cli.metrics.critical import critical_answer
 from netkf_cli.app.mind import mind_report
-from netkf_cli.runtime.montecarlo import usable_cores
+from netkf_cli.runtime.montecarlo import CHUNK_SUFFIX, usable_cores
 from netkf_cli.app.reproduce import reproduce as do_reproduce
 from netkf_cli.app.runner import LARGE_RUN_S, ProgressTotals, duration, plan_run
 from netkf_cli.config.scenario import json_schema
@@ -315,7 +315,7 @@ def run(
             what = (f"{done:,} of {totals.total:,} Monte Carlo runs finished" if totals.total and done
                     else "no Monte Carlo run had finished")
             kept = (f"; their chunks are kept in {cache}/ — `{again}` continues from there"
-                    if cache.is_dir() and any(cache.rglob("*.npz")) else "; nothing was kept, rerun to start again")
+                    if cache.is_dir() and any(cache.rglob(f"*{CHUNK_SUFFIX}")) else "; nothing was kept, rerun to start again")
             err.print("[bold red]interrupted:[/] " + escape(f"{what}, {out_path} not written{kept}"), highlight=False)
             raise typer.Exit(EXIT_INTERRUPTED) from None
     manifest = json.loads((folder / "manifest.json").read_text())

@@ -342,7 +342,7 @@ def _open_cache(cache: Path, h: str, resume: bool, scenario) -> dict:
         except (OSError, ValueError):
             old = {}
         if resume and old.get("scenario_hash") != h:
-            n_old = sum(1 for _ in cache.rglob("*.npz"))
+            n_old = sum(1 for _ in cache.rglob(f"*{montecarlo.CHUNK_SUFFIX}"))
             note = (f"--resume: the cache {cache}/ held {n_old} chunk{'s' if n_old != 1 else ''} of a different "
                     f"scenario (hash {old.get('scenario_hash', 'unknown')}, this one is {h}); none reused, the run "
                     f"starts from the beginning")
@@ -423,7 +423,7 @@ def run_scenario(scenario, *, source: str | Path | None = None, out_dir: str | P
 
 
 def _has_chunks(cache: Path) -> bool:
-    return cache.is_dir() and any(cache.rglob("*.npz"))
+    return cache.is_dir() and any(cache.rglob(f"*{montecarlo.CHUNK_SUFFIX}"))
 
 
 def _rmdir_empty(d: Path) -> None:

@@ -60,17 +60,27 @@ def no_monte_carlo(monkeypatch):
 # ---- failures leave nothing --------------------------------------------------------------------
 
 def test_full_disk_while_storing_a_chunk_leaves_nothing(tmp_path, cfg, monkeypatch):
-    real = np.savez
+    real_open = open
     calls = {"n": 0}
 
-    def savez(f, **kw):
-        calls["n"] += 1
-        if calls["n"] == 3:
-            f.write(b"half a chunk")
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return real(f, **kw)
+    class FillsUp:  # the chunk files montecarlo._store writes: the third fills the disk half-way
+        def __init__(self, path, mode):
+            self.f = real_open(path, mode)
 
-    monkeypatch.setattr(montecarlo.np, "savez", savez)
+        def write(self, data):
+            calls["n"] += 1
+            if calls["n"] == 3:
+                self.f.write(b"half a chunk")
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return self.f.write(data)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+    monkeypatch.setattr(montecarlo, "open", FillsUp, raising=False)  # the module's `open` before the builtin
     before = _everything(tmp_path)
     r = invoke("run", cfg, "--out", tmp_path / "res" / "deep" / "o", "-j", 1, "-q")
     assert r.exit_code == 1, r.output
@@ -80,12 +90,24 @@ def test_full_disk_while_storing_a_chunk_leaves_nothing(tmp_path, cfg, monkeypat
 
 
 def test_a_torn_chunk_file_is_removed_where_it_was_written(tmp_path, monkeypatch):
-    def savez(f, **kw):
-        f.write(b"torn")
-        raise OSError(errno.ENOSPC, "No space left on device")
+    real_open = open
 
-    monkeypatch.setattr(montecarlo.np, "savez", savez)
-    path = tmp_path / "c" / "chunk.npz"
+    class Torn:  # the file montecarlo._store writes: half a chunk, then the disk is full
+        def __init__(self, path, mode):
+            self.f = real_open(path, mode)
+
+        def write(self, data):
+            self.f.write(bytes(data)[:7])
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+    monkeypatch.setattr(montecarlo, "open", Torn, raising=False)  # the module's `open` before the builtin
+    path = tmp_path / "c" / f"chunk{montecarlo.CHUNK_SUFFIX}"
     with pytest.raises(OSError):
         montecarlo._store(path, {"s": np.ones(3)})
     assert list((tmp_path / "c").iterdir()) == []
@@ -218,7 +240,7 @@ def test_resume_reuses_only_the_identical_scenario(tmp_path, cfg, monkeypatch):
     _interrupt_after(monkeypatch, 3)
     r = invoke("run", cfg, "--out", res / "o", "-j", 1, "-q")
     assert r.exit_code == 130 and "--resume" in r.output and str(res / ".netkf-cache" / "o") in r.output, r.output
-    assert len(list((res / ".netkf-cache" / "o").rglob("*.npz"))) == 3
+    assert len(list((res / ".netkf-cache" / "o").rglob("*.chunk"))) == 3
     monkeypatch.setattr(montecarlo, "run_chunk", _real_run_chunk)
     # 2. the seed changed: --resume reuses nothing and says so; the manifest records 0
     r = invoke("run", cfg, "montecarlo.seed=9", "--out", res / "o", "-j", 1, "-q", "--resume")

@@ -305,14 +305,14 @@ def test_concurrent_run_is_refused_and_first_stays_intact(tmp_path):
         cache_root = out.parent / ".netkf-cache"
         assert _wait_for(lambda: lock.exists() and lock.read_text().startswith("pid"), 60, first), first.stderr.read()
         # the first run has stored some chunks (so a deleted cache would show)
-        _wait_for(lambda: any(cache_root.rglob("*.npz")), 30, first)
-        chunks_before = set(cache_root.rglob("*.npz"))
+        _wait_for(lambda: any(cache_root.rglob("*.chunk")), 30, first)
+        chunks_before = set(cache_root.rglob("*.chunk"))
         r = invoke("run", cfg, "--out", out)  # same folder
         assert r.exit_code == 1 and "in use by another netkf run" in r.output and f"pid {first.pid}" in r.output
         # the same scenario into another folder at the same time: its own resume cache, it works
         r = invoke("run", cfg, "--out", out.parent / "mc2", "--runs", 20_000, "-j", 1)
         assert r.exit_code == 0, r.output
-        now = set(cache_root.rglob("*.npz"))
+        now = set(cache_root.rglob("*.chunk"))
         # looked at after the listing: a run removes its cache only after its result folder (with the manifest) is
         # complete, so no manifest now means the first had not finished when the listing was taken (the process
         # may still be alive after removing its cache: its exit status is no witness)
@@ -338,7 +338,7 @@ def test_interrupt_is_one_line_with_resume_hint(tmp_path, how):
     proc = _start_long_run(cfg, out, extra=("--jobs", "2"))
     try:
         cache_root = out.parent / ".netkf-cache"
-        assert _wait_for(lambda: any(cache_root.rglob("*.npz")), 90, proc), proc.stderr.read()
+        assert _wait_for(lambda: any(cache_root.rglob("*.chunk")), 90, proc), proc.stderr.read()
         if how == "ctrl-c":
             os.killpg(proc.pid, signal.SIGINT)  # what a terminal does: the whole process group
         else:
@@ -352,7 +352,7 @@ def test_interrupt_is_one_line_with_resume_hint(tmp_path, how):
     lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("large run")]
     assert len(lines) == 1, err
     assert "interrupted:" in lines[0] and "--resume" in lines[0] and "Monte Carlo runs finished" in lines[0]
-    assert not out.exists() and any(cache_root.rglob("*.npz"))  # the chunks are kept for --resume
+    assert not out.exists() and any(cache_root.rglob("*.chunk"))  # the chunks are kept for --resume
     assert not [p for p in out.parent.iterdir() if p.name.endswith(".lock")]
 
 

@@ -58,13 +58,13 @@ def test_interrupted_run_resumes_to_identical_numbers(cfg, tmp_path, monkeypatch
     with pytest.raises(KeyboardInterrupt):
         run_scenario_file(cfg, out_dir=out, executor="serial")
     assert not out.exists()  # nothing half-written
-    assert list((tmp_path / ".netkf-cache").rglob("*.npz"))  # finished chunks kept for --resume
+    assert list((tmp_path / ".netkf-cache").rglob("*.chunk"))  # finished chunks kept for --resume
     monkeypatch.setattr(montecarlo, "run_chunk", lambda k, c: (calls.__setitem__("n", calls["n"] + 1), real(k, c))[1])
     calls["n"] = 0
     run_scenario_file(cfg, out_dir=out, executor="serial", resume=True)
     assert calls["n"] == 6 - 3  # only the unfinished chunks ran
     assert _csv(out) == _csv(full)
-    assert not list((tmp_path / ".netkf-cache").rglob("*.npz"))  # cache cleared after success
+    assert not list((tmp_path / ".netkf-cache").rglob("*.chunk"))  # cache cleared after success
 
 
 class Flaky:
