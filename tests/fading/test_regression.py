@@ -38,7 +38,10 @@ MC_RTOL = 1e-2
 # parent commit 069080c fails the same way (checked in a separate worktree), so this is no regression of the
 # Kalman-core port. Monte Carlo rows (finite stderr > 0) therefore compare their value within 0.05 s.e. and their
 # other statistics (stderr, ess, min ess) within 1 % — still far below any real change of an estimator (which
-# moves a mean by O(1) s.e.);
+# moves a mean by O(1) s.e.) —, except the s.e. of a row with fewer than 2 effective runs, compared like its value
+# (within 0.05 s.e.): there one cloud carries the estimate, value ≈ s.e., and both move together. Seen on a machine
+# without AVX-512 (2026-12-06): fig7 Υ_T row 66/67, ESS 1 of 12 clouds, value and s.e. 56545.8 / 56545.6 in the
+# golden, 55399.4 / 55399.3 here (−2.0 %, i.e. 0.02 s.e.);
 # closed forms and deterministic rows keep 1e-6 relative.
 
 
@@ -54,13 +57,20 @@ def test_config_matches_golden(stem, tmp_path):
         assert list(new.columns) == list(old.columns), c.name
         assert len(new) == len(old), c.name
         mc = np.zeros(len(old), bool)
+        one_run = np.zeros(len(old), bool)
         if "stderr" in old.columns:
             se = old["stderr"].to_numpy(float)
             mc = np.isfinite(se) & (se > 0)
+        if {"ess_frac", "n"} <= set(old.columns):
+            # fewer than 2 effective runs (ESS = (Σ tr)² / Σ tr²): the value and its s.e. are one cloud's, and that
+            # cloud following other random numbers on another platform moves both by the same amount (see above)
+            with np.errstate(invalid="ignore"):
+                one_run = (old["ess_frac"].to_numpy(float) * old["n"].to_numpy(float)) < 2
         for col in new.columns:
             if new[col].dtype.kind in "fi" and mc.any() and col in ("value", "stderr", "ess_frac", "min_ess_frac"):
                 x, y = new[col].to_numpy(float), old[col].to_numpy(float)
-                tol = np.where(mc, MC_SE_FRACTION * se if col == "value" else MC_RTOL * np.abs(y), 1e-6 * np.abs(y))
+                on_se = (col == "value") | ((col == "stderr") & one_run)
+                tol = np.where(mc, np.where(on_se, MC_SE_FRACTION * se, MC_RTOL * np.abs(y)), 1e-6 * np.abs(y))
                 same = (x == y) | (np.abs(x - y) <= tol) | (np.isnan(x) & np.isnan(y))
                 assert same.all(), f"{c.name}:{col} rows {np.flatnonzero(~same)}: {x[~same]} vs {y[~same]} (tol {tol[~same]})"
             elif new[col].dtype.kind in "fi":
