@@ -24,6 +24,7 @@ import numpy as np
 from netkf_cli.linalg import riccati
 from netkf_cli.core.errors import TheoremConditionError
 from netkf_cli.core.system import LinearSystem
+from netkf_cli.core.tolerances import PSD_TOL
 
 Convention = Literal["delay_le_D", "delay_lt_D"]
 DEFAULT_CONVENTION: Convention = "delay_le_D"
@@ -85,33 +86,104 @@ def theta_floor(k: float, cdf: Cdf, convention: Convention) -> float:
     return theta(k, saturation_D(k, convention), cdf, convention)
 
 
+class Orbit:
+    """The orbit hᵗ(X0), t = 0, 1, … of eqs (5)–(6), computed once and kept: k₁(M) and k₂(M) walk the same
+    orbit (of M̄, of P̄) at every M of a grid, so each point, and whether it equals its predecessor to
+    rounding (the walk's stop for a stable A), is computed once per system instead of once per M."""
+
+    def __init__(self, X0: np.ndarray, s: LinearSystem):
+        self.s = s
+        self.points = [np.asarray(X0)]
+        self.converged = [False]  # converged[t]: hᵗ(X0) allclose to hᵗ⁻¹(X0)
+
+    def point(self, t: int) -> np.ndarray:
+        """hᵗ(X0) (t ≥ 0), extending the orbit as needed."""
+        while len(self.points) <= t:
+            X = self.points[-1]
+            Xn = riccati.h(X, self.s)
+            self.converged.append(bool(np.allclose(Xn, X, rtol=1e-13, atol=1e-15)))
+            self.points.append(Xn)
+        return self.points[t]
+
+
+_ORBITS: dict = {}
+"""Orbits by (X0, A, Q): a grid of M, and the points of an ``over`` grid that share the system, reuse them."""
+
+
+def orbit(X0: np.ndarray, s: LinearSystem) -> Orbit:
+    """The kept :class:`Orbit` of X0 under h (h reads A and Q only)."""
+    key = tuple((np.shape(x), np.asarray(x, dtype=float).tobytes()) for x in (X0, s.A, s.Q))
+    orb = _ORBITS.get(key)
+    if orb is None:
+        if len(_ORBITS) >= 64:
+            _ORBITS.clear()
+        orb = _ORBITS[key] = Orbit(np.array(X0, dtype=float), s)
+    return orb
+
+
+def leq_each(X: np.ndarray, Ms: np.ndarray, tol: float = PSD_TOL) -> np.ndarray:
+    """``riccati.psd_leq(X, M)`` for every M of the stack ``Ms`` (K, n, n), each with its own scale
+    max(1, |M|) (one batched eigvalsh; ``psd_leq`` on the stack would scale all by the largest M)."""
+    Ms = np.asarray(Ms, dtype=float)
+    D = Ms - np.asarray(X, dtype=float)
+    finite = np.all(np.isfinite(D), axis=(-1, -2))
+    D = np.where(finite[..., None, None], D, 0.0)
+    emin = D[..., 0, 0] if D.shape[-1] == 1 else np.linalg.eigvalsh(riccati.sym(D))[..., 0]
+    scale = np.maximum(1.0, np.abs(Ms).max(axis=(-1, -2)))
+    return finite & (emin >= -tol * scale)
+
+
+def first_exceedances(X0: np.ndarray, Ms: np.ndarray, s: LinearSystem, k_max: int = K_MAX) -> np.ndarray:
+    """min{t ≥ 1 : hᵗ(X0) ≰ M} for every M of the stack ``Ms`` (K, n, n), ``math.inf`` where hᵗ(X0) ≤ M for all t
+    (eqs 5–6): one walk along the kept :func:`orbit`, each point compared with the M not yet exceeded; the
+    walk stops once the orbit has converged (stable A) below them."""
+    orb = orbit(X0, s)
+    Ms = np.asarray(Ms, dtype=float)
+    out = np.full(len(Ms), math.inf)
+    pending = np.arange(len(Ms))
+    for t in range(1, k_max + 1):
+        if not pending.size:
+            break
+        ok = leq_each(orb.point(t), Ms[pending])
+        out[pending[~ok]] = t
+        pending = pending[ok]
+        if orb.converged[t]:
+            break  # converged without exceeding the rest: inf
+    return out
+
+
 def first_exceedance(X0: np.ndarray, M: np.ndarray, s: LinearSystem, k_max: int = K_MAX) -> float:
     """min{t ≥ 1 : hᵗ(X0) ≰ M}, or ``math.inf`` when hᵗ(X0) ≤ M for all t (eqs 5–6)."""
-    X = X0
-    for t in range(1, k_max + 1):
-        Xn = riccati.h(X, s)
-        if not bool(riccati.psd_leq(Xn, M)):
-            return float(t)
-        if np.allclose(Xn, X, rtol=1e-13, atol=1e-15):
-            return math.inf  # converged (stable A) without exceeding M
-        X = Xn
-    return math.inf
+    return float(first_exceedances(X0, np.asarray(M, dtype=float)[None], s, k_max)[0])
 
 
 def k1(M, s: LinearSystem, path: str = "M") -> float:
     """k₁(M) = min{t ≥ 1 : hᵗ(M̄) ≰ M} (eq. 5). Requires M ≥ M̄ (Thm 3.8)."""
-    Mm = as_matrix_bound(M, s.n)
-    Mbar = riccati.mbar(s)
-    require_at_least(Mm, Mbar, "M̄", "Thm 3.8 needs M ≥ M̄", path)
-    return first_exceedance(Mbar, Mm, s)
+    return float(k1_each([M], s, [path])[0])
 
 
 def k2(M, s: LinearSystem, path: str = "M") -> float:
     """k₂(M) = min{t ≥ 1 : hᵗ(P̄) ≰ M} (eq. 6). Requires M ≥ P̄ (Thm 4.1)."""
-    Mm = as_matrix_bound(M, s.n)
-    Pbar = riccati.pbar(s)
-    require_at_least(Mm, Pbar, "P̄", "Thm 4.1 needs M ≥ P̄", path)
-    return first_exceedance(Pbar, Mm, s)
+    return float(k2_each([M], s, [path])[0])
+
+
+def k1_each(Ms, s: LinearSystem, paths=None) -> np.ndarray:
+    """k₁(M) (eq. 5) at every M of ``Ms`` (scalars mean M·Iₙ), along one orbit; each must be ≥ M̄ (Thm 3.8)."""
+    return _k_each(Ms, s, riccati.mbar(s), "M̄", "Thm 3.8 needs M ≥ M̄", paths)
+
+
+def k2_each(Ms, s: LinearSystem, paths=None) -> np.ndarray:
+    """k₂(M) (eq. 6) at every M of ``Ms`` (scalars mean M·Iₙ), along one orbit; each must be ≥ P̄ (Thm 4.1)."""
+    return _k_each(Ms, s, riccati.pbar(s), "P̄", "Thm 4.1 needs M ≥ P̄", paths)
+
+
+def _k_each(Ms, s: LinearSystem, X0: np.ndarray, name: str, why: str, paths) -> np.ndarray:
+    Mm = np.array([as_matrix_bound(M, s.n) for M in Ms], dtype=float).reshape(-1, s.n, s.n)
+    bad = np.flatnonzero(~leq_each(X0, Mm))
+    if bad.size:
+        i = int(bad[0])
+        require_at_least(Mm[i], X0, name, why, paths[i] if paths is not None else "M")
+    return first_exceedances(X0, Mm, s)
 
 
 def _fmt(X: np.ndarray) -> str:

@@ -114,11 +114,16 @@ class ClosedForms:
         def th(k):
             return 1 - db.theta(k, D, ch.cdf, conv)
 
+        def bound(k_each, where):  # 1 − θ(k(M), D) where M qualifies (k along one orbit), else NaN
+            v = np.full(len(M), np.nan)
+            if where.any():
+                v[where] = [th(k) for k in k_each(M[where], self.s)]
+            return v
+
         if self.est.kind == "buffered":
-            out["lower_bound"] = np.array([th(db.k1(m, self.s)) if o else np.nan for m, o in zip(M, ok)])
-        out["upper_bound" if self.est.kind == "buffered" else "thm41"] = np.array(
-            [th(db.k2(m, self.s)) if (o or self.est.kind == "buffered") and m >= self._pbar_max() else np.nan
-             for m, o in zip(M, ok)])
+            out["lower_bound"] = bound(db.k1_each, ok)
+        out["upper_bound" if self.est.kind == "buffered" else "thm41"] = bound(
+            db.k2_each, (ok | (self.est.kind == "buffered")) & (M >= self._pbar_max()))
         if self.est.kind == "buffered" and self.exact and ok.any():
             try:
                 ex = dx.exact_probability(self.s, ch, self.span, M[ok], tol=self.tol)

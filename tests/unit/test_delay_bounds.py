@@ -77,6 +77,58 @@ def test_stable_system_can_have_infinite_k():
     assert db.theta(math.inf, 3, D5, "delay_le_D") == 0.0
 
 
+def _walk_per_M(X0, M, s, k_max=db.K_MAX):
+    """The per-M loop first_exceedance was before the kept orbit (the reference of the shared walk)."""
+    from netkf_cli.linalg import riccati
+    X = X0
+    for t in range(1, k_max + 1):
+        Xn = riccati.h(X, s)
+        if not bool(riccati.psd_leq(Xn, M)):
+            return float(t)
+        if np.allclose(Xn, X, rtol=1e-13, atol=1e-15):
+            return math.inf
+        X = Xn
+    return math.inf
+
+
+VEHICLE = LinearSystem.create([[1, 0, 0.5, 0], [0, 1, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1]],
+                              [[1, 0, 0, 0], [0, 1, 0, 0]], 0.01 * np.eye(4), 0.001 * np.eye(2))
+
+
+@pytest.mark.parametrize("s", [EX, LinearSystem.create(0.5, 1, 0.2, 0.5), VEHICLE])
+def test_shared_orbit_walk_equals_the_per_M_loop(s):
+    """k along one kept orbit with one batched comparison per point (first_exceedances, k1_each/k2_each) is the
+    per-M loop at every M: grids of scalars M·I and random PSD matrices, both orbits (M̄ and P̄)."""
+    from netkf_cli.linalg import riccati
+    rng = np.random.default_rng(7)
+    n = s.n
+    X0s = [riccati.pbar(s)] + ([riccati.mbar(s)] if n != 4 else [])
+    Ms = [m * np.eye(n) for m in np.geomspace(0.01, 400, 120)]
+    for _ in range(40):
+        G = rng.normal(size=(n, n))
+        Ms.append(G @ G.T * rng.uniform(0.01, 50))
+    Ms = np.array(Ms)
+    for X0 in X0s:
+        got = db.first_exceedances(X0, Ms, s)
+        want = [_walk_per_M(X0, M, s) for M in Ms]
+        assert got.tolist() == want
+        assert [db.first_exceedance(X0, M, s) for M in Ms[::7]] == want[::7]
+    ok = np.array([bool(riccati.psd_leq(riccati.pbar(s), M)) for M in Ms])
+    assert db.k2_each(Ms[ok], s).tolist() == [_walk_per_M(riccati.pbar(s), M, s) for M in Ms[ok]]
+
+
+def test_leq_each_is_psd_leq_per_matrix():
+    """The batched comparison gives psd_leq(X, M) for each M with its own scale (finite and non-finite X)."""
+    from netkf_cli.linalg import riccati
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 4):
+        Ms = np.array([(lambda G: G @ G.T * rng.uniform(0.1, 30))(rng.normal(size=(n, n))) for _ in range(60)]
+                      + [0.5 * np.eye(n)])
+        # the last X sits between the tolerances of M = 0.5·I (scale 1) and of the large M: per-M scale decides
+        for X in (Ms[0], Ms[5] * 0.5, np.full((n, n), np.inf), Ms[1] + 1e-12, (0.5 + 2e-9) * np.eye(n)):
+            assert db.leq_each(X, Ms).tolist() == [bool(riccati.psd_leq(X, M)) for M in Ms]
+
+
 def test_delay_distributions_cdf_and_sampling_agree():
     rng = np.random.default_rng(3)
     n = 200_000
