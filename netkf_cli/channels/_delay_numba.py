@@ -3,12 +3,13 @@
 
 * :func:`inverse_cdf` — the same bucketed search as the numpy path, fused in one loop: exactly
   ``np.searchsorted(table, u, side="right")`` (tested);
-* :func:`oldest_arrivals` — Prop. 3.1's count: the largest kept delay arriving at each time k, one pass over
-  the packets (integers: the same maxima as the numpy passes, tested)."""
+* :func:`oldest_arrival` — Prop. 3.1's count: the largest kept delay arriving at a time k, a vectorized pass per
+  delay value (integers: the same maxima as the numpy passes, tested)."""
 
 from __future__ import annotations
 
 import numba as nb
+import numpy as np
 
 
 @nb.njit(cache=True, nogil=True, boundscheck=False)
@@ -34,14 +35,14 @@ def inverse_cdf(u, table, lo, amb, K, out):
 
 
 @nb.njit(cache=True, nogil=True, boundscheck=False)
-def oldest_arrivals(d, Dmax, out):
-    """out[k, r] = max(out[k, r], d_s) over the packets s (row s − 1 of ``d`` (T, runs)) of run r with
-    d_s ≤ Dmax that arrive at k = s + d_s ≤ T; ``out`` (T + 1, runs) starts at 0."""
-    T, runs = d.shape
-    for s in range(T):
+def oldest_arrival(d, Dmax, k, out):
+    """out[r] = the largest δ ≤ min(D_max, k − 1) with d[k − 1 − δ, r] = δ (packet s = k − δ, row s − 1 of ``d``
+    (T, runs), arrives exactly at k and is kept), 0 when none: Prop. 3.1's count at one time k. ``out`` (runs,)
+    int32 starts at 0; a pass per δ, ascending (the last write is the largest), each a compare-and-select over
+    the runs that vectorizes (int32 throughout)."""
+    runs = out.shape[0]
+    for delta in range(min(Dmax, k - 1) + 1):
+        row = d[k - 1 - delta]
+        m = np.int32(delta)
         for r in range(runs):
-            x = d[s, r]
-            if 0 <= x and x <= Dmax and x <= T - 1 - s:  # arrival k = s + 1 + x ≤ T (no overflow for LOST)
-                k = s + 1 + x
-                if x > out[k, r]:
-                    out[k, r] = x
+            out[r] = m if row[r] == m else out[r]

@@ -127,47 +127,56 @@ class BufferedEstimator(EstimatorModel):
 
 
 MKF_DELAY_LOOP_MAX = 64
-"""mkf_runs' numpy path: below this D_max, a pass per delay value (D_max + 1 vectorized passes) instead of
-``np.maximum.at``'s scatter (≈ 3× slower per packet at D_max ≤ 15; tests/shi2009 check both give the same maxima)."""
+"""mkf_runs: below this D_max, a pass per delay value (D_max + 1 vectorized passes; compiled per k where numba
+imports) instead of ``np.maximum.at``'s scatter (≈ 3× slower per packet at D_max ≤ 15; tests/shi2009 check both
+give the same maxima)."""
 
 
 def _oldest_compiled():
-    """:func:`netkf_cli.channels._delay_numba.oldest_arrivals` where numba imports, else None."""
+    """:func:`netkf_cli.channels._delay_numba.oldest_arrival` where numba imports, else None."""
     try:
         from netkf_cli.channels import _delay_numba  # optional: needs numba (numpy passes otherwise)
     except ImportError:
         return None
-    return _delay_numba.oldest_arrivals
+    return _delay_numba.oldest_arrival
 
 
 def mkf_runs(trace, steps, compiled: bool | None = None):
     """(k, R_k) for k in ``steps``: R_k = 1 + max{d_s : s + d_s = k, d_s ≤ D_max} (1 when no kept packet
     arrives at k), from the trace's delays (packet s = 1 … horizon at row s − 1) and its buffer.
 
-    ``compiled`` (None = where numba imports, True likewise, False = numpy): one compiled pass over the packets
-    (:func:`netkf_cli.channels._delay_numba.oldest_arrivals`, ≈ 10× the numpy passes at D_max ≤ 15); the counts
-    are integers, so every path gives the same R_k (tested)."""
+    ``compiled`` (None = where numba imports, True likewise, False = numpy): at each k a compiled pass per delay
+    value over the rows that can arrive at k (:func:`netkf_cli.channels._delay_numba.oldest_arrival`, vectorized
+    over the runs; no (horizon, runs) table); the counts are integers, so every path gives the same R_k (tested)."""
     d = trace_delays(trace)
     T, runs = d.shape
     Dmax = trace_max_kept_delay(trace)
-    kernel = _oldest_compiled() if compiled is None or compiled else None
-    if kernel is not None:  # int16 when the delays fit: a quarter of the fresh pages (the same counts)
-        oldest = np.zeros((T + 1, runs), dtype=np.int16 if min(Dmax, T) < 2**15 else np.int64)
-        kernel(np.ascontiguousarray(d), int(Dmax), oldest)
-    else:
-        oldest = np.zeros((T + 1, runs), dtype=np.int64)  # row k: the largest kept delay arriving at time k
-        if Dmax < MKF_DELAY_LOOP_MAX:  # a pass per delay value δ, ascending: the last write at (k, run) is the largest
-            for delta in range(min(Dmax, T - 1) + 1):  # packet s (row s − 1) with d_s = δ arrives at k = s + δ ≤ T
-                np.copyto(oldest[1 + delta:], delta, where=d[: T - delta] == delta)
-        else:  # a long buffer: scatter each kept packet's delay to its arrival time (the same maxima)
-            d = d.astype(np.int64)
-            arrive = np.arange(1, T + 1)[:, None] + d
-            t_idx, r_idx = np.nonzero((d <= Dmax) & (arrive <= T))
-            np.maximum.at(oldest, (arrive[t_idx, r_idx], r_idx), d[t_idx, r_idx])
+    kernel = _oldest_compiled() if (compiled is None or compiled) and Dmax < MKF_DELAY_LOOP_MAX else None
+    if kernel is not None:  # min(D_max, k − 1) + 1 passes at each k: for short buffers (a long one scatters)
+        d = np.ascontiguousarray(d, dtype=np.int32)
+        for k in steps:
+            _check_step(k, T)
+            row = np.zeros(runs, dtype=np.int32)
+            kernel(d, int(Dmax), int(k), row)
+            yield int(k), 1.0 + row  # float64, as the numpy table gives
+        return
+    oldest = np.zeros((T + 1, runs), dtype=np.int64)  # row k: the largest kept delay arriving at time k
+    if Dmax < MKF_DELAY_LOOP_MAX:  # a pass per delay value δ, ascending: the last write at (k, run) is the largest
+        for delta in range(min(Dmax, T - 1) + 1):  # packet s (row s − 1) with d_s = δ arrives at k = s + δ ≤ T
+            np.copyto(oldest[1 + delta:], delta, where=d[: T - delta] == delta)
+    else:  # a long buffer: scatter each kept packet's delay to its arrival time (the same maxima)
+        d = d.astype(np.int64)
+        arrive = np.arange(1, T + 1)[:, None] + d
+        t_idx, r_idx = np.nonzero((d <= Dmax) & (arrive <= T))
+        np.maximum.at(oldest, (arrive[t_idx, r_idx], r_idx), d[t_idx, r_idx])
     for k in steps:
-        if not 1 <= k <= T:
-            raise ValueError(f"steps must lie in 1..{T}, got {k}")
-        yield int(k), 1.0 + oldest[int(k)]  # float64 from either integer table: the same values
+        _check_step(k, T)
+        yield int(k), 1.0 + oldest[int(k)]
+
+
+def _check_step(k, T: int) -> None:
+    if not 1 <= k <= T:
+        raise ValueError(f"steps must lie in 1..{T}, got {k}")
 
 
 def _c_invertible(s: LinearSystem) -> bool:

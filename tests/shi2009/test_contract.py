@@ -414,6 +414,9 @@ def test_bucketed_inverse_cdf_is_searchsorted(ch):
     assert np.array_equal(inverse_cdf(u, tab), ref)  # default (numpy at this size)
     assert np.array_equal(inverse_cdf(u, tab, compiled=True), ref)  # compiled where numba imports
     assert inverse_cdf(u, tab, compiled=True).dtype == np.int32 == inverse_cdf(u, tab, compiled=False).dtype
+    for compiled in (False, True):  # into a given array (delay_trace's rows), through the kept buckets again
+        out = np.full(u.shape, -1, dtype=np.int32)
+        assert inverse_cdf(u, tab, compiled=compiled, out=out) is out and np.array_equal(out, ref)
 
 
 @pytest.mark.filterwarnings("ignore:buffered.*overflowed:UserWarning")  # the metric's one-line summary
