@@ -29,6 +29,7 @@ and ``predicted`` P_{k+1|k} = A P_{k|k} Aᵀ + Q (:func:`netkf_cli.linalg.kalman
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
@@ -59,6 +60,10 @@ def identical_sensors(A, C, Q, R, N: int, P0=None) -> LinearSystem:
                                sensors=[tuple(range(i * m, (i + 1) * m)) for i in range(N)])
 
 
+_SENSORS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+"""Sensors per system (a LinearSystem is immutable and hashed by identity) and stream count."""
+
+
 @dataclass(frozen=True)
 class Sensors:
     """The fusion centre's sensors: the core's :class:`~netkf_cli.linalg.kalman.Filter` over the channel's
@@ -71,6 +76,15 @@ class Sensors:
 
     @classmethod
     def of(cls, system, streams: int, path: str = "estimator.kind") -> "Sensors":
+        """The sensors of ``system`` read through ``streams`` arrival streams; built once per (system, streams) in
+        a process and kept (:data:`_SENSORS`): the check, the backend and every chunk's covariances ask again."""
+        kept = _SENSORS.setdefault(system, {})
+        if streams not in kept:
+            kept[streams] = cls._build(system, streams, path)
+        return kept[streams]
+
+    @classmethod
+    def _build(cls, system, streams: int, path: str) -> "Sensors":
         f = kalman.Filter.of(system, streams, path)
         N = len(f.groups)
         C1 = R1 = None

@@ -462,7 +462,8 @@ class FlaggedRuns:
         self.t = 0
 
     def fill(self, out: np.ndarray, flag: np.ndarray, k: int) -> np.ndarray:
-        new = np.setdiff1d(np.flatnonzero(flag), self.idx)
+        flagged = np.flatnonzero(flag)
+        new = np.setdiff1d(flagged, self.idx) if flagged.size else flagged  # usually none: no set operation
         if self.idx.size:  # runs already on the numpy core: one step at a time
             for tt in range(self.t, k):
                 self.Pn = self.step(self.Pn, tt, self.idx)

@@ -333,8 +333,7 @@ def _advance_last() -> list[str]:
             "    for s in range(t0, t1):",
             "        for i in range(N):",
             "            for r in range(runs):",
-            "                if arrival[i, s - off, r]:",
-            "                    last[i, r] = s"]
+            "                last[i, r] = s if arrival[i, s - off, r] else last[i, r]  # a select: no branch to mispredict"]
 
 
 def source_olpef(n: int) -> str:

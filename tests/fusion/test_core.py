@@ -222,3 +222,17 @@ def test_olpef_unstable_A_is_a_clear_error():
 
     with pytest.raises(ConfigError, match="system.A"):
         fe.OLPEFTables([[1.1]], [[1.0]], [[1.0]], [[1.0]], 3)
+
+
+def test_sensors_are_built_once_per_system_and_streams():
+    """Sensors.of keeps what it builds per (system, streams): the same object on every ask, equal to a fresh
+    build; another system (even with equal matrices) or another stream count gets its own."""
+    s = fe.identical_sensors(0.9, 1.0, 1e-3, 10.0, 5)
+    a = fe.Sensors.of(s, 5)
+    assert fe.Sensors.of(s, 5) is a
+    fresh = fe.Sensors._build(s, 5, "estimator.kind")
+    assert (a.N, a.identical) == (fresh.N, fresh.identical) and a.filt.groups == fresh.filt.groups
+    assert all(np.array_equal(x, y) for x, y in ((a.C1, fresh.C1), (a.R1, fresh.R1), (a.filt.C, fresh.filt.C),
+                                                 (a.filt.R, fresh.filt.R)))
+    other = fe.identical_sensors(0.9, 1.0, 1e-3, 10.0, 5)
+    assert fe.Sensors.of(other, 5) is not a and fe.Sensors.of(s, 1) is not a and fe.Sensors.of(s, 1).N == 1
