@@ -112,6 +112,12 @@ def test_compiled_nees_equals_numpy_closed_form():
     P[:, :, :30] = 0.0
     P[:, :, 30:60] = np.diag([2.0, 0.0])[:, :, None]
     P[:, :, 60:90] = 4.0 * np.eye(2)[:, :, None]
+    P[:, :, 90:400] = P[:, :, 95:96]  # one P in many runs (the exact LMMSE): its eigen-decomposition is reused
+    P[:, :, 400:402] = np.array([[1.0, 0.0], [-0.0, 0.0]])[:, :, None]  # then the same P with signed zeros
+    P[:, :, 401] = np.array([[1.0, -0.0], [0.0, -0.0]])
+    P[:, :, 402:404] = np.nan
+    P[:, :, 404] = [[1.0, 0.5], [0.5, 2.0]]  # the same diagonal, another off-diagonal: not the same P
+    P[:, :, 405] = [[1.0, -0.5], [-0.5, 2.0]]
     e = rng.standard_normal((2, R))
     q, r = state.nees(e, P)
     q0, r0 = state._nees_small(e, P)
