@@ -21,6 +21,7 @@ An overflowed covariance is ∞ in every entry (P ≰ M for every M).
 
 from __future__ import annotations
 
+import weakref
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -90,33 +91,68 @@ def _finite_or_inf(G: np.ndarray) -> np.ndarray:
     return G
 
 
-def smart_covariances(s: LinearSystem, trace, steps, quantities=("filtered",), with_age: bool = False):
-    """Generator behind :meth:`SmartSensorEstimator.covariances`.
+class SensorHistory:
+    """G_k of :func:`smart_covariances` for one system: G_k[:, :, j] = h^j(P^s_{k−j}), j = 0 … k, carried forward
+    in k (G_k = [P^s_k, h(G_{k−1})], one batched prediction per step). It depends on the system alone — not on the
+    trace — so it is computed once per process and system and kept (:data:`_HISTORIES`): the G_k of the steps
+    asked for, and the recursion's state to go on from (a smaller k not kept restarts it, the same arithmetic)."""
 
-    G_k[:, :, j] = h^j(P^s_{k−j}), j = 0 … k, is carried forward in k: G_k = [P^s_k, h(G_{k−1})]
-    (one batched prediction per step), and P_{k|k} = G_k[:, :, N_k] per run.
-    """
+    def __init__(self, s: LinearSystem):
+        self.f = kalman.Filter.of(s, 1, "estimator.kind")
+        self.P0 = initial_covariance(s)[:, :, None]
+        self._restart()
+        self.kept: dict[int, np.ndarray] = {}
+
+    def _restart(self) -> None:
+        self.t, self.Ps = 0, self.P0.copy()  # the sensor's P^s_t (one run, every measurement received)
+        self.G = self.Ps.copy()  # G_0 = [P^s_0]
+
+    def at(self, k: int) -> np.ndarray:
+        """G_k, (n, n, k + 1); read-only (shared by every chunk)."""
+        if k not in self.kept:
+            if k < self.t:
+                self._restart()
+            f, one = self.f, np.ones((1, 1), dtype=bool)
+            while self.t < k:
+                with np.errstate(over="ignore", invalid="ignore"):
+                    _, self.Ps = f.step(self.Ps, one)
+                    self.G = _finite_or_inf(np.concatenate([self.Ps, kalman.predict(self.G, f.A, f.Q)], axis=2))
+                self.t += 1
+            if len(self.kept) >= 1024:
+                self.kept.clear()
+            self.G.setflags(write=False)
+            self.kept[k] = self.G
+        return self.kept[k]
+
+
+_HISTORIES: "weakref.WeakKeyDictionary[LinearSystem, SensorHistory]" = weakref.WeakKeyDictionary()
+
+
+def sensor_history(s: LinearSystem) -> SensorHistory:
+    """The kept :class:`SensorHistory` of ``s`` (a LinearSystem is immutable and hashed by identity)."""
+    h = _HISTORIES.get(s)
+    if h is None:
+        h = _HISTORIES[s] = SensorHistory(s)
+    return h
+
+
+def smart_covariances(s: LinearSystem, trace, steps, quantities=("filtered",), with_age: bool = False):
+    """Generator behind :meth:`SmartSensorEstimator.covariances`: P_{k|k} = G_k[:, :, N_k] per run, with G_k of the
+    kept :class:`SensorHistory`."""
     T = trace.horizon
     d = trace_delays(trace)  # int32, only compared (an int64 copy was 16 MB of a 20 000 × 100 chunk)
     Dmax = trace_max_kept_delay(trace)
-    f = kalman.Filter.of(s, 1, "estimator.kind")
+    hist = sensor_history(s)
+    f = hist.f
     want = sorted(int(k) for k in steps)
     for k in want:
         if not 1 <= k <= T:
             raise ValueError(f"steps must lie in 1..{T}, got {k}")
-    Ps = initial_covariance(s)[:, :, None]  # the sensor's P^s_t (one run, every measurement received)
-    G = Ps.copy()  # G_0 = [P^s_0]
-    one = np.ones((1, 1), dtype=bool)
     final = d <= Dmax  # a packet older than D_max is kept iff its delay is ≤ D_max (its final status)
     last = np.zeros(trace.runs, dtype=np.int64)  # newest finally kept packet among 1 … done (0: none)
     done = 0
-    t = 0
     for k in want:
-        while t < k:
-            with np.errstate(over="ignore", invalid="ignore"):
-                _, Ps = f.step(Ps, one)
-                G = _finite_or_inf(np.concatenate([Ps, kalman.predict(G, f.A, f.Q)], axis=2))
-            t += 1
+        G = hist.at(k)
         w0 = max(0, k - Dmax - 1)  # packets 1 … w0 have age > D_max at k
         while done < w0:
             last = np.where(final[done], done + 1, last)

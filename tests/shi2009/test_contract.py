@@ -164,6 +164,41 @@ def test_smart_sensor_covariances_equal_per_run_loop(name):
             assert np.allclose(P[:, :, r], ref, rtol=1e-9, atol=1e-12), (name, k, r)
 
 
+def _carried_G(s, k):
+    """G_k carried forward from G_0 = [P_{0|0}] as smart_covariances did in every chunk before the history was
+    kept (the reference of the kept SensorHistory, bit for bit)."""
+    from netkf_cli.estimators.smart_sensor import _finite_or_inf
+    from netkf_cli.linalg import kalman
+
+    f = kalman.Filter.of(s, 1, "estimator.kind")
+    Ps = initial_covariance(s)[:, :, None]
+    G = Ps.copy()
+    for _ in range(k):
+        with np.errstate(over="ignore", invalid="ignore"):
+            _, Ps = f.step(Ps, np.ones((1, 1), dtype=bool))
+            G = _finite_or_inf(np.concatenate([Ps, kalman.predict(G, f.A, f.Q)], axis=2))
+    return G
+
+
+@pytest.mark.parametrize("s", [scalar_system(), vehicle_system(), _overflow_system()], ids=["scalar", "vehicle", "overflow"])
+def test_smart_sensor_history_is_the_carried_recursion(s):
+    """The G_k a process keeps per system (SensorHistory) are the per-chunk recursion's, bit for bit, whatever order
+    the steps are asked in (a smaller step than the last restarts it), and every chunk reads the same matrices."""
+    from netkf_cli.estimators.smart_sensor import SensorHistory, sensor_history
+
+    h = SensorHistory(s)
+    for k in (5, 9, 2, 9, 30, 1):
+        assert np.array_equal(h.at(k), _carried_G(s, k), equal_nan=True), k
+    assert sensor_history(s) is sensor_history(s) and not sensor_history(s).at(3).flags.writeable
+    ch = poisson(3, 4)
+    est = SmartSensorEstimator(kind="smart_sensor")
+    tr = ch.sample_trace(np.random.default_rng(5), 30, 20)
+    first, again = (dict(est.covariances(s, tr, [3, 20], ("filtered", "predicted"))) for _ in range(2))
+    for k in (3, 20):
+        for q in ("filtered", "predicted"):
+            assert np.array_equal(first[k][q], again[k][q], equal_nan=True)
+
+
 def _brute_smart(s, d, Dmax, k, P0):
     """P_{k|k} of the smart sensor by brute force, textbook formulas: the sensor's KF P^s_t from P0 with
     every measurement, N_k by scanning packets newest first, then N_k predictions."""
