@@ -124,6 +124,7 @@ def source(A: np.ndarray, BSB: np.ndarray, Cf: np.ndarray, LJS: np.ndarray, Cp: 
           "            s = slot[t + 1]"]
     I = "                "
     for q in range(N):
+        b_ = f"b{q}"  # the branch's own names: numba's SSA pass costs (names defined more than once) × (blocks)
         L.append(f"            {'if' if q == 0 else 'elif'} q == {q}:")
         # the filtered report, before the step
         L.append(I + "if s >= 0 and want_f:")
@@ -131,34 +132,34 @@ def source(A: np.ndarray, BSB: np.ndarray, Cf: np.ndarray, LJS: np.ndarray, Cp: 
         for a in range(n):
             for j in range(D):
                 terms = [(_coef("CF", q, a, k, cco, cval), _m(k, j)) for k in range(D) if cnz[q, a, k]]
-                L.append(J + f"x{a}_{j} = {_sum(terms)}")
+                L.append(J + f"{b_}x{a}_{j} = {_sum(terms)}")
         for a in range(n):
             for b in range(n):
-                terms = [(_coef("CF", q, b, k, cco, cval), f"x{a}_{k}") for k in range(D) if cnz[q, b, k]]
-                L.append(J + f"c{a}_{b} = {_sum(terms)}")
+                terms = [(_coef("CF", q, b, k, cco, cval), f"{b_}x{a}_{k}") for k in range(D) if cnz[q, b, k]]
+                L.append(J + f"{b_}c{a}_{b} = {_sum(terms)}")
         for a in range(n):
             for b in range(a, n):
                 st = (_num(lval[q, a, b]) if lco[q, a, b] else f"LJ[idx, {a}, {b}]") if lnz[q, a, b] else "0.0"
-                L.append(J + f"p{a}_{b} = {_sym('c', a, b)} + {st}")
-        L.append(J + f"trm = {' + '.join(_m(i, i) for i in range(D))}")
-        L.append(J + f"trp = {' + '.join(f'p{a}_{a}' for a in range(n))}")
-        L.append(J + "bad = not (eps * sumCf[idx] * trm <= prec * trp)")
+                L.append(J + f"{b_}p{a}_{b} = {_sym(b_ + 'c', a, b)} + {st}")
+        L.append(J + f"{b_}trm = {' + '.join(_m(i, i) for i in range(D))}")
+        L.append(J + f"{b_}trp = {' + '.join(f'{b_}p{a}_{a}' for a in range(n))}")
+        L.append(J + f"{b_}bad = not (eps * sumCf[idx] * {b_}trm <= prec * {b_}trp)")
         for a in range(n):
             for b in range(n):
-                L.append(J + f"out_f[s, {a}, {b}, r] = np.inf if bad else p{min(a, b)}_{max(a, b)}")
+                L.append(J + f"out_f[s, {a}, {b}, r] = np.inf if {b_}bad else {b_}p{min(a, b)}_{max(a, b)}")
         # the step: t = 𝒜 M, M⁺ = t 𝒜ᵀ + ℬΣℬᵀ (upper triangle)
         for i in range(D):
             for j in range(D):
                 terms = [(_coef("AA", q, i, k, aco, aval), _m(k, j)) for k in range(D) if anz[q, i, k]]
-                L.append(I + f"t{i}_{j} = {_sum(terms)}")
+                L.append(I + f"{b_}t{i}_{j} = {_sum(terms)}")
         for i in range(D):
             for j in range(D):
-                terms = [(_coef("AA", q, j, k, aco, aval), f"t{i}_{k}") for k in range(D) if anz[q, j, k]]
-                L.append(I + f"u{i}_{j} = {_sum(terms)}")
+                terms = [(_coef("AA", q, j, k, aco, aval), f"{b_}t{i}_{k}") for k in range(D) if anz[q, j, k]]
+                L.append(I + f"{b_}u{i}_{j} = {_sum(terms)}")
         for i, j in up:
             st = (_num(bval[q, i, j]) if bco[q, i, j] else f"BB[idx, {i}, {j}]") if bnz[q, i, j] else "0.0"
-            L.append(I + f"n{i}_{j} = {_sym('u', i, j)} + {st}")
-    L += [f"            {_m(i, j)} = n{i}_{j}" for i, j in up]
+            L.append(I + f"{b_}n{i}_{j} = {_sym(b_ + 'u', i, j)} + {st}")
+        L += [I + f"{_m(i, j)} = {b_}n{i}_{j}" for i, j in up]
     # the predicted report, after the step
     L.append("            if s >= 0 and want_p:")
     I = "                "
@@ -224,35 +225,37 @@ def source_mode_aware(H: np.ndarray, Rq: np.ndarray, Fb: np.ndarray, Qb: np.ndar
             L.append(I + "    flag[r] = True")
             L.append(I + "    break")
         h = H[q, 0]
+        b_ = f"b{q}"  # the branch's own names for its intermediates (numba's SSA pass: names defined more than once)
         hz = [k for k in range(d) if h[k] != 0.0]
         if not hz:  # noise only: P_f = P, ξ̂_f = ξ̂
             L += [I + f"{Fp(i, j)} = {P(i, j)}" for i, j in up]
             L += [I + f"g{i} = x{i}" for i in range(d)]
         else:
             for i in range(d):
-                L.append(I + f"u{i} = {_sum([(_num(h[k]), P(k, i)) for k in hz])}")
-            L.append(I + f"ss = ({_sum([(_num(h[k]), f'u{k}') for k in hz])}) + {_num(Rq[q, 0, 0])}")
-            L.append(I + f"if ss > rtol * (scale + ({' + '.join(P(i, i) for i in range(d))})):")
+                L.append(I + f"{b_}u{i} = {_sum([(_num(h[k]), P(k, i)) for k in hz])}")
+            L.append(I + f"{b_}ss = ({_sum([(_num(h[k]), f'{b_}u{k}') for k in hz])}) + {_num(Rq[q, 0, 0])}")
+            L.append(I + f"if {b_}ss > rtol * (scale + ({' + '.join(P(i, i) for i in range(d))})):")
             J = I + "    "
-            L.append(J + "inv = 1.0 / ss")
-            L.append(J + f"e = yy - ({_sum([(_num(h[k]), f'x{k}') for k in hz])})")
+            L.append(J + f"{b_}inv = 1.0 / {b_}ss")
+            L.append(J + f"{b_}e = yy - ({_sum([(_num(h[k]), f'x{k}') for k in hz])})")
             for i in range(d):
-                L.append(J + f"b{i} = inv * u{i}")  # numpy's order: S⁻¹ (C P), then P Cᵀ · that, then (X + Xᵀ)/2
-            L += [J + (f"{Fp(i, j)} = {P(i, j)} - u{i} * b{i}" if i == j else
-                       f"{Fp(i, j)} = 0.5 * (({P(i, j)} - u{i} * b{j}) + ({P(i, j)} - u{j} * b{i}))") for i, j in up]
-            L += [J + f"g{i} = x{i} + b{i} * e" for i in range(d)]
+                L.append(J + f"{b_}b{i} = {b_}inv * {b_}u{i}")  # numpy's order: S⁻¹ (C P), then P Cᵀ · that, then (X + Xᵀ)/2
+            L += [J + (f"{Fp(i, j)} = {P(i, j)} - {b_}u{i} * {b_}b{i}" if i == j else
+                       f"{Fp(i, j)} = 0.5 * (({P(i, j)} - {b_}u{i} * {b_}b{j}) + ({P(i, j)} - {b_}u{j} * {b_}b{i}))")
+                  for i, j in up]
+            L += [J + f"g{i} = x{i} + {b_}b{i} * {b_}e" for i in range(d)]
             L.append(I + "else:")
             L += [J + f"{Fp(i, j)} = {P(i, j)}" for i, j in up]
             L += [J + f"g{i} = x{i}" for i in range(d)]
         F = Fb[q]
         for i in range(d):
             for j in range(d):
-                L.append(I + f"w{i}_{j} = {_sum([(_num(F[i, k]), Fp(k, j)) for k in range(d) if F[i, k] != 0.0])}")
+                L.append(I + f"{b_}w{i}_{j} = {_sum([(_num(F[i, k]), Fp(k, j)) for k in range(d) if F[i, k] != 0.0])}")
         for i in range(d):
             for j in range(d):
-                L.append(I + f"v{i}_{j} = {_sum([(_num(F[j, k]), f'w{i}_{k}') for k in range(d) if F[j, k] != 0.0])}")
+                L.append(I + f"{b_}v{i}_{j} = {_sum([(_num(F[j, k]), f'{b_}w{i}_{k}') for k in range(d) if F[j, k] != 0.0])}")
         for i, j in up:
-            L.append(I + f"{P(i, j)} = {_sym('v', i, j)} + {_num(Qb[q, i, j])}")
+            L.append(I + f"{P(i, j)} = {_sym(b_ + 'v', i, j)} + {_num(Qb[q, i, j])}")
         for i in range(d):
             st = f"{_num(Dg[q, i, 0])} * yy" if Dg[q, i, 0] != 0.0 else None
             L.append(I + f"x{i} = {_sum([(_num(F[i, k]), f'g{k}') for k in range(d) if F[i, k] != 0.0], st)}")
