@@ -1,5 +1,5 @@
 """mkf_runs' three ways to find the oldest kept packet arriving at each k (numpy: a pass per delay value below
-MKF_DELAY_LOOP_MAX, np.maximum.at's scatter above; compiled: one pass over the packets) give the same counts, on random delay traces with lost packets,
+MKF_DELAY_LOOP_MAX, np.maximum.at's scatter above; compiled: a vectorized pass per delay value at each k) give the same counts, on random delay traces with lost packets,
 delays beyond the buffer and beyond the horizon, for both buffer conventions and no buffer at all."""
 
 from __future__ import annotations
