@@ -374,6 +374,7 @@ class PairKernel:
         trace = self.channel.sample_trace(rng, runs, self.horizon)
         stats: dict = {}
         means_only = bool(getattr(self.reducer, "means_only", False))
+        blocks = hasattr(self.reducer, "update_block")
         for j, est in enumerate(self.estimators):
             est = est.for_means(self.channel) if means_only else est
             if isinstance(self.quantity, str):
@@ -382,6 +383,13 @@ class PairKernel:
                 continue
             # several quantities in one pass: each estimator reports those it offers, in column (j, q)
             qs = [q for q in self.quantity if q in getattr(est, "quantities", ("filtered",))]
+            if blocks and hasattr(est, "covariance_blocks"):  # by blocks of steps: one reducer call per block
+                for ks, out in est.covariance_blocks(self.system, trace, self.steps, tuple(qs)):
+                    for q in qs:
+                        if q in out:
+                            self.reducer.update_block(stats, column(j, self.quantity.index(q), len(self.quantity)),
+                                                      ks, out[q], out.get("weight"))
+                continue
             for k, out in est.covariances(self.system, trace, self.steps, tuple(qs)):
                 for q in qs:
                     if q in out:
@@ -494,6 +502,32 @@ class StationaryReducer:
             idx, ok = _ambiguous(T, n, amb, self.M)
             a["ind"][:, idx] += ok
         a["steps"] += 1
+
+    def update_block(self, stats: dict, j: int, ks: list[int], P: np.ndarray, w: np.ndarray | None = None) -> None:
+        """:meth:`update` for the steps ``ks`` of one block P (K, n, n, runs) in one compiled call
+        (:func:`netkf_cli.linalg.reduce_codegen.source_stationary_block`: per run the same sums in step order as
+        K calls of :meth:`update`, the same decisions); a batch :meth:`update` would reduce on numpy goes step by
+        step through it."""
+        sel = [i for i, k in enumerate(ks) if _step_pos(self, k) is not None]
+        if not sel:
+            return
+        if not _compiled(self.backend, P[0], w):
+            for i in sel:
+                self.update(stats, j, ks[i], P[i], w)
+            return
+        X = np.ascontiguousarray(P if len(sel) == len(ks) else P[sel])
+        n, runs = X.shape[1], X.shape[-1]
+        a = self._acc(stats, j, runs)
+        thr = np.zeros(0) if self.M is None else _thresholds(self.M)[0]
+        if a.get("hist") is None:
+            a["hist"] = np.zeros((0 if self.M is None else len(self.M) + 1, runs))
+        amb = np.zeros((len(sel), runs), dtype=np.bool_)
+        rc.kernel_stationary_block(n)(X, thr, a["tr"], a["bad"], a["hist"], amb)
+        if self.M is not None:
+            for s in np.flatnonzero(amb.any(axis=1)):
+                idx, ok = _ambiguous(_tri(X[s]), n, amb[s], self.M)
+                a["ind"][:, idx] += ok
+        a["steps"] += len(sel)
 
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         if _step_pos(self, k) is None:

@@ -143,6 +143,14 @@ class SmootherEstimator(EstimatorModel):
             raise ConfigError.at("estimator.kind", "the smoother needs a trace with arrival indicators")
         yield from run(system, trace.arrival, steps, qs, int(self.lag), backend=self.backend)
 
+    def covariance_blocks(self, system: LinearSystem, trace, steps, quantities=("filtered",)):
+        """:meth:`covariances` by blocks of consecutive steps: yield ``(ks, {quantity: P})``, P ``(len(ks), n, n,
+        runs)`` — the same arrays, step for step (:func:`run_blocks`); the engine reduces each block in one call."""
+        qs = kalman.check_quantities(quantities, self.quantities, "smoother")
+        if trace.arrival is None:
+            raise ConfigError.at("estimator.kind", "the smoother needs a trace with arrival indicators")
+        yield from run_blocks(system, trace.arrival, steps, qs, int(self.lag), backend=self.backend)
+
     def backend_used(self, system, channel, runs: int, horizon: int, steps=None, quantities=None) -> str:
         """What :func:`plan` chooses for a chunk of ``runs`` runs reporting ``steps`` (default every step) of
         ``quantities`` (default smoothed): "numba (per-run kernel)" or "<forward> forward pass, <numpy|compiled>
@@ -251,6 +259,28 @@ def run(system: LinearSystem, gamma: np.ndarray, steps, quantities=("smoothed",)
         return
     _, fwd, rts = path
     yield from _run_shared(f, system, gamma, steps, qs, N, fwd, rts)
+
+
+def run_blocks(system: LinearSystem, gamma: np.ndarray, steps, quantities=("smoothed",), lag: int = 0, *,
+               backend: str = "numpy") -> Iterator[tuple[list[int], dict]]:
+    """:func:`run` by blocks: yield ``(ks, {quantity: P (len(ks), n, n, runs)})``, the arrays :func:`run` yields
+    at the steps ``ks``, stacked. The shared pass (:func:`plan`) hands out each block of steps it computes
+    whole (:func:`_emit_blocks`: no per-step work); the other paths one step at a time."""
+    qs = kalman.check_quantities(quantities, ("filtered", "predicted", "smoothed"), "smoother")
+    gamma = np.asarray(gamma)
+    if gamma.ndim != 3:
+        raise ValueError(f"gamma must be (streams, horizon, runs), got shape {gamma.shape}")
+    f = kalman.Filter.of(system, gamma.shape[0], "estimator.kind")
+    steps = _check_steps(steps, gamma.shape[1])
+    if not steps:
+        return
+    N = int(lag) if "smoothed" in qs else 0
+    path = plan(f, backend, N, gamma.shape[-1], gamma.shape[1], len(steps))
+    if path[0] == "shared":
+        yield from _run_shared(f, system, gamma, steps, qs, N, path[1], path[2], emit=_emit_blocks)
+        return
+    for k, out in run(system, gamma, steps, qs, lag, backend=backend):
+        yield [k], {q: P[None] for q, P in out.items()}
 
 
 def plan(f: kalman.Filter, backend: str, N: int, runs: int, horizon: int, n_steps: int) -> tuple:
@@ -393,7 +423,9 @@ class _Pass:
             lim = float(self.back.rescue.limit) if self.back.rescue is not None else np.inf
             flag = np.zeros(self.H.shape[::3], dtype=np.bool_)
             sc.kernel_prepare(self.f.A, self.f.Q, lim)(self.H, idx, self.J, self.C, flag)
-            ti, ri = np.nonzero(flag)
+            fr = np.flatnonzero(flag.any(axis=1))  # (np.nonzero of the whole flag array: ~8 ms a call)
+            ti, ri = np.nonzero(flag[fr])
+            ti = fr[ti]
             if ti.size:  # the rescue's entries (and anything non-finite): the numpy core, exactly
                 J, C = _rts_prepare_numpy(self.back, np.ascontiguousarray(np.moveaxis(self.H[ti, :, :, ri], 0, -1)))
                 self.J[ti, :, :, ri] = np.moveaxis(J, -1, 0)
@@ -411,7 +443,7 @@ class _Pass:
             return self.chain[1]
         d, S0 = (self.chain if self.chain is not None and self.chain[0] < N else (0, None))
         ok = [i for i, k in enumerate(self.steps) if k >= N]
-        out = np.full((K,) + self.H.shape[1:], np.nan)
+        out = np.full((K,) + self.H.shape[1:], np.nan) if len(ok) < K else None
         if ok:
             ks = [self.steps[i] for i in ok]
             self.prepare([k - u for k in ks for u in range(d + 1, N + 1)])
@@ -427,7 +459,10 @@ class _Pass:
                 for u in range(tix.shape[1]):
                     Ps = _rts_apply_numpy(_flat(self.J[tix[:, u]]), _flat(self.C[tix[:, u]]), Ps)
                 res = _unflat(Ps, m)
-            out[ok] = res
+            if out is None:  # every step smooths back N steps: the result is the output
+                out = res
+            else:
+                out[ok] = res
         if self.chain is None or N > self.chain[0]:
             self.chain = (N, out)
         return out
@@ -470,7 +505,7 @@ def _forget(key) -> None:
         _TLS.last = None
 
 
-def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: str):
+def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: str, emit=None):
     """Forward: :meth:`kalman.Filter.run` with backend ``fwd`` (exactly kf's numbers; numba: streamed by
     :func:`_forward_stream`) at every trace step a requested step's backward pass reads; backward: J_t, C_t
     once per trace step (:class:`_Pass`, ``rts`` numpy = the core's operations batched over trace steps, bit
@@ -481,7 +516,9 @@ def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: st
     pass, the RTS pieces and the chain (the same numbers as separate calls, a test). A larger request is cut
     into blocks of steps, each holding only the rows [k − N, k] of its steps, and nothing is kept: the
     working set is one block whatever the horizon and chunk (issue 20); every number is the one-block
-    number (per run and step the same operations on the same operands, a test)."""
+    number (per run and step the same operations on the same operands, a test). ``emit`` (default
+    :func:`_emit`, one step at a time; :func:`_emit_blocks`) hands out each block's covariances."""
+    emit = _emit if emit is None else emit
     runs, n = gamma.shape[-1], f.A.shape[0]
     smooth = "smoothed" in qs and N > 0
     L = max(N, SHARE_MARGIN)
@@ -494,7 +531,7 @@ def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: st
                P0.tobytes(), fwd, rts, tuple(steps))
         got = getattr(_TLS, "last", None)
         if got is not None and got[0] == key and got[1].margin >= N:
-            yield from _emit(got[1], qs, N)
+            yield from emit(got[1], qs, N)
             return
     else:  # nothing is kept for another estimator: only the rows this lag reads
         L = N if smooth else 0
@@ -509,15 +546,31 @@ def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: st
         while last < rows[-1]:
             last, P = next(forward)
             have[last] = P
-        H = np.stack([have[t] for t in rows])
+        H = _stacked([have[t] for t in rows])
         for t in [u for u in have if u < rows[-1] + 1 - L]:
             del have[t]
         ps = _Pass(f, rows, H, rts, tuple(block), L, back)
         del H
         if key is not None:
             _keep(gamma, key, ps)
-        yield from _emit(ps, qs, N if smooth else 0)
+        yield from emit(ps, qs, N if smooth else 0)
         del ps
+
+
+def _stacked(arrs: list[np.ndarray]) -> np.ndarray:
+    """``np.stack(arrs)``, or, when the arrays are consecutive rows of one array (the forward pass kept by
+    :func:`_forward_kept`), the slice of it they make up: the same numbers without a copy."""
+    b = arrs[0].base
+    if b is None or b.ndim != arrs[0].ndim + 1 or not b.flags.c_contiguous:
+        return np.stack(arrs)
+    row = b.strides[0]
+    off = arrs[0].__array_interface__["data"][0] - b.__array_interface__["data"][0]
+    i0 = off // row
+    if off % row or any(a.base is not b or a.shape != b.shape[1:] or not a.flags.c_contiguous
+                        or a.__array_interface__["data"][0] != b.__array_interface__["data"][0] + (i0 + i) * row
+                        for i, a in enumerate(arrs)) or i0 + len(arrs) > b.shape[0]:
+        return np.stack(arrs)
+    return b[i0:i0 + len(arrs)]
 
 
 FORWARD_BYTES = 24 * 2**20
@@ -629,6 +682,22 @@ def _emit(ps: _Pass, qs, N: int):
         if "smoothed" in qs:
             out["smoothed"] = P if N == 0 else S[i]
         yield k, {q: out[q] for q in qs}
+
+
+def _emit_blocks(ps: _Pass, qs, N: int):
+    """:func:`_emit` for the whole block: ``(steps, {quantity: P (K, n, n, runs)})``, the arrays _emit yields
+    step by step (P_{k|k} the rows of ``ps.H``, a view when they are consecutive; ``smoothed`` the chain itself)."""
+    idx = [ps.pos[k] for k in ps.steps]
+    H = ps.H[idx[0]:idx[-1] + 1] if idx == list(range(idx[0], idx[-1] + 1)) else ps.H[idx]
+    out = {}
+    for q in qs:
+        if q == "filtered" or (q == "smoothed" and N == 0):
+            out[q] = H
+        elif q == "smoothed":
+            out[q] = ps.smoothed(N)
+        else:
+            out[q] = np.stack([kalman.report(P, (q,), ps.f.A, ps.f.Q)[q] for P in H])
+    yield list(ps.steps), out
 
 
 def _P0(system, runs: int, prior) -> tuple[np.ndarray | None, np.ndarray | None]:

@@ -127,6 +127,25 @@ def source_stationary(n: int) -> str:
     return "\n".join(L) + "\n"
 
 
+def source_stationary_block(n: int) -> str:
+    """``stationary_block(X, thr, tr_acc, bad, hist, amb)``: :func:`source_stationary` for the K steps of one block
+    X (K, n, n, runs) at once, step after step (so per run the same sums in the same order as K calls), each step's
+    packed triangle formed in the loop as the engine's ``_tri`` forms it, (P[i, j] + P[j, i]) · 0.5 (the same two
+    operations); ``amb`` (K, runs) raised for the (step, run) it leaves to the caller."""
+    L = _head("stationary_block", "X, thr, tr_acc, bad, hist, amb")
+    L += ["    nM = thr.shape[0]", "    for s in range(X.shape[0]):", "        Xs = X[s]", "        ams = amb[s]",
+          "        for r in range(X.shape[3]):"]
+    L += [f"            {_p(i, j)} = (Xs[{i}, {j}, r] + Xs[{j}, {i}, r]) * 0.5" for i, j in _tri(n)]
+    L.append("            fin = " + " and ".join(f"math.isfinite({_p(i, j)})" for i, j in _tri(n)))
+    L += ["            if not fin:", "                bad[r] = True", "                continue",
+          "            tr_acc[r] += " + " + ".join(_p(i, i) for i in range(n)),
+          "            if nM == 0:", "                continue"]
+    L += _search(n, "            ")
+    L += ["            if ambig:", "                ams[r] = True", "                continue",
+          "            hist[i0, r] += 1.0"]
+    return "\n".join(L) + "\n"
+
+
 _KERNELS: dict = {}
 
 
@@ -177,4 +196,11 @@ def kernel_stationary(n: int):
     key = ("stationary_acc", n)
     if key not in _KERNELS:  # the source is generated and hashed once per process
         _KERNELS[key] = kc._load(source_stationary(n), "netkf_rstat", "stationary_acc")
+    return _KERNELS[key]
+
+
+def kernel_stationary_block(n: int):
+    key = ("stationary_block", n)
+    if key not in _KERNELS:  # the source is generated and hashed once per process
+        _KERNELS[key] = kc._load(source_stationary_block(n), "netkf_rstb", "stationary_block")
     return _KERNELS[key]

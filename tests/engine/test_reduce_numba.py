@@ -132,6 +132,37 @@ def test_reducers_compiled_equal_numpy(n):
         _sums_close(out[0], out[1], rtol=1e-12)  # the same numbers summed in another order
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_stationary_block_update_is_the_per_step_updates(n, backend):
+    """StationaryReducer.update_block (one compiled call per block of steps) against one update per step: the
+    same statistics exactly (per run the same sums in the same order; the runs left to eigvalsh decided the
+    same way; a step of the block not in the reducer's steps skipped)."""
+    rng = np.random.default_rng(40 + n)
+    P = np.stack([_batch(n, 700, seed=50 + n + k) for k in range(5)])  # (K, n, n, runs), NaN / inf runs
+    P[:, ..., ::7] *= 1e3
+    M = _thresholds_near(batched.lambda_max(P[2]), rng)
+    steps = [3, 4, 6, 7]
+    ks = [3, 4, 5, 6, 7]  # 5: not a step of the reducer
+    for Ms in (M, None):
+        out = []
+        for block in (False, True):
+            red, st = engine.StationaryReducer(steps, Ms), {}
+            red.backend = backend
+            for j in (0, 1):
+                if block:
+                    red.update_block(st, j, ks[:2], P[:2])
+                    red.update_block(st, j, ks[2:], P[2:])
+                else:
+                    for k, Pk in zip(ks, P):
+                        red.update(st, j, k, Pk)
+            red.finish(st)
+            out.append(st)
+        assert set(out[0]) == set(out[1])
+        for key in out[0]:
+            assert np.array_equal(np.asarray(out[0][key]), np.asarray(out[1][key]), equal_nan=True), key
+
+
 SYSTEMS = {
     "scalar": LinearSystem.create(1.3, 1.0, 0.5, 0.8),
     "3-state": LinearSystem.create(np.array([[1.1, 0.3, 0.0], [0.0, 0.9, 0.4], [0.2, 0.0, 1.05]]),

@@ -186,3 +186,64 @@ def test_compiled_rts_on_the_numpy_forward_pass(name):
         sm._TLS.last = None
         b = dict(sm._run_shared(f, s, g, steps, QS, lag, "numpy", "compiled"))
         _equal(a, b, steps, exact=s.n <= 2)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "auto"] + ([] if numba_missing else ["numba"]))
+@pytest.mark.parametrize("split", [False, True])
+def test_blocks_are_the_per_step_covariances(backend, split, monkeypatch):
+    """run_blocks (the engine's covariance_blocks: one array per block of steps) yields, stacked, exactly the
+    arrays run yields step by step: every quantity and lag (k < N: NaN), one block (kept for the next lag) or
+    many, and the per-run kernel's path (few runs) step by step."""
+    s = SYSTEMS["2-state"]
+    g = _bursty(300, 60, 8)
+    steps = [1, 2, 3, 7, 8, 9, 10, 11, 30, 31, 32, 59, 60]
+    if split:
+        monkeypatch.setattr(sm, "BLOCK_BYTES", 4 * 4 * 300 * 8 * 9)  # blocks of 9 rows
+    for runs in (300, 100):  # 100 ≤ AUTO_NUMBA_MAX_RUNS: auto / numba take the per-run kernel
+        gr = np.ascontiguousarray(g[..., :runs])
+        for lag in (0, 1, 3, 4):
+            sm._TLS.last = sm._TLS.forward = None
+            ref = dict(sm.run(s, gr, steps, QS, lag, backend=backend))
+            got, seen = {}, []
+            for ks, out in sm.run_blocks(s, gr, steps, QS, lag, backend=backend):
+                seen.append(ks)
+                for i, k in enumerate(ks):
+                    got[k] = {q: out[q][i] for q in out}
+            assert [k for ks in seen for k in ks] == steps
+            if split and runs == 300 and backend != "numba":
+                assert len(seen) > 2
+            _equal(ref, got, steps, exact=True)
+
+
+def test_stacked_is_a_view_of_consecutive_rows_and_a_copy_otherwise():
+    store = np.arange(6 * 2 * 2 * 3, dtype=float).reshape(6, 2, 2, 3).copy()  # owns its data (as _forward_kept's)
+    rows = [store[i] for i in (2, 3, 4)]
+    v = sm._stacked(rows)
+    assert np.array_equal(v, np.stack(rows)) and np.shares_memory(v, store)
+    for arrs in ([store[i] for i in (2, 4)], [store[3], store[2]], [store[1], store[2].copy()], [store[0][:, :, :2]] * 2):
+        c = sm._stacked(arrs)
+        assert np.array_equal(c, np.stack(arrs)) and not np.shares_memory(c, store)
+
+
+@pytest.mark.parametrize("M", [None, (2.0, 6.25)])
+def test_engine_blocks_give_the_statistics_of_the_per_step_path(M, monkeypatch):
+    """The engine's block path (SmootherEstimator.covariance_blocks → StationaryReducer.update_block) against
+    its per-step path (covariances → update) on the same traces: the same statistics, bit for bit."""
+    s = SYSTEMS["2-state"]
+    ch = GilbertElliottChannel(kind="gilbert_elliott", loss_rate=0.4, mean_burst=6)
+    ests = [SmootherEstimator(kind="smoother", lag=lag) for lag in (0, 2, 3)]
+    steps = list(range(21, 81))
+    monkeypatch.setattr(engine, "REDUCE_MIN_RUNS", 100)  # the compiled reductions for this small batch
+    monkeypatch.setattr(sm, "BLOCK_BYTES", 4 * 4 * 600 * 8 * 13)  # several blocks
+
+    def sim():
+        sm._TLS.last = sm._TLS.forward = None
+        return engine.simulate(s, ch, ests, engine.StationaryReducer(steps, None if M is None else np.array(M)),
+                               steps=steps, runs=600, horizon=80, seed=5, chunk=600, quantity=("filtered", "smoothed"))
+
+    blocks = sim()
+    monkeypatch.delattr(SmootherEstimator, "covariance_blocks")
+    steps_ = sim()
+    assert set(blocks) == set(steps_)
+    for key in blocks:
+        assert np.array_equal(np.asarray(blocks[key]), np.asarray(steps_[key]), equal_nan=True), key
