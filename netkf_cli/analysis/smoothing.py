@@ -225,16 +225,22 @@ def _require_invertible_A(s: LinearSystem) -> np.ndarray:
 _KERNEL: list = []
 
 
-def _scalar_kernel():
-    """:func:`netkf_cli.analysis._smoothing_numba.evaluate_scalar` where numba imports, else None (probed once)."""
+def _compiled_module():
+    """:mod:`netkf_cli.analysis._smoothing_numba` where numba imports, else None (probed once)."""
     if not _KERNEL:
         try:
             from netkf_cli.analysis import _smoothing_numba  # optional: needs numba (numpy fallback below)
         except ImportError:
             _KERNEL.append(None)
         else:
-            _KERNEL.append(_smoothing_numba.evaluate_scalar)
+            _KERNEL.append(_smoothing_numba)
     return _KERNEL[0]
+
+
+def _scalar_kernel():
+    """:func:`netkf_cli.analysis._smoothing_numba.evaluate_scalar` where numba imports, else None."""
+    mod = _compiled_module()
+    return None if mod is None else mod.evaluate_scalar
 
 
 class _Batch:
@@ -491,6 +497,47 @@ def _expect_bounded(phis, caps, weights, bt: _Batch, lam: float, tol: float, max
     return lo_sum, hi_sum
 
 
+def _expect_bounded_scalar(Js, caps, weights, bt: _Batch, lam: float, tol: float, max_depth: int, max_nodes: int):
+    """:func:`_expect_bounded` for a scalar system and the φ of :func:`exact_mean` — φ_0 = g, φ_{1+f} = (P⁻¹ +
+    J_f)⁻¹ with J_f = ``Js[f]`` — each level's brackets and gaps in one compiled pass over the nodes
+    (:func:`netkf_cli.analysis._smoothing_numba.expect_level_scalar`: the numpy φ's operations per node); the
+    stopping rule, the sums (the same ``einsum`` on the same arrays) and the next level as there: the same bits
+    (a test)."""
+    kern = _compiled_module().expect_level_scalar
+    K = len(Js) + 1
+    Jv = np.asarray(Js, dtype=float)
+    wv = np.asarray(weights, dtype=float)
+    capv = np.array([float(c[0, 0]) for c in caps])[:, None]
+    lo_sum = [np.zeros((1, 1)) for _ in range(K)]
+    hi_sum = [np.zeros((1, 1)) for _ in range(K)]
+    bits = np.zeros((1, 0), dtype=np.int8)
+    w = np.ones(1)
+    depth = 0
+    while bits.shape[0]:
+        B = bits.shape[0]
+        P_lo, Y_hi = bt.evaluate(bits)
+        LO, HI, FIN, gap = np.empty((K, B)), np.empty((K, B)), np.empty((K, B), dtype=np.bool_), np.empty(B)
+        kern(np.ascontiguousarray(P_lo.reshape(B)), np.ascontiguousarray(Y_hi.reshape(B)), bt.a2, bt.c2, bt.q, bt.r,
+             bt.crc, Jv, wv, LO, HI, FIN, gap)
+        stop = (w * gap <= tol) | (depth >= max_depth) | (w < 1e-300)
+        if 2 * int((~stop).sum()) > max_nodes:
+            stop[:] = True
+        idx = np.flatnonzero(stop)
+        w_stop = w[idx]
+        LOs = LO.take(idx, axis=1)
+        HIc = np.where(FIN.take(idx, axis=1), HI.take(idx, axis=1), capv)  # the capped upper ends
+        for i in range(K):
+            lo_sum[i] += np.einsum("b,bij->ij", w_stop, LOs[i].reshape(-1, 1, 1))
+            hi_sum[i] += np.einsum("b,bij->ij", w_stop, HIc[i].reshape(-1, 1, 1))
+        bits, w = bits[~stop], w[~stop]
+        if not bits.shape[0]:
+            break
+        bits = np.vstack([np.hstack([np.full((bits.shape[0], 1), b, dtype=np.int8), bits]) for b in (1, 0)])
+        w = np.concatenate([w * lam, w * (1 - lam)])
+        depth += 1
+    return lo_sum, hi_sum
+
+
 def exact_mean(s: LinearSystem, lam: float, lag: int | None, *, tol: float = 1e-9, max_depth: int = 400,
                max_nodes: int = 400_000) -> ExactMean:
     """Stationary E[P_{k|k−1}] (``lag=None``) or E[P_{k|k+N}] (lag N ≥ 0) under i.i.d. loss, C invertible.
@@ -522,7 +569,7 @@ def exact_mean(s: LinearSystem, lam: float, lag: int | None, *, tol: float = 1e-
             hi = bt.sym(A @ np.linalg.solve(Y_hi + bt.CRC, np.broadcast_to(A.T, Y_hi.shape)) + Q)
         return lo, hi
 
-    phis, caps, wts = [phi_g], [Mbar], [1.0 if a2 < 1 else 0.0]
+    phis, caps, wts, Js = [phi_g], [Mbar], [1.0 if a2 < 1 else 0.0], []
     futs = [] if lag is None else [f for f in itertools.product((0, 1), repeat=lag + 1) if any(f)]
     for f in futs:
         J = _future_information_cached(s, f)
@@ -536,7 +583,11 @@ def exact_mean(s: LinearSystem, lam: float, lag: int | None, *, tol: float = 1e-
         phis.append(phi_f)
         caps.append(np.linalg.inv(J))
         wts.append(pf)
-    lo_s, hi_s = _expect_bounded(phis, caps, wts, bt, lam, tol, max_depth, max_nodes)
+        Js.append(float(J[0, 0]) if bt.scalar else None)
+    if bt.scalar and _compiled_module() is not None:  # the same φ compiled (the same bits)
+        lo_s, hi_s = _expect_bounded_scalar(Js, caps, wts, bt, lam, tol, max_depth, max_nodes)
+    else:
+        lo_s, hi_s = _expect_bounded(phis, caps, wts, bt, lam, tol, max_depth, max_nodes)
     if a2 >= 1:
         Ep = (inf, inf)
     else:

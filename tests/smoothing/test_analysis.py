@@ -16,6 +16,7 @@ from netkf_cli.linalg import riccati
 from netkf_cli.analysis import smoothing as sm
 from netkf_cli.channels.retransmission import RetransmissionChannel
 from netkf_cli.core.errors import ConfigError
+from netkf_cli.core.tolerances import SMOOTHING_MEAN_TOL
 from netkf_cli.estimators.smoother import fixed_lag_smoother
 from netkf_cli.core.system import LinearSystem
 
@@ -218,3 +219,20 @@ def test_compiled_scalar_enumeration_is_the_numpy_one_bit_for_bit(monkeypatch):
         assert (p.lower, p.upper, p.nodes) == (p2.lower, p2.upper, p2.nodes)
     for f in ((1,), (0, 1), (1, 0, 1, 1)):
         assert np.array_equal(sm._future_information_cached(S, f), sm.future_information(S, f))
+
+
+@pytest.mark.parametrize("s", [S, LinearSystem.create(1.3, 0.7, 0.5, 2.0), LinearSystem.create(-1.6, 2.0, 1.5, 0.3)])
+def test_compiled_scalar_exact_mean_is_the_numpy_one_bit_for_bit(s, monkeypatch):
+    """``exact_mean``'s compiled level (``_expect_bounded_scalar``: the brackets of g and of every (P⁻¹ + J_f)⁻¹
+    and the gaps in one pass) gives the numpy φ's (``_expect_bounded``) bits: every lag, rates near λ_c and far
+    from it, the configs' tolerance and a coarse one, a node budget that stops the enumeration."""
+    if sm._compiled_module() is None:
+        pytest.skip("numba not importable: only the numpy path exists")
+    lc = sm.critical_rate(s)
+    cases = [(lam, lag, SMOOTHING_MEAN_TOL, 400_000) for lam in (lc + 0.004, 0.5 * (1 + lc), 0.93) for lag in (None, 0, 2)]
+    cases += [(0.93, 4, 1e-4, 400_000), (0.8, 2, 1e-12, 3000)]
+    got = [sm.exact_mean(s, lam, lag, tol=tol, max_nodes=nodes) for lam, lag, tol, nodes in cases]
+    monkeypatch.setattr(sm, "_KERNEL", [None])
+    for (lam, lag, tol, nodes), a in zip(cases, got):
+        b = sm.exact_mean(s, lam, lag, tol=tol, max_nodes=nodes)
+        assert np.array_equal(a.lower, b.lower) and np.array_equal(a.upper, b.upper), (lam, lag, tol)
