@@ -126,6 +126,24 @@ def _clean_pattern(P: np.ndarray) -> np.ndarray:
     return ~bad.any(axis=(0, 1)) & ~np.isnan(P).any(axis=(0, 1)) & np.all(~unknown | (d == np.inf), axis=0)
 
 
+def _inv(X: np.ndarray) -> np.ndarray:
+    """``np.linalg.inv`` of a batch (k, n, n); 1×1 matrices, none zero, as 1/x — LAPACK's inverse of a 1×1
+    matrix, bit for bit (a test) without its per-matrix call (the rescue's scalar runs, step after step)."""
+    if X.shape[-1] == 1 and np.all(X != 0):
+        with np.errstate(over="ignore"):  # (a subnormal x: ∞, as LAPACK's, which does not warn)
+            return 1.0 / X
+    return np.linalg.inv(X)
+
+
+def _full_rank(M: np.ndarray) -> np.ndarray:
+    """``np.linalg.matrix_rank(M) == n`` per matrix of a batch (k, n, n); for 1×1 matrices without a NaN,
+    finite and non-zero — svd's |m| > |m|·ε, the same decision (a test) without a batched svd."""
+    n = M.shape[-1]
+    if n == 1 and not np.isnan(M).any():
+        return (np.isfinite(M) & (M != 0))[:, 0, 0]
+    return np.linalg.matrix_rank(M) == n
+
+
 def prior_information(X: np.ndarray) -> np.ndarray:
     """P⁻¹ per run for X (k, n, n) whose +∞ entries, if any, are the variances of directions with no
     information: a run whose non-finite entries all lie in rows/columns with a +∞ diagonal, the rest
@@ -136,7 +154,7 @@ def prior_information(X: np.ndarray) -> np.ndarray:
     Y = np.zeros_like(X)
     finite = np.isfinite(X).all(axis=(1, 2))
     if finite.any():
-        Y[finite] = np.linalg.inv(X[finite])
+        Y[finite] = _inv(X[finite])
     rest = np.flatnonzero(~finite)
     if rest.size:
         Xr = X[rest]
@@ -164,10 +182,10 @@ def information_update(Pm: np.ndarray, info: np.ndarray) -> np.ndarray:
     info_r = np.moveaxis(info, -1, 0) if info.ndim == 3 else np.broadcast_to(info, X.shape)
     M = prior_information(X) + info_r
     n = M.shape[-1]
-    ok = np.linalg.matrix_rank(M) == n if M.size else np.zeros(0, dtype=bool)
+    ok = _full_rank(M) if M.size else np.zeros(0, dtype=bool)
     out = np.full_like(M, np.inf)
     if np.any(ok):
-        out[ok] = np.linalg.inv(M[ok])
+        out[ok] = _inv(M[ok])
     return np.moveaxis(0.5 * (out + out.transpose(0, 2, 1)), 0, -1)
 
 
