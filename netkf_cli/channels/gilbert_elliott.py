@@ -64,13 +64,16 @@ def gilbert_elliott_from_uniforms(u: np.ndarray, p_gb: float, p_bg: float, prev:
     out = np.empty((horizon, runs), dtype=bool) if out is None else out
     if horizon == 0:
         return out
+    stay = u >= p_gb  # good stays good with prob 1 − p_gb
+    come = u < p_bg  # bad becomes good with prob p_bg
     if prev is None:
         np.less(u[0], pi_good_of(p_gb, p_bg), out=out[0])
     else:
-        out[0] = np.where(prev, u[0] >= p_gb, u[0] < p_bg)
-    for k in range(1, horizon):
-        # good stays good with prob 1 − p_gb; bad becomes good with prob p_bg
-        out[k] = np.where(out[k - 1], u[k] >= p_gb, u[k] < p_bg)
+        out[0] = np.where(prev, stay[0], come[0])
+    differ = np.not_equal(stay, come, out=stay)
+    for k in range(1, horizon):  # γ_k = come_k xor (γ_{k−1} and (stay_k xor come_k)): the same choice, two passes
+        np.logical_and(out[k - 1], differ[k], out=out[k])
+        np.logical_xor(out[k], come[k], out=out[k])
     return out
 
 

@@ -539,16 +539,17 @@ def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: st
     want = [t for t in sorted({t for k in steps for t in range(max(0, k - L), k + 1)}) if t >= 1]
     forward = _forward(f, P0, gamma, want, fwd) if key is not None else _forward_kept(f, P0, gamma, steps, N, fwd)
     have: dict[int, np.ndarray] = {0: np.repeat(P0[:, :, None], runs, axis=2)}
+    at: dict[int, tuple | None] = {0: None}  # where _forward_kept keeps P_{t|t}: (its array, row)
     last = 0
     back = kalman.SmoothStep.of(f.A, f.Q)
     for block in blocks:
         rows = sorted({t for k in block for t in range(max(0, k - L), k + 1)})
         while last < rows[-1]:
-            last, P = next(forward)
-            have[last] = P
-        H = _stacked([have[t] for t in rows])
+            last, P, *src = next(forward)
+            have[last], at[last] = P, (src[0] if src else None)
+        H = _stacked([have[t] for t in rows], [at[t] for t in rows])
         for t in [u for u in have if u < rows[-1] + 1 - L]:
-            del have[t]
+            del have[t], at[t]
         ps = _Pass(f, rows, H, rts, tuple(block), L, back)
         del H
         if key is not None:
@@ -557,20 +558,13 @@ def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: st
         del ps
 
 
-def _stacked(arrs: list[np.ndarray]) -> np.ndarray:
-    """``np.stack(arrs)``, or, when the arrays are consecutive rows of one array (the forward pass kept by
-    :func:`_forward_kept`), the slice of it they make up: the same numbers without a copy."""
-    b = arrs[0].base
-    if b is None or b.ndim != arrs[0].ndim + 1 or not b.flags.c_contiguous:
+def _stacked(arrs: list[np.ndarray], where: list) -> np.ndarray:
+    """``np.stack(arrs)``, or, when ``where`` (per array: ``(array, row)`` of :func:`_forward_kept`'s store, or None)
+    says they are consecutive rows of one array, the slice they make up: the same numbers without a copy."""
+    w0 = where[0]
+    if w0 is None or any(w is None or w[0] is not w0[0] or w[1] != w0[1] + i for i, w in enumerate(where)):
         return np.stack(arrs)
-    row = b.strides[0]
-    off = arrs[0].__array_interface__["data"][0] - b.__array_interface__["data"][0]
-    i0 = off // row
-    if off % row or any(a.base is not b or a.shape != b.shape[1:] or not a.flags.c_contiguous
-                        or a.__array_interface__["data"][0] != b.__array_interface__["data"][0] + (i0 + i) * row
-                        for i, a in enumerate(arrs)) or i0 + len(arrs) > b.shape[0]:
-        return np.stack(arrs)
-    return b[i0:i0 + len(arrs)]
+    return w0[0][w0[1]:w0[1] + len(arrs)]
 
 
 FORWARD_BYTES = 24 * 2**20
@@ -594,7 +588,8 @@ def _forward_kept(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, steps: li
     """Yield ``(t, P_{t|t})`` at the rows [k − N, k] of ``steps`` (t ≥ 1), from ``f.run(..., backend=fwd)``:
     the rows of [k − max(N, SHARE_MARGIN), k] are computed and, when they fit :data:`FORWARD_BYTES`, kept (per
     thread, until the arrivals are freed) for the next call on the same arrivals, system, steps and backend
-    with a lag of at most that margin — the same arrays, so the same numbers."""
+    with a lag of at most that margin — the same arrays, so the same numbers. Kept rows come as
+    ``(t, P, (store, row))``, P = store[row] (:func:`_stacked` slices consecutive ones), the others as ``(t, P)``."""
     L = max(N, SHARE_MARGIN)
     rows = [t for t in sorted({t for k in steps for t in range(max(0, k - L), k + 1)}) if t >= 1]
     need = {t for k in steps for t in range(max(1, k - N), k + 1)}
@@ -605,7 +600,7 @@ def _forward_kept(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, steps: li
     if got is not None and got[0] == key and got[1] >= N:
         for i, t in enumerate(got[2]):
             if t in need:
-                yield t, got[3][i]
+                yield t, got[3][i], (got[3], i)
         return
     _TLS.forward = None  # (a previous trace's pass: freed before this one is built)
     keep = len(rows) * n * n * runs * 8 <= FORWARD_BYTES
@@ -621,7 +616,7 @@ def _forward_kept(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, steps: li
                 except TypeError:  # not weak-referenceable: kept until the next pass replaces it
                     pass
         if t in need:
-            yield t, P
+            yield (t, P, (store, i)) if keep else (t, P)
 
 
 def _forget_forward(key) -> None:

@@ -139,6 +139,25 @@ def test_gilbert_elliott_trace_in_blocks_is_the_whole_draw(monkeypatch, runs, ho
     assert r1.random() == r2.random()
 
 
+@pytest.mark.parametrize("p_gb,p_bg", [(0.3, 0.1), (0.0, 1.0), (1.0, 0.5), (0.2, 0.2), (1.0, 1.0)])
+def test_gilbert_elliott_from_uniforms_is_the_chains_choice(p_gb, p_bg):
+    """gilbert_elliott_from_uniforms (two logical passes per step on the whole block's comparisons) is the chain's
+    choice γ_k = (u_k ≥ p_gb if γ_{k−1} else u_k < p_bg) step by step, from the stationary start or a given state;
+    uniforms on the thresholds included."""
+    import netkf_cli.channels.gilbert_elliott as ge
+
+    rng = np.random.default_rng(8)
+    u = rng.random((120, 501))
+    u[5, :50], u[6, 50:100] = p_gb, p_bg
+    prev = rng.random(501) < 0.5
+    for start in (None, prev):
+        want = np.empty(u.shape, dtype=bool)
+        want[0] = (u[0] < ge.pi_good_of(p_gb, p_bg)) if start is None else np.where(start, u[0] >= p_gb, u[0] < p_bg)
+        for k in range(1, u.shape[0]):
+            want[k] = np.where(want[k - 1], u[k] >= p_gb, u[k] < p_bg)
+        assert np.array_equal(ge.gilbert_elliott_from_uniforms(u, p_gb, p_bg, prev=start), want)
+
+
 def _one_shot_retransmission(rng, runs, horizon, lam, N, p):
     """The slot loop on one rng.random((horizon + N, 2, runs)) draw (the channel before its uniforms came in blocks)."""
     slots = horizon + N

@@ -216,12 +216,14 @@ def test_blocks_are_the_per_step_covariances(backend, split, monkeypatch):
 
 
 def test_stacked_is_a_view_of_consecutive_rows_and_a_copy_otherwise():
-    store = np.arange(6 * 2 * 2 * 3, dtype=float).reshape(6, 2, 2, 3).copy()  # owns its data (as _forward_kept's)
-    rows = [store[i] for i in (2, 3, 4)]
-    v = sm._stacked(rows)
-    assert np.array_equal(v, np.stack(rows)) and np.shares_memory(v, store)
-    for arrs in ([store[i] for i in (2, 4)], [store[3], store[2]], [store[1], store[2].copy()], [store[0][:, :, :2]] * 2):
-        c = sm._stacked(arrs)
+    store = np.arange(6 * 2 * 2 * 3, dtype=float).reshape(6, 2, 2, 3).copy()
+    v = sm._stacked([store[i] for i in (2, 3, 4)], [(store, i) for i in (2, 3, 4)])
+    assert np.array_equal(v, store[2:5]) and np.shares_memory(v, store)
+    other = store.copy()
+    for rows, where in (((2, 4), [(store, 2), (store, 4)]), ((3, 2), [(store, 3), (store, 2)]),
+                        ((1, 2), [(store, 1), None]), ((1, 2), [(store, 1), (other, 2)])):
+        arrs = [store[i] for i in rows]
+        c = sm._stacked(arrs, where)
         assert np.array_equal(c, np.stack(arrs)) and not np.shares_memory(c, store)
 
 
