@@ -15,8 +15,13 @@ def evaluate_scalar(bits, pst, a2, c2, q, r, crc, P, Y):
     P ← a² (γ ? r/(c² + r/P) : P) + q (the Riccati map g / h) and, in information form,
     Z = (Y + γ c²/r)/a², Y ← Z/(1 + qZ); P[i], Y[i] the ends Φ_s(P*) and (Φ_s(∞))⁻¹. The step loop
     outside, the node loop inside (each node's operations unchanged): the nodes' divisions pipeline."""
-    B, j = bits.shape
-    bt = np.ascontiguousarray(bits.T)
+    evaluate_scalar_cols(np.ascontiguousarray(bits.T), pst, a2, c2, q, r, crc, P, Y)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def evaluate_scalar_cols(bt, pst, a2, c2, q, r, crc, P, Y):
+    """:func:`evaluate_scalar` of the nodes given as the columns of ``bt`` (j, B) (row 0 the oldest step)."""
+    j, B = bt.shape
     for i in range(B):
         P[i] = pst
         Y[i] = 0.0

@@ -503,36 +503,43 @@ def _expect_bounded_scalar(Js, caps, weights, bt: _Batch, lam: float, tol: float
     (:func:`netkf_cli.analysis._smoothing_numba.expect_level_scalar`: the numpy φ's operations per node); the
     stopping rule, the sums (the same ``einsum`` on the same arrays) and the next level as there: the same bits
     (a test)."""
-    kern = _compiled_module().expect_level_scalar
+    mod = _compiled_module()
+    kern, ev = mod.expect_level_scalar, mod.evaluate_scalar_cols
+    pst = float(bt.Pst[0, 0])
     K = len(Js) + 1
     Jv = np.asarray(Js, dtype=float)
     wv = np.asarray(weights, dtype=float)
     capv = np.array([float(c[0, 0]) for c in caps])[:, None]
     lo_sum = [np.zeros((1, 1)) for _ in range(K)]
     hi_sum = [np.zeros((1, 1)) for _ in range(K)]
-    bits = np.zeros((1, 0), dtype=np.int8)
+    cols = np.zeros((0, 1), dtype=np.int8)  # the nodes' suffixes as columns (row 0 the oldest step)
     w = np.ones(1)
     depth = 0
-    while bits.shape[0]:
-        B = bits.shape[0]
-        P_lo, Y_hi = bt.evaluate(bits)
+    while cols.shape[1]:
+        B = cols.shape[1]
+        P_lo, Y_hi = np.empty(B), np.empty(B)
+        ev(cols, pst, bt.a2, bt.c2, bt.q, bt.r, bt.crc, P_lo, Y_hi)  # _Batch.evaluate, compiled
         LO, HI, FIN, gap = np.empty((K, B)), np.empty((K, B)), np.empty((K, B), dtype=np.bool_), np.empty(B)
-        kern(np.ascontiguousarray(P_lo.reshape(B)), np.ascontiguousarray(Y_hi.reshape(B)), bt.a2, bt.c2, bt.q, bt.r,
-             bt.crc, Jv, wv, LO, HI, FIN, gap)
+        kern(P_lo, Y_hi, bt.a2, bt.c2, bt.q, bt.r, bt.crc, Jv, wv, LO, HI, FIN, gap)
         stop = (w * gap <= tol) | (depth >= max_depth) | (w < 1e-300)
         if 2 * int((~stop).sum()) > max_nodes:
             stop[:] = True
         idx = np.flatnonzero(stop)
-        w_stop = w[idx]
-        LOs = LO.take(idx, axis=1)
-        HIc = np.where(FIN.take(idx, axis=1), HI.take(idx, axis=1), capv)  # the capped upper ends
-        for i in range(K):
-            lo_sum[i] += np.einsum("b,bij->ij", w_stop, LOs[i].reshape(-1, 1, 1))
-            hi_sum[i] += np.einsum("b,bij->ij", w_stop, HIc[i].reshape(-1, 1, 1))
-        bits, w = bits[~stop], w[~stop]
-        if not bits.shape[0]:
+        if idx.size:  # (nothing stopped: the sums would add +0.0 to sums that start at +0.0, unchanged)
+            w_stop = w[idx]
+            LOs = LO.take(idx, axis=1)
+            HIc = np.where(FIN.take(idx, axis=1), HI.take(idx, axis=1), capv)  # the capped upper ends
+            for i in range(K):
+                lo_sum[i] += np.einsum("b,bij->ij", w_stop, LOs[i].reshape(-1, 1, 1))
+                hi_sum[i] += np.einsum("b,bij->ij", w_stop, HIc[i].reshape(-1, 1, 1))
+        go = np.flatnonzero(~stop)
+        if not go.size:
             break
-        bits = np.vstack([np.hstack([np.full((bits.shape[0], 1), b, dtype=np.int8), bits]) for b in (1, 0)])
+        kept, w = cols.take(go, axis=1), w[go]
+        m = go.size
+        cols = np.empty((kept.shape[0] + 1, 2 * m), dtype=np.int8)  # children: γ = 1 then γ = 0, one step older
+        cols[0, :m], cols[0, m:] = 1, 0
+        cols[1:, :m], cols[1:, m:] = kept, kept
         w = np.concatenate([w * lam, w * (1 - lam)])
         depth += 1
     return lo_sum, hi_sum
