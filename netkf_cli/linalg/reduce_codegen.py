@@ -131,7 +131,10 @@ def source_stationary_block(n: int) -> str:
     """``stationary_block(X, thr, tr_acc, bad, hist, amb)``: :func:`source_stationary` for the K steps of one block
     X (K, n, n, runs) at once, step after step (so per run the same sums in the same order as K calls), each step's
     packed triangle formed in the loop as the engine's ``_tri`` forms it, (P[i, j] + P[j, i]) · 0.5 (the same two
-    operations); ``amb`` (K, runs) raised for the (step, run) it leaves to the caller."""
+    operations); ``amb`` (K, runs) raised for the (step, run) it leaves to the caller. n = 1:
+    :func:`_source_stationary_block_scalar`."""
+    if n == 1:
+        return _source_stationary_block_scalar()
     L = _head("stationary_block", "X, thr, tr_acc, bad, hist, amb")
     L += ["    nM = thr.shape[0]", "    for s in range(X.shape[0]):", "        Xs = X[s]", "        ams = amb[s]",
           "        for r in range(X.shape[3]):"]
@@ -143,6 +146,36 @@ def source_stationary_block(n: int) -> str:
     L += _search(n, "            ")
     L += ["            if ambig:", "                ams[r] = True", "                continue",
           "            hist[i0, r] += 1.0"]
+    return "\n".join(L) + "\n"
+
+
+def _source_stationary_block_scalar() -> str:
+    """:func:`source_stationary_block` for n = 1, branch-free so that the run loops vectorize: per step, one loop
+    adds p = (P + P)·0.5 to tr_acc where p is finite (+0.0 elsewhere: tr_acc, a sum from +0.0, is never −0.0, so
+    unchanged) and raises ``bad`` where it is not; then per threshold bin i one loop counts the finite runs whose
+    p lies in it — the binary search's i0 = i ⇔ (i = nM or p ≤ thr[i]) and (i = 0 or not p ≤ thr[i − 1]), thr
+    ascending — the same counts. A scalar λ_max is p itself: no run is ambiguous."""
+    L = _head("stationary_block", "X, thr, tr_acc, bad, hist, amb")
+    L += ["    nM = thr.shape[0]", "    runs = X.shape[3]", "    for s in range(X.shape[0]):", "        Xs = X[s, 0, 0]",
+          "        for r in range(runs):",
+          "            p = (Xs[r] + Xs[r]) * 0.5",
+          "            fin = math.isfinite(p)",
+          "            bad[r] = bad[r] | (fin ^ True)",
+          "            tr_acc[r] += p if fin else 0.0",
+          "        if nM == 0:", "            continue",
+          "        h, hi = hist[0], thr[0]",
+          "        for r in range(runs):  # i = 0: p ≤ thr[0]",
+          "            p = (Xs[r] + Xs[r]) * 0.5",
+          "            h[r] += 1.0 if math.isfinite(p) & (p <= hi) else 0.0",
+          "        for i in range(1, nM):",
+          "            h, lo, hi = hist[i], thr[i - 1], thr[i]",
+          "            for r in range(runs):",
+          "                p = (Xs[r] + Xs[r]) * 0.5",
+          "                h[r] += 1.0 if math.isfinite(p) & (p <= hi) & ((p <= lo) ^ True) else 0.0",
+          "        h, lo = hist[nM], thr[nM - 1]",
+          "        for r in range(runs):  # i = nM: not p ≤ thr[nM − 1]",
+          "            p = (Xs[r] + Xs[r]) * 0.5",
+          "            h[r] += 1.0 if math.isfinite(p) & ((p <= lo) ^ True) else 0.0"]
     return "\n".join(L) + "\n"
 
 
