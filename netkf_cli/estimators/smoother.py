@@ -536,14 +536,14 @@ def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: st
     else:  # nothing is kept for another estimator: only the rows this lag reads
         L = N if smooth else 0
         blocks = _blocks(steps, L, row_bytes)
-    want = [t for t in sorted({t for k in steps for t in range(max(0, k - L), k + 1)}) if t >= 1]
+    want = _window(steps, L, 1)
     forward = _forward(f, P0, gamma, want, fwd) if key is not None else _forward_kept(f, P0, gamma, steps, N, fwd)
     have: dict[int, np.ndarray] = {0: np.repeat(P0[:, :, None], runs, axis=2)}
     at: dict[int, tuple | None] = {0: None}  # where _forward_kept keeps P_{t|t}: (its array, row)
     last = 0
     back = kalman.SmoothStep.of(f.A, f.Q)
     for block in blocks:
-        rows = sorted({t for k in block for t in range(max(0, k - L), k + 1)})
+        rows = _window(block, L, 0)
         while last < rows[-1]:
             last, P, *src = next(forward)
             have[last], at[last] = P, (src[0] if src else None)
@@ -556,6 +556,14 @@ def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: st
             _keep(gamma, key, ps)
         yield from emit(ps, qs, N if smooth else 0)
         del ps
+
+
+def _window(steps: list[int], L: int, lo: int) -> list[int]:
+    """The sorted trace steps t ≥ ``lo`` in ∪_k [k − L, k] over ``steps`` (ascending): one range when the steps are
+    consecutive (a time average's), else the union."""
+    if steps[-1] - steps[0] == len(steps) - 1:
+        return list(range(max(lo, steps[0] - L), steps[-1] + 1))
+    return sorted({t for k in steps for t in range(max(lo, k - L), k + 1)})
 
 
 def _stacked(arrs: list[np.ndarray], where: list) -> np.ndarray:
@@ -591,8 +599,8 @@ def _forward_kept(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, steps: li
     with a lag of at most that margin — the same arrays, so the same numbers. Kept rows come as
     ``(t, P, (store, row))``, P = store[row] (:func:`_stacked` slices consecutive ones), the others as ``(t, P)``."""
     L = max(N, SHARE_MARGIN)
-    rows = [t for t in sorted({t for k in steps for t in range(max(0, k - L), k + 1)}) if t >= 1]
-    need = {t for k in steps for t in range(max(1, k - N), k + 1)}
+    rows = _window(steps, L, 1)
+    need = set(_window(steps, N, 1))
     n, runs = f.A.shape[0], gamma.shape[-1]
     key = (_fingerprint(gamma), f.A.tobytes(), f.C.tobytes(), f.Q.tobytes(), f.R.tobytes(), f.groups,
            np.asarray(P0).tobytes(), fwd, tuple(steps))
