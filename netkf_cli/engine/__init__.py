@@ -508,7 +508,9 @@ class StationaryReducer:
         (:func:`netkf_cli.linalg.reduce_codegen.source_stationary_block`: per run the same sums in step order as
         K calls of :meth:`update`, the same decisions); a batch :meth:`update` would reduce on numpy goes step by
         step through it."""
-        sel = [i for i, k in enumerate(ks) if _step_pos(self, k) is not None]
+        _step_pos(self, ks[0])  # (builds the reducer's step index once)
+        pos = self.__dict__["_step_pos"][1]
+        sel = [i for i, k in enumerate(ks) if k in pos]
         if not sel:
             return
         if not _compiled(self.backend, P[0], w):

@@ -536,20 +536,34 @@ def _run_shared(f: kalman.Filter, system, gamma, steps, qs, N, fwd: str, rts: st
     else:  # nothing is kept for another estimator: only the rows this lag reads
         L = N if smooth else 0
         blocks = _blocks(steps, L, row_bytes)
-    want = _window(steps, L, 1)
-    forward = _forward(f, P0, gamma, want, fwd) if key is not None else _forward_kept(f, P0, gamma, steps, N, fwd)
-    have: dict[int, np.ndarray] = {0: np.repeat(P0[:, :, None], runs, axis=2)}
-    at: dict[int, tuple | None] = {0: None}  # where _forward_kept keeps P_{t|t}: (its array, row)
-    last = 0
     back = kalman.SmoothStep.of(f.A, f.Q)
+    P0r = np.repeat(P0[:, :, None], runs, axis=2)
+    kept = _forward_kept(f, P0, gamma, steps, N, fwd) if key is None else None
+    if kept is not None:  # the forward pass kept whole: a block's rows are a slice of it (no copy)
+        rows_all, store = kept
+        at = {t: i for i, t in enumerate(rows_all)}
+        for block in blocks:
+            rows = _window(block, L, 0)
+            if rows[0] >= 1 and at[rows[-1]] - at[rows[0]] == len(rows) - 1:
+                H = store[at[rows[0]]:at[rows[-1]] + 1]
+            else:
+                H = np.stack([P0r if t == 0 else store[at[t]] for t in rows])
+            ps = _Pass(f, rows, H, rts, tuple(block), L, back)
+            del H
+            yield from emit(ps, qs, N if smooth else 0)
+            del ps
+        return
+    forward = _forward(f, P0, gamma, _window(steps, L, 1), fwd)  # streamed: only the rows of the blocks to come
+    have: dict[int, np.ndarray] = {0: P0r}
+    last = 0
     for block in blocks:
         rows = _window(block, L, 0)
         while last < rows[-1]:
-            last, P, *src = next(forward)
-            have[last], at[last] = P, (src[0] if src else None)
-        H = _stacked([have[t] for t in rows], [at[t] for t in rows])
+            last, P = next(forward)
+            have[last] = P
+        H = np.stack([have[t] for t in rows])
         for t in [u for u in have if u < rows[-1] + 1 - L]:
-            del have[t], at[t]
+            del have[t]
         ps = _Pass(f, rows, H, rts, tuple(block), L, back)
         del H
         if key is not None:
@@ -564,15 +578,6 @@ def _window(steps: list[int], L: int, lo: int) -> list[int]:
     if steps[-1] - steps[0] == len(steps) - 1:
         return list(range(max(lo, steps[0] - L), steps[-1] + 1))
     return sorted({t for k in steps for t in range(max(lo, k - L), k + 1)})
-
-
-def _stacked(arrs: list[np.ndarray], where: list) -> np.ndarray:
-    """``np.stack(arrs)``, or, when ``where`` (per array: ``(array, row)`` of :func:`_forward_kept`'s store, or None)
-    says they are consecutive rows of one array, the slice they make up: the same numbers without a copy."""
-    w0 = where[0]
-    if w0 is None or any(w is None or w[0] is not w0[0] or w[1] != w0[1] + i for i, w in enumerate(where)):
-        return np.stack(arrs)
-    return w0[0][w0[1]:w0[1] + len(arrs)]
 
 
 FORWARD_BYTES = 24 * 2**20
@@ -593,38 +598,30 @@ def _forward(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, want: list[int
 
 
 def _forward_kept(f: kalman.Filter, P0: np.ndarray, gamma: np.ndarray, steps: list[int], N: int, fwd: str):
-    """Yield ``(t, P_{t|t})`` at the rows [k − N, k] of ``steps`` (t ≥ 1), from ``f.run(..., backend=fwd)``:
-    the rows of [k − max(N, SHARE_MARGIN), k] are computed and, when they fit :data:`FORWARD_BYTES`, kept (per
-    thread, until the arrivals are freed) for the next call on the same arrivals, system, steps and backend
-    with a lag of at most that margin — the same arrays, so the same numbers. Kept rows come as
-    ``(t, P, (store, row))``, P = store[row] (:func:`_stacked` slices consecutive ones), the others as ``(t, P)``."""
+    """``(rows, store)``: P_{t|t} = store[i] at t = rows[i], the rows of [k − max(N, SHARE_MARGIN), k] of ``steps``
+    (t ≥ 1), from kf's forward pass (:func:`_forward`), kept (per thread, until the arrivals are freed) for the next
+    call on the same arrivals, system, steps and backend with a lag of at most that margin — the same array, so the
+    same numbers; None when it would exceed :data:`FORWARD_BYTES` (the caller streams the rows it reads)."""
     L = max(N, SHARE_MARGIN)
     rows = _window(steps, L, 1)
-    need = set(_window(steps, N, 1))
     n, runs = f.A.shape[0], gamma.shape[-1]
+    if len(rows) * n * n * runs * 8 > FORWARD_BYTES:
+        return None
     key = (_fingerprint(gamma), f.A.tobytes(), f.C.tobytes(), f.Q.tobytes(), f.R.tobytes(), f.groups,
            np.asarray(P0).tobytes(), fwd, tuple(steps))
     got = getattr(_TLS, "forward", None)
     if got is not None and got[0] == key and got[1] >= N:
-        for i, t in enumerate(got[2]):
-            if t in need:
-                yield t, got[3][i], (got[3], i)
-        return
+        return got[2], got[3]
     _TLS.forward = None  # (a previous trace's pass: freed before this one is built)
-    keep = len(rows) * n * n * runs * 8 <= FORWARD_BYTES
-    store = np.empty((len(rows), n, n, runs)) if keep else None
-    for i, (t, P) in enumerate(_forward(f, P0, gamma, rows, fwd)):
-        if keep:
-            store[i] = P
-            P = store[i]
-            if i == len(rows) - 1:  # complete: kept for the next estimator on this trace
-                _TLS.forward = (key, L, rows, store)
-                try:
-                    weakref.finalize(gamma, _forget_forward, key)
-                except TypeError:  # not weak-referenceable: kept until the next pass replaces it
-                    pass
-        if t in need:
-            yield (t, P, (store, i)) if keep else (t, P)
+    store = np.empty((len(rows), n, n, runs))
+    for i, (_, P) in enumerate(_forward(f, P0, gamma, rows, fwd)):
+        store[i] = P
+    _TLS.forward = (key, L, rows, store)  # kept for the next estimator on this trace
+    try:
+        weakref.finalize(gamma, _forget_forward, key)
+    except TypeError:  # not weak-referenceable: kept until the next pass replaces it
+        pass
+    return rows, store
 
 
 def _forget_forward(key) -> None:

@@ -29,7 +29,7 @@ RUNS = 4000
 BOUND_MB = 48.0
 
 
-def _peak_mb(horizon: int) -> tuple[float, dict]:
+def _peak_mb(horizon: int, blocks: bool = False) -> tuple[float, dict]:
     s = LinearSystem.create(1.3, 1, 0.5, 1, None)  # Table I's system
     ch = BernoulliChannel(kind="bernoulli", arrival=0.45)
     ests = [SmootherEstimator(kind="smoother", lag=lag) for lag in (0, 1, 2, 4)]
@@ -42,6 +42,10 @@ def _peak_mb(horizon: int) -> tuple[float, dict]:
     tracemalloc.start()
     try:
         for j, est in enumerate(ests):
+            if blocks:  # the engine's way for a time average: a block of steps per call
+                for ks, out in est.covariance_blocks(s, trace, steps, ("smoothed",)):
+                    red.update_block(stats, j, ks, out["smoothed"])
+                continue
             for k, P, w in engine.covariances(est, s, trace, steps, "smoothed"):
                 red.update(stats, j, k, P, w)
         peak = tracemalloc.get_traced_memory()[1]
@@ -52,11 +56,12 @@ def _peak_mb(horizon: int) -> tuple[float, dict]:
 
 
 @pytest.mark.skipif(not sm.numba_available(), reason="numba not installed (the configs' compiled path)")
-def test_smoother_chunk_working_set_is_bounded_and_flat_in_the_horizon():
+@pytest.mark.parametrize("blocks", [False, True])
+def test_smoother_chunk_working_set_is_bounded_and_flat_in_the_horizon(blocks):
     for h in (300, 1200):  # warm-up: numba's import and the kernels' loading allocate on the traced heap once
-        _peak_mb(h)
-    short, st_short = _peak_mb(300)
-    long, st_long = _peak_mb(1200)
+        _peak_mb(h, blocks)
+    short, st_short = _peak_mb(300, blocks)
+    long, st_long = _peak_mb(1200, blocks)
     assert short < BOUND_MB, f"{short:.1f} MB at 300 steps"
     assert long < BOUND_MB, f"{long:.1f} MB at 1200 steps (the whole-horizon pass held 210 MB)"
     assert long <= short + 4.0, f"grows with the horizon: {short:.1f} → {long:.1f} MB"

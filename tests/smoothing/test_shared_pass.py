@@ -215,16 +215,31 @@ def test_blocks_are_the_per_step_covariances(backend, split, monkeypatch):
             _equal(ref, got, steps, exact=True)
 
 
-def test_stacked_is_a_view_of_consecutive_rows_and_a_copy_otherwise():
-    store = np.arange(6 * 2 * 2 * 3, dtype=float).reshape(6, 2, 2, 3).copy()
-    v = sm._stacked([store[i] for i in (2, 3, 4)], [(store, i) for i in (2, 3, 4)])
-    assert np.array_equal(v, store[2:5]) and np.shares_memory(v, store)
-    other = store.copy()
-    for rows, where in (((2, 4), [(store, 2), (store, 4)]), ((3, 2), [(store, 3), (store, 2)]),
-                        ((1, 2), [(store, 1), None]), ((1, 2), [(store, 1), (other, 2)])):
-        arrs = [store[i] for i in rows]
-        c = sm._stacked(arrs, where)
-        assert np.array_equal(c, np.stack(arrs)) and not np.shares_memory(c, store)
+@pytest.mark.parametrize("backend", ["numpy"] + ([] if numba_missing else ["numba"]))
+def test_kept_forward_pass_gives_the_streamed_numbers(backend, monkeypatch):
+    """Blocks of steps over the forward pass kept whole (_forward_kept: a block's rows sliced from it, shared by
+    the lags) and over the forward pass streamed block by block (it does not fit FORWARD_BYTES): the same
+    numbers, steps from 1 (row 0 is P0) and with gaps; the kept pass is reused by the next lag."""
+    s = SYSTEMS["2-state"]
+    g = _bursty(300, 70, 9)
+    f = kalman.Filter.of(s, 1)
+    monkeypatch.setattr(sm, "BLOCK_BYTES", 4 * 4 * 300 * 8 * 9)  # blocks of 9 rows
+    fwd = "numba" if backend == "numba" else "numpy"
+    rts = "compiled" if backend == "numba" else "numpy"
+    for steps in (list(range(1, 71)), [2, 3, 4, 20, 21, 40, 41, 42, 43, 69, 70]):
+        kept, streamed = {}, {}
+        sm._TLS.last = sm._TLS.forward = None
+        for lag in (0, 1, 3, 4):
+            kept[lag] = dict(sm._run_shared(f, s, g, steps, QS, lag, fwd, rts))
+            assert sm._TLS.forward is not None and sm._TLS.forward[3].shape[0] == len(sm._window(steps, 4, 1))
+        monkeypatch.setattr(sm, "FORWARD_BYTES", 0)
+        for lag in (0, 1, 3, 4):
+            sm._TLS.last = sm._TLS.forward = None
+            streamed[lag] = dict(sm._run_shared(f, s, g, steps, QS, lag, fwd, rts))
+            assert sm._TLS.forward is None
+            _equal(kept[lag], streamed[lag], steps, exact=True)
+        monkeypatch.undo()
+        monkeypatch.setattr(sm, "BLOCK_BYTES", 4 * 4 * 300 * 8 * 9)
 
 
 @pytest.mark.parametrize("M", [None, (2.0, 6.25)])
