@@ -249,6 +249,10 @@ class Rescue:
         idx = np.flatnonzero(flagged)
         if idx.size == 0:
             return P
+        if P.shape[0] == 1 and self.C.shape[0] == 1:
+            out = self._apply_scalar(P, Pm, idx, rows)
+            if out is not None:
+                return out
         P = P.copy()
         w = np.asarray(rows, dtype=float)[:, idx]
         prior = Pm[:, :, idx]
@@ -264,6 +268,43 @@ class Rescue:
             info = np.einsum("min,mjn->ijn", Ct, RiC)
             P[:, :, idx[arrived]] = information_update(prior[:, :, arrived], info)
         P[:, :, idx] = clean_nonfinite(P[:, :, idx])
+        return P
+
+    def _apply_scalar(self, P: np.ndarray, Pm: np.ndarray, idx: np.ndarray, rows: np.ndarray) -> np.ndarray | None:
+        """:meth:`apply` for n = m = 1 on the flagged runs ``idx``, elementwise: the same operations on the same
+        numbers (a test) without the batched LAPACK calls and axis moves. An arrived run's measurement information
+        c r⁻¹ c is the same for every run (its row weight is 1): computed once, by :meth:`apply`'s own operations;
+        then :func:`information_update` — 1/P⁻ for a finite prior (0 for ∞, the rescue's unknown direction),
+        M = that + information, 1/M where M is finite and non-zero (else ∞), and the symmetrization 0.5·(x + x) —
+        and :func:`clean_nonfinite` (NaN or −∞ ⇒ ∞). None (the general path decides) for a zero prior or a NaN in
+        M, where the LAPACK calls raise."""
+        w = np.asarray(rows, dtype=float)[0, idx]
+        prior = Pm[0, 0, idx]
+        arrived = w > 0  # (w.sum(axis=0) over the one row)
+        x = prior.copy()  # nothing arrived: P⁻ exactly
+        if arrived.any():
+            a = np.flatnonzero(arrived)
+            ww = w[a[:1]][None, :]
+            Rt = self.R[:, :, None] * (ww[:, None, :] * ww[None, :, :])
+            Rt[0, 0] += 1.0 - ww[0]
+            Ct = self.C[:, :, None] * ww[:, None, :]
+            RiC = np.moveaxis(np.linalg.solve(np.moveaxis(Rt, -1, 0), np.moveaxis(Ct, -1, 0)), 0, -1)
+            info = np.einsum("min,mjn->ijn", Ct, RiC)[0, 0, 0]
+            pa = prior[a]
+            finite = np.isfinite(pa)
+            if np.any(pa[finite] == 0):
+                return None
+            with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+                Y = np.where(finite, 1.0 / np.where(finite, pa, 1.0), 0.0)
+                M = Y + info
+                if np.isnan(M).any():
+                    return None
+                ok = np.isfinite(M) & (M != 0)
+                o = np.where(ok, 1.0 / np.where(ok, M, 1.0), np.inf)
+                x[a] = 0.5 * (o + o)
+        x[np.isnan(x) | (x == -np.inf)] = np.inf  # clean_nonfinite: only +∞ (an unknown direction) stays
+        P = P.copy()
+        P[0, 0, idx] = x
         return P
 
 

@@ -1,6 +1,5 @@
-"""The Kalman core's 1×1 shortcuts (kalman._inv, kalman._full_rank: the rescue's information form on scalar runs)
-against the LAPACK calls they replace, bit for bit, and the information update through them against the
-general path."""
+"""The Kalman core's 1×1 shortcuts (kalman._inv, kalman._full_rank, Rescue._apply_scalar: the rescue's information
+form on scalar runs) against the LAPACK calls and the general path they replace, bit for bit."""
 
 from __future__ import annotations
 
@@ -47,3 +46,29 @@ def test_scalar_information_update_is_the_general_path(monkeypatch):
             slow = kalman.information_update(Pm, info)
             monkeypatch.undo()
         assert np.array_equal(fast, slow)
+
+
+@pytest.mark.parametrize("c,r", [(1.0, 1.0), (0.7, 2.0), (-1.3, 0.05), (3.0, 1e-9)])
+def test_scalar_rescue_is_the_general_path(c, r, monkeypatch):
+    """Rescue.apply on scalar runs (finite, huge, ∞, −∞ and NaN priors; arrived or lost; flagged or not) with the
+    elementwise path and with it switched off (the general path): the same bits; a zero prior goes to the general
+    path (which raises, as before)."""
+    rng = np.random.default_rng(9)
+    k = 4000
+    Pm = (np.abs(rng.standard_normal(k)) * 10.0 ** rng.uniform(-6, 300, k)).reshape(1, 1, k)
+    Pm[0, 0, :8] = [np.inf, -np.inf, np.nan, 1e308, 5e-324, 1.0, 1e8, 3e-310]
+    P = Pm * rng.uniform(0.1, 1.0, k)
+    rows = rng.random((1, k)) < 0.5
+    flagged = rng.random(k) < 0.7
+    flagged[:8], rows[0, :3] = True, False  # −∞ / NaN priors lost: P⁻ itself, cleaned to ∞
+    resc = kalman.Rescue.of(np.array([[c]]), np.array([[r]]))
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        fast = resc.apply(P, Pm, flagged, rows)
+        monkeypatch.setattr(kalman.Rescue, "_apply_scalar", lambda *a: None)
+        slow = resc.apply(P, Pm, flagged, rows)
+    assert np.array_equal(fast, slow, equal_nan=True)
+    assert fast[0, 0, 1] == np.inf and fast[0, 0, 2] == np.inf and np.isfinite(fast[0, 0, 5])
+    monkeypatch.undo()
+    Pm[0, 0, 10], rows[0, 10], flagged[10] = 0.0, True, True
+    with pytest.raises(np.linalg.LinAlgError), np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        resc.apply(P, Pm, flagged, rows)
