@@ -21,7 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 PKG = ROOT / "netkf_cli"
 TOOLING = {"dev"}
-DEFERRED = ("cvxpy", "scipy.stats", "matplotlib", "clarabel")
+DEFERRED = ("cvxpy", "scipy.stats", "matplotlib", "PIL", "clarabel")
 """Required libraries imported at first use for their cost (~20–40 MB and up to 1 s each in every process and
 forked worker; issue 20's 300 MB): like optional ones they need a reason comment, and
 tests/unit/test_import_footprint.py / tests/figures/test_lazy_matplotlib.py check netkf's start-up loads none."""
