@@ -433,7 +433,7 @@ def _run_one(args) -> tuple[str, str | None, float, str | None]:
         if sc is None:  # not discovered in this process (a spawned worker, or a direct call)
             sc = load_scenario(config)
         runs = sc.montecarlo.quick_size() if quick else None
-        run_scenario(sc, source=config, out_dir=folder, runs=runs, quick=quick, force=True)
+        run_scenario(sc, source=config, out_dir=folder, runs=runs, quick=quick, force=True, resumable=False)
         return sc.name, str(folder), time.perf_counter() - t0, None
     except NetkfError as exc:
         return Path(config).stem, None, time.perf_counter() - t0, str(exc)

@@ -364,11 +364,12 @@ def run_scenario(scenario, *, source: str | Path | None = None, out_dir: str | P
                  executor: str = "serial", jobs: int = 1, scheduler: str | None = None,
                  resume: bool = False, yes: bool = True, overrides: list[str] | None = None,
                  started: float | None = None, info: dict | None = None,
-                 notify: Callable[[str], None] | None = None) -> Path:
+                 notify: Callable[[str], None] | None = None, resumable: bool = True) -> Path:
     """Compute and write one scenario. Finished Monte Carlo chunks are kept in
     ``<out>/../.netkf-cache/<out name>/`` until the result is written, so ``resume=True`` after an
     interruption reuses them (only if the scenario is identical) and gives exactly the
-    uninterrupted numbers.
+    uninterrupted numbers. ``resumable=False`` keeps no chunks (``netkf reproduce``, which has no
+    ``--resume``: a file per chunk written, renamed and deleted for nothing, 719 of them).
 
     Before any work, :func:`plan_run` checks everything that can be checked. The result folder
     is locked for the whole run (a concurrent run into the same folder gets :class:`BusyError`);
@@ -391,11 +392,11 @@ def run_scenario(scenario, *, source: str | Path | None = None, out_dir: str | P
     interrupted = False
     try:  # from here on the folder, its cache and what this run made are ours to clean
         io.clean_leftovers(out.parent)
-        resumed = _open_cache(cache, h, resume, scenario)
+        resumed = _open_cache(cache, h, resume, scenario) if resumable else {"requested": False, "chunks_reused": 0}
         if resumed.get("note") and notify:
             notify(resumed["note"])
         t0 = time.perf_counter()
-        with montecarlo.execution(executor, jobs, scheduler, cache_dir=cache, progress=progress,
+        with montecarlo.execution(executor, jobs, scheduler, cache_dir=cache if resumable else None, progress=progress,
                                   add_total=add_total) as ex:
             art = compute(scenario, ctx, source)
             where = ex.report()  # where the chunks really ran (tested: a promise in the manifest)

@@ -56,3 +56,26 @@ def test_the_discovered_scenario_is_run_not_loaded_again(monkeypatch, tmp_path):
     res = R.run_all(arts, tmp_path, True, 2)
     assert {k: v[3] for k, v in res.items()} == {"b0": "sc0", "b1": "sc1", "b2": "sc2"}  # in the workers too
     assert R._SCENARIOS == {}
+
+
+def test_reproduce_keeps_no_resume_chunks_a_plain_run_does(tmp_path, monkeypatch):
+    """netkf reproduce has no --resume: its runs store no chunk files (one per chunk, written, renamed and deleted
+    for nothing); `netkf run` keeps them until its result is written. The same numbers either way."""
+    from netkf_cli.config.loader import load_scenario
+    from netkf_cli.runtime import montecarlo
+
+    stored = []
+    real = montecarlo._store
+    monkeypatch.setattr(montecarlo, "_store", lambda path, stats: (stored.append(path), real(path, stats)))
+    root = Path(__file__).resolve().parents[2]
+    sc = load_scenario(root / "configs" / "fig5.yaml")
+    R._SCENARIOS[str(root / "configs" / "fig5.yaml")] = sc
+    try:
+        name, folder, _, err = R._run_one((str(root / "configs" / "fig5.yaml"), str(tmp_path / "r" / "fig5"), True))
+    finally:
+        R._SCENARIOS.clear()
+    assert err is None and [p for p in stored if p is not None] == []
+    assert not (tmp_path / "r" / ".netkf-cache").exists()
+    R.run_scenario(sc, out_dir=tmp_path / "p" / "fig5", runs=sc.montecarlo.quick_size(), quick=True, force=True)
+    assert [p for p in stored if p is not None]  # a plain run stores its finished chunks for --resume
+    assert (tmp_path / "r" / "fig5" / "fig5.csv").read_bytes() == (tmp_path / "p" / "fig5" / "fig5.csv").read_bytes()
