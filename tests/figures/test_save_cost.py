@@ -1,5 +1,5 @@
 """plotting.save's cheaper figure (issue 20): laid out at the dpi it is saved at, one draw per format, the footnote wrapped by bisection with
-matplotlib's own line breaks, PNGs as RGB at a lower zlib level — and the same pixels as matplotlib's plain path."""
+matplotlib's own line breaks, PNGs as RGB, unfiltered rows at a lower zlib level — and the same pixels as matplotlib's plain path."""
 
 import io
 
@@ -102,10 +102,20 @@ def test_one_draw_per_format_and_the_pixels_of_matplotlibs_path(tmp_path, monkey
 
 
 def test_a_figure_with_transparent_pixels_keeps_its_alpha(tmp_path):
-    fig, ax = P.new_figure()
-    fig.patch.set_alpha(0.0)  # a see-through face: RGB would paint it black
-    ax.plot([0, 1], [0, 1], label="x")
-    ax.set_title("t")
-    (png,) = P.save(fig, tmp_path / "f.png")
+    def figure():
+        fig, ax = P.new_figure()
+        fig.patch.set_alpha(0.0)  # a see-through face: RGB would paint it black
+        ax.plot([0, 1], [0, 1], label="x")
+        ax.set_title("t")
+        return fig
+
+    (png,) = P.save(figure(), tmp_path / "f.png")
+    fig = figure()
+    fig.set_dpi(P.STYLE["savefig.dpi"])
+    P._layout(fig)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=P.STYLE["savefig.dpi"])  # matplotlib's PNG of the same figure
+    P._mpl().plt.close(fig)
     with Image.open(png) as im:
         assert im.mode == "RGBA" and im.getextrema()[3][0] < 255
+    assert np.array_equal(mpimg.imread(png), mpimg.imread(io.BytesIO(buf.getvalue()), format="png"))
