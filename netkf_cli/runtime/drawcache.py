@@ -1,0 +1,241 @@
+"""Work matplotlib redoes for every tick, text and figure, done once per process: the same pixels.
+
+Writing the 37 figures of a reproduction spent ~3 s CPU rendering glyphs (FreeType, one glyph at a time), ~1.6 s
+constructing ticks and ~0.8 s measuring plain text, most of it for something already done for an earlier tick,
+label or figure. ``install(m)`` (called once by ``plotting._mpl()``, with its matplotlib namespace) sets up:
+
+* :func:`share_glyph_bitmaps` — a drawn glyph's bitmap kept per font, size, dpi, glyph and sub-pixel offset;
+* :func:`clone_ticks` — a new tick copied from a freshly constructed one of the same axis instead of
+  constructed again;
+* :func:`share_text_metrics` — a plain text's extent kept per process instead of per renderer (every figure gets
+  a new renderer).
+
+Each is private matplotlib API, checked when it is installed: without what it needs, or (for the glyph drawing,
+whose body it repeats) with another version of the method it replaces, matplotlib's own code stays
+(tests/figures/test_drawcache compares each with matplotlib's path). A forked child starts without the kept
+bitmaps (they hold the parent's FT2Font objects, as the mathtext cache does: plotting.share_mathtext_parses).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import inspect
+import math
+import os
+from types import SimpleNamespace
+
+import numpy as np
+
+#: glyph bitmaps kept per process (a reproduction draws ~20 000 distinct ones, ~3 MB); the cache is emptied when full
+GLYPH_CACHE = 65536
+#: plain-text extents kept per process
+METRICS_CACHE = 8192
+#: the attribute of an ``Axis`` that holds its prototype ticks (:func:`clone_ticks`)
+PROTOTYPES = "_netkf_tick_prototypes"
+#: sha256 (first 16 hex digits) of the source of ``RendererAgg._draw_text_glyphs_and_boxes`` that
+#: :func:`share_glyph_bitmaps` repeats (matplotlib 3.11); another source keeps matplotlib's own
+GLYPHS_SOURCE = "ccc4749c98095394"
+
+
+def install(m: SimpleNamespace) -> dict[str, bool]:
+    """Every fast path of this module; ``{name: installed}``."""
+    return {"glyph_bitmaps": share_glyph_bitmaps(m), "ticks": clone_ticks(m), "text_metrics": share_text_metrics(m)}
+
+
+# ---------------------------------------------------------------------------------------------- glyph bitmaps
+def _source_hash(fn) -> str | None:
+    try:
+        return hashlib.sha256(inspect.getsource(fn).encode()).hexdigest()[:16]
+    except (OSError, TypeError):  # pragma: no cover - no source (a frozen install)
+        return None
+
+
+def share_glyph_bitmaps(m: SimpleNamespace) -> bool:
+    """``RendererAgg._draw_text_glyphs_and_boxes`` (every text and mathtext string Agg draws), with each glyph's
+    bitmap rendered once per process for its font, size, dpi, glyph, load flags, render mode, transform and
+    sub-pixel offset.
+
+    matplotlib 3.11 renders every glyph of every string with FreeType (~55 µs each: load, hint, rasterize) at
+    its position in 1/64 pixel, ``X = 64·qx + rx`` (0 ≤ rx < 64; Y likewise). Moving a glyph's outline by whole
+    pixels (64·qx in 26.6 fixed point) moves its bitmap by qx pixels and changes nothing else, so the bitmap
+    rendered at (rx, ry) is kept, and drawn at left + qx, top + qy: the same bytes matplotlib's call gives
+    (tests/figures/test_drawcache). 43 % of the 34 000 glyphs of a reproduction's figures are such repeats, and
+    the rotation matrix, which matplotlib builds with numpy per glyph, is built once per string. Everything else
+    (the rule boxes of mathtext, ``draw_text_image``) is matplotlib's code, unchanged. Installed only over the
+    method it was written from (:data:`GLYPHS_SOURCE`); True when installed (idempotent)."""
+    from matplotlib.backends import backend_agg  # with matplotlib (the caller set the backend up)
+
+    Renderer = backend_agg.RendererAgg
+    current = Renderer.__dict__.get("_draw_text_glyphs_and_boxes")
+    if getattr(current, "_netkf_shared", False):
+        return True
+    from matplotlib import ft2font  # with matplotlib
+
+    if (current is None or _source_hash(current) != GLYPHS_SOURCE or not hasattr(ft2font, "RenderMode")
+            or not hasattr(ft2font.FT2Font, "_render_glyph") or not hasattr(ft2font.FT2Font, "_set_transform")):
+        return False  # another matplotlib: its own drawing
+    NORMAL, MONO = ft2font.RenderMode.NORMAL, ft2font.RenderMode.MONO
+    get_hinting_flag = backend_agg.get_hinting_flag
+    bitmaps: dict = {}
+    matrices: dict = {}
+
+    def _draw_text_glyphs_and_boxes(self, gc, x, y, angle, glyphs, boxes):
+        # y is downwards (matplotlib's method, with the bitmaps and the matrix kept).
+        cos = math.cos(math.radians(angle))
+        sin = math.sin(math.radians(angle))
+        load_flags = get_hinting_flag()
+        antialiased = gc.get_antialiased()
+        mode = NORMAL if antialiased else MONO
+        dpi, height = self.dpi, self.height
+        draw_text_image = self._renderer.draw_text_image
+        for font, size, glyph_index, slant, extend, dx, dy in glyphs:  # dy is upwards.
+            shape = (cos, sin, slant, extend)
+            matrix = matrices.get(shape)
+            if matrix is None:
+                matrix = matrices[shape] = (0x10000 * np.array([[cos, -sin], [sin, cos]])
+                                            @ [[extend, extend * slant], [0, 1]]).round().astype(int)
+            # FreeType's y is upwards.
+            qx, rx = divmod(round(0x40 * (x + dx * cos - dy * sin)), 0x40)
+            qy, ry = divmod(round(0x40 * (height - y + dx * sin + dy * cos)), 0x40)
+            key = (font, size, dpi, glyph_index, load_flags, mode, shape, rx, ry)
+            kept = bitmaps.get(key)
+            if kept is None:
+                font.set_size(size, dpi)
+                font._set_transform(matrix, [rx, ry])
+                bitmap = font._render_glyph(glyph_index, load_flags, mode)
+                buffer = bitmap.buffer
+                if not antialiased:
+                    buffer *= 0xff
+                if len(bitmaps) >= GLYPH_CACHE:
+                    bitmaps.clear()
+                kept = bitmaps[key] = (buffer, bitmap.left, bitmap.top)
+            buffer, left, top = kept
+            # draw_text_image's y is downwards & the bitmap bottom side.
+            draw_text_image(buffer, left + qx, int(height) - (top + qy) + buffer.shape[0], 0, gc)
+        if boxes:  # mathtext's rules (fraction bars, roots): matplotlib's own code, no glyph left to draw
+            current(self, gc, x, y, angle, (), boxes)
+
+    def forget():  # a forked child must not draw with the parent's FT2Font objects (plotting's mathtext cache)
+        bitmaps.clear()
+
+    os.register_at_fork(after_in_child=forget)
+    _draw_text_glyphs_and_boxes._netkf_shared = True
+    _draw_text_glyphs_and_boxes.original = current
+    _draw_text_glyphs_and_boxes.bitmaps = bitmaps
+    Renderer._draw_text_glyphs_and_boxes = _draw_text_glyphs_and_boxes
+    return True
+
+
+# ---------------------------------------------------------------------------------------------- ticks
+def _copy_artist(artist, registry):
+    """A new artist with ``artist``'s attributes (shared: matplotlib replaces rather than mutates them) and its own
+    (empty) callback registry."""
+    new = object.__new__(type(artist))
+    new.__dict__.update(artist.__dict__)
+    new._callbacks = registry(signals=["pchanged"])
+    return new
+
+
+def _copy_tick(tick, registry):
+    """A tick as ``tick`` was: its five artists copied, the labels with their own font properties."""
+    new = _copy_artist(tick, registry)
+    for name in ("tick1line", "tick2line", "gridline", "label1", "label2"):
+        setattr(new, name, _copy_artist(getattr(tick, name), registry))
+    new.label1._fontproperties = tick.label1._fontproperties.copy()
+    new.label2._fontproperties = tick.label2._fontproperties.copy()
+    return new
+
+
+def clone_ticks(m: SimpleNamespace) -> bool:
+    """``Axis._get_tick``: a new tick is a copy of a fresh one of the same axis (major or minor), instead of
+    constructing five artists again (~0.5 ms: 3 Line2D, 2 Text, their markers and transforms).
+
+    The first tick an axis constructs is copied before it is used (the prototype, kept on the axis in the
+    attribute :data:`PROTOTYPES`: it refers to its axes, so a cache outside the figure would keep every figure
+    alive); a later tick is a copy of the prototype as long as what construction reads is unchanged — the axis'
+    tick keywords (``tick_params``) and the rcParams — and constructed (and a new prototype kept) otherwise. The
+    caller then does what it did to a constructed tick (``_copy_tick_props`` from the first tick, positions,
+    labels). A copy shares the prototype's attribute objects, which matplotlib replaces rather than mutates (data,
+    paths, markers, transforms), and gets its own artists, callback registries and font properties
+    (tests/figures/test_drawcache: the same state as a constructed tick, the same pixels). Only for the plain
+    ``XAxis``/``YAxis`` and their ``XTick``/``YTick``
+    (polar and 3-D axes construct as before). True when installed (idempotent)."""
+    maxis = m.matplotlib.axis
+    current = maxis.Axis.__dict__.get("_get_tick")
+    if getattr(current, "_netkf_shared", False):
+        return True
+    registry = getattr(m.matplotlib.cbook, "CallbackRegistry", None)
+    if current is None or registry is None or not all(hasattr(maxis, c) for c in ("XAxis", "YAxis", "XTick", "YTick")):
+        return False  # pragma: no cover - another matplotlib
+    plain = {maxis.XAxis: maxis.XTick, maxis.YAxis: maxis.YTick}
+    rc = m.matplotlib.rcParams
+
+    def _get_tick(self, major):
+        kw = self._major_tick_kw if major else self._minor_tick_kw
+        # on the axis itself ({major: (tick_kw, rc, tick)}): a prototype refers to its axes, and a cache outside the
+        # figure would keep every figure alive
+        prototypes = self.__dict__.get(PROTOTYPES)
+        kept = prototypes.get(major) if prototypes is not None else None
+        if kept is not None and kept[0] == kw and dict.__eq__(rc, kept[1]):
+            return _copy_tick(kept[2], registry)
+        tick = current(self, major)
+        if plain.get(type(self)) is type(tick) and tick.label1._bbox_patch is None and tick.label2._bbox_patch is None:
+            self.__dict__.setdefault(PROTOTYPES, {})[major] = (dict(kw), dict.copy(rc), _copy_tick(tick, registry))
+        return tick
+
+    _get_tick._netkf_shared = True
+    _get_tick.original = current
+    maxis.Axis._get_tick = _get_tick
+    return True
+
+
+# ---------------------------------------------------------------------------------------------- text metrics
+def _hashable(v):
+    return tuple(v) if isinstance(v, list) else v
+
+
+def share_text_metrics(m: SimpleNamespace) -> bool:
+    """``text._get_text_metrics_with_cache`` for plain (not math) text on Agg: one process-wide cache instead of
+    matplotlib's one per renderer — every figure draws with a new renderer, and the tick labels "0.2", "10", the
+    axis labels and legend entries of 37 figures were measured again by each (787 FreeType layouts, 376
+    distinct; ~24 µs per character).
+
+    ``RendererAgg.get_text_width_height_descent(s, prop, False)`` depends on the string, the font properties,
+    the renderer's dpi, and, through the font lookup and FreeType's loading, the ``font.*`` and ``text.*``
+    rcParams and the fonts matplotlib knows: the key holds exactly those, and a miss calls that method. Math text
+    (its parse is shared: plotting.share_mathtext_parses), other renderers and a dpi other than the renderer's
+    keep matplotlib's cache. True when installed (idempotent)."""
+    mtext = m.matplotlib.text
+    current = getattr(mtext, "_get_text_metrics_with_cache", None)
+    if getattr(current, "_netkf_shared", False):
+        return True
+    from matplotlib import font_manager  # with matplotlib
+    from matplotlib.backends.backend_agg import RendererAgg  # with matplotlib (the caller set the backend up)
+
+    if current is None or not hasattr(font_manager, "fontManager"):
+        return False  # pragma: no cover - another matplotlib
+    rc = m.matplotlib.rcParams
+    rc_keys = tuple(k for k in rc if k.startswith(("font.", "text.")))
+    measuring: list = []  # the renderer of the call in progress (a miss measures with it)
+
+    @functools.lru_cache(METRICS_CACHE)
+    def shared(text, fontprop, dpi, rc_values, fonts):
+        return RendererAgg.get_text_width_height_descent(measuring[-1], text, fontprop, False)
+
+    def _get_text_metrics_with_cache(renderer, text, fontprop, ismath, dpi):
+        if ismath or type(renderer) is not RendererAgg or renderer.dpi != dpi:
+            return current(renderer, text, fontprop, ismath, dpi)
+        fm = font_manager.fontManager
+        measuring.append(renderer)
+        try:  # a copy of the font properties, as matplotlib's cache keeps: the caller may change its own later
+            return shared(text, fontprop.copy(), dpi, tuple(_hashable(dict.__getitem__(rc, k)) for k in rc_keys),
+                          (id(fm), len(fm.ttflist), len(fm.afmlist)))
+        finally:
+            measuring.pop()
+
+    _get_text_metrics_with_cache._netkf_shared = True
+    _get_text_metrics_with_cache.original = current
+    _get_text_metrics_with_cache.cache = shared
+    mtext._get_text_metrics_with_cache = _get_text_metrics_with_cache
+    return True
