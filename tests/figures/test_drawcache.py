@@ -27,7 +27,7 @@ from netkf_cli.runtime import plotting as P
 @pytest.fixture(autouse=True)
 def _installed():
     P.setup()
-    assert P._mpl().drawcache == {"glyph_bitmaps": True, "ticks": True, "text_metrics": True}
+    assert P._mpl().drawcache == {"glyph_bitmaps": True, "ticks": True, "text_metrics": True, "text_layouts": True}
 
 
 def _figure(rotated: bool = False):
@@ -60,6 +60,7 @@ def _matplotlibs(monkeypatch):
     monkeypatch.setattr(RendererAgg, "_draw_text_glyphs_and_boxes", RendererAgg._draw_text_glyphs_and_boxes.original)
     monkeypatch.setattr(maxis.Axis, "_get_tick", maxis.Axis._get_tick.original)
     monkeypatch.setattr(mtext, "_get_text_metrics_with_cache", mtext._get_text_metrics_with_cache.original)
+    monkeypatch.setattr(mtext.Text, "_get_layout", mtext.Text._get_layout.original)
 
 
 @pytest.mark.parametrize("rotated", [False, True])
@@ -269,3 +270,94 @@ def test_a_saved_figure_is_freed(tmp_path):
     del fig
     gc.collect()
     assert gone() is None
+
+
+# ------------------------------------------------------------------------------------------------- text layouts
+def _layouts_equal(a, b) -> bool:
+    (ba, ia, ca), (bb, ib, cb) = a, b
+    return np.array_equal(ba.get_points(), bb.get_points()) and ia == ib and ca == cb
+
+
+TEXTS = ["0.25", r"$\mathdefault{10^{-2}}$", "two\nlines, the second longer", r"$\frac{1}{2}$ and $\sqrt{x}$ mixed",
+         "cost $5 and $6", ""]
+SETTINGS = [dict(), dict(rotation=30), dict(rotation=90, rotation_mode="anchor"), dict(rotation=45, rotation_mode="xtick"),
+            dict(rotation=300, rotation_mode="ytick", ha="left"), dict(ha="right", va="top"), dict(va="top"),
+            dict(va="center"), dict(va="baseline"),
+            dict(va="center_baseline", ha="center"), dict(multialignment="right"), dict(linespacing=2.0),
+            dict(parse_math=False), dict(fontsize=13, fontweight="bold"), dict(family="serif", fontstyle="italic")]
+
+
+@pytest.mark.parametrize("dpi", [100, 150])
+def test_layouts_are_matplotlibs(dpi):
+    """One text object changed setting by setting (the key must follow each), and fresh texts: the same layout
+    as matplotlib's method, cold and warm."""
+    fig = P._mpl().plt.figure(dpi=dpi)
+    r = fig.canvas.get_renderer()
+    theirs = mtext.Text._get_layout.original
+    moving = fig.text(0.3, 0.4, "")
+    for text in TEXTS:
+        for kw in SETTINGS:
+            fresh = fig.text(0.5, 0.5, text, **kw)
+            moving.update({"text": text, "rotation": 0, "rotation_mode": "default", "ha": "left", "va": "baseline",
+                           "multialignment": "left", "linespacing": 1.2, "parse_math": True, "fontsize": 10,
+                           "fontweight": "normal", "family": "DejaVu Sans", "fontstyle": "normal", **kw})
+            for t in (fresh, moving, fresh):
+                assert _layouts_equal(t._get_layout(r), theirs(t, r)), (text, kw)
+    assert len(mtext.Text._get_layout.layouts) > 0
+    P._mpl().plt.close(fig)
+
+
+def test_layout_rc_and_dpi_are_part_of_the_key():
+    fig = P._mpl().plt.figure(dpi=100)
+    r = fig.canvas.get_renderer()
+    original = mtext.Text._get_layout.original
+    t = fig.text(0.5, 0.5, r"$\Upsilon_T \leq abcdefgh + xyz$ text")
+    stix = t._get_layout(r)
+    # (a new renderer for each rc: matplotlib's own extent cache, per renderer, does not follow the rc)
+    with matplotlib.rc_context({"mathtext.default": "regular"}):  # not in the font properties (mathtext.fontset is)
+        r2 = RendererAgg(640, 480, 100)
+        other = t._get_layout(r2)
+        assert _layouts_equal(other, original(t, r2)) and not _layouts_equal(other, stix)
+    plain = fig.text(0.5, 0.5, "Monte Carlo runs", family="sans-serif")
+    sans = plain._get_layout(r)
+    with matplotlib.rc_context({"font.sans-serif": ["DejaVu Serif"]}):  # the font the family names
+        r2 = RendererAgg(640, 480, 100)
+        other = plain._get_layout(r2)
+        assert _layouts_equal(other, original(plain, r2)) and not _layouts_equal(other, sans)
+    at_100 = t._get_layout(r)
+    fig.set_dpi(150)  # the figure's dpi scales the font's line metrics; the renderer (100 dpi) measures
+    assert _layouts_equal(t._get_layout(r), original(t, r)) and not _layouts_equal(t._get_layout(r), at_100)
+    r72 = RendererAgg(640, 480, 72)  # the figure at 150 dpi, the renderer measuring at 72
+    assert _layouts_equal(t._get_layout(r72), original(t, r72)) and not _layouts_equal(t._get_layout(r72), t._get_layout(r))
+    P._mpl().plt.close(fig)
+
+
+def test_each_call_gets_its_own_box_and_lines():
+    fig = P._mpl().plt.figure()
+    r = fig.canvas.get_renderer()
+    t = fig.text(0.5, 0.5, "a\nb")
+    bbox, info, _ = t._get_layout(r)
+    bbox.x0 += 100
+    info.clear()
+    again = t._get_layout(r)
+    assert _layouts_equal(again, mtext.Text._get_layout.original(t, r))
+    P._mpl().plt.close(fig)
+
+
+def test_wrapping_another_renderer_or_a_subclass_keep_matplotlibs():
+    from matplotlib.backends.backend_svg import RendererSVG
+
+    class RightAligned(mtext.Text):  # overrides a method the layout reads
+        def _get_multialignment(self):
+            return "right"
+
+    fig = P._mpl().plt.figure()
+    r = fig.canvas.get_renderer()
+    layouts = mtext.Text._get_layout.layouts
+    layouts.clear()
+    fig.text(0.5, 0.5, "words " * 40, wrap=True).get_window_extent(r)  # wraps at the canvas edge: laid out
+    fig.text(0.5, 0.5, "words")._get_layout(RendererSVG(640, 480, io.StringIO()))  # another renderer
+    right = RightAligned(0.5, 0.5, "a\nbbbb", figure=fig)
+    assert _layouts_equal(right._get_layout(r), mtext.Text._get_layout.original(right, r))
+    assert len(layouts) == 0  # none was kept
+    P._mpl().plt.close(fig)
