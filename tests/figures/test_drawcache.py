@@ -27,7 +27,7 @@ from netkf_cli.runtime import plotting as P
 @pytest.fixture(autouse=True)
 def _installed():
     P.setup()
-    assert P._mpl().drawcache == {"glyph_bitmaps": True, "ticks": True, "text_metrics": True, "text_layouts": True}
+    assert all(P._mpl().drawcache.values()), P._mpl().drawcache
 
 
 def _figure(rotated: bool = False):
@@ -58,6 +58,7 @@ def _pixels(fig) -> np.ndarray:
 def _matplotlibs(monkeypatch):
     """matplotlib's own functions back in place of every drawcache path."""
     monkeypatch.setattr(RendererAgg, "_draw_text_glyphs_and_boxes", RendererAgg._draw_text_glyphs_and_boxes.original)
+    monkeypatch.setattr(RendererAgg, "draw_text", RendererAgg.draw_text.original)
     monkeypatch.setattr(maxis.Axis, "_get_tick", maxis.Axis._get_tick.original)
     monkeypatch.setattr(mtext, "_get_text_metrics_with_cache", mtext._get_text_metrics_with_cache.original)
     monkeypatch.setattr(mtext.Text, "_get_layout", mtext.Text._get_layout.original)
@@ -66,9 +67,10 @@ def _matplotlibs(monkeypatch):
 @pytest.mark.parametrize("rotated", [False, True])
 def test_same_pixels_as_matplotlibs_path(monkeypatch, rotated):
     RendererAgg._draw_text_glyphs_and_boxes.bitmaps.clear()
+    RendererAgg.draw_text.positions.clear()
     cold = _pixels(_figure(rotated))
     warm = _pixels(_figure(rotated))  # glyphs, ticks and extents from the first figure
-    assert RendererAgg._draw_text_glyphs_and_boxes.bitmaps
+    assert RendererAgg._draw_text_glyphs_and_boxes.bitmaps and RendererAgg.draw_text.positions
     _matplotlibs(monkeypatch)
     theirs = _pixels(_figure(rotated))
     assert np.array_equal(cold, theirs) and np.array_equal(warm, theirs)
@@ -81,6 +83,27 @@ def test_unantialiased_text_same_pixels(monkeypatch):
         _matplotlibs(monkeypatch)
         theirs = _pixels(_figure())
     assert np.array_equal(ours[0], theirs) and np.array_equal(ours[1], theirs)
+
+
+def _strings(dpi):
+    """One string at several sizes, weights and families, and rotated: kept positions must not cross them."""
+    fig = P._mpl().plt.figure(figsize=(4, 3), dpi=dpi)
+    for i, kw in enumerate([dict(size=9), dict(size=13), dict(size=9, weight="bold"), dict(size=9, family="serif"),
+                            dict(size=11, rotation=20), dict(size=9, family="monospace")]):
+        fig.text(0.05, 0.08 + 0.15 * i, "Monte Carlo 0.25 AVWA", **kw)
+    for angle in (0, 20, 90):  # the first glyph of each at the same whole pixel: the same sub-pixel offset
+        fig.text(200, 100, "MWM", rotation=angle, rotation_mode="anchor", ha="left", va="baseline", transform=None)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    P._mpl().plt.close(fig)
+    return mpimg.imread(io.BytesIO(buf.getvalue()), format="png")
+
+
+def test_one_string_in_other_fonts_sizes_and_dpis_same_pixels(monkeypatch):
+    ours = [_strings(dpi) for dpi in (100, 150, 100)]
+    _matplotlibs(monkeypatch)
+    theirs = [_strings(dpi) for dpi in (100, 150)]
+    assert all(np.array_equal(a, b) for a, b in zip(ours, theirs + theirs[:1]))
 
 
 def test_a_glyph_moved_by_whole_pixels_is_the_same_bitmap_moved():
@@ -361,3 +384,17 @@ def test_wrapping_another_renderer_or_a_subclass_keep_matplotlibs():
     assert _layouts_equal(right._get_layout(r), mtext.Text._get_layout.original(right, r))
     assert len(layouts) == 0  # none was kept
     P._mpl().plt.close(fig)
+
+
+def test_rc_values_follow_any_change():
+    """The rcParams part of the keys: rebuilt after an assignment and after a list changed in place."""
+    rc = {"font.sans-serif": ["DejaVu Sans"], "font.size": 10.0, "axes.grid": True}
+    values = drawcache._rc_values(rc, ("font.sans-serif", "font.size"))
+    first = values()
+    assert first == (("DejaVu Sans",), 10.0) and values() is first  # unchanged: the same tuple
+    rc["axes.grid"] = False
+    assert values() == first
+    rc["font.sans-serif"].insert(0, "DejaVu Serif")
+    assert values() == (("DejaVu Serif", "DejaVu Sans"), 10.0)
+    rc["font.size"] = 12.0
+    assert values()[1] == 12.0
