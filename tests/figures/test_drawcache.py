@@ -8,6 +8,7 @@ import matplotlib
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
+from matplotlib import _mathtext
 from matplotlib import axis as maxis
 from matplotlib import text as mtext
 from matplotlib.artist import Artist
@@ -17,6 +18,7 @@ from matplotlib.cbook import CallbackRegistry
 from matplotlib.figure import Figure
 from matplotlib.font_manager import FontProperties
 from matplotlib.markers import MarkerStyle
+from matplotlib.mathtext import MathTextParser
 from matplotlib.path import Path
 from matplotlib.transforms import TransformNode
 
@@ -62,6 +64,9 @@ def _matplotlibs(monkeypatch):
     monkeypatch.setattr(maxis.Axis, "_get_tick", maxis.Axis._get_tick.original)
     monkeypatch.setattr(mtext, "_get_text_metrics_with_cache", mtext._get_text_metrics_with_cache.original)
     monkeypatch.setattr(mtext.Text, "_get_layout", mtext.Text._get_layout.original)
+    monkeypatch.setattr(_mathtext.TruetypeFonts, "_get_info", _mathtext.TruetypeFonts._get_info.original)
+    # parses made with the kept glyph infos are not served to matplotlib's path: its own per-parser cache
+    monkeypatch.setattr(MathTextParser, "_parse_cached", MathTextParser._parse_cached.original)
 
 
 @pytest.mark.parametrize("rotated", [False, True])
@@ -398,3 +403,37 @@ def test_rc_values_follow_any_change():
     assert values() == (("DejaVu Serif", "DejaVu Sans"), 10.0)
     rc["font.size"] = 12.0
     assert values()[1] == 12.0
+
+
+# ------------------------------------------------------------------------------------------------- mathtext glyph infos
+MATH = [r"$\mathrm{tr}\,E[P_{k \mid k-1}]$ over $\sum_{i=1}^{N} a_i^{2}$", r"$\frac{AV}{WA}$ and $\sqrt{T_{y_{x}}}$ AVWAY",
+        r"$\Upsilon_T \leq \lambda_c^{\alpha_{\beta}}$ text with kerning: AV To Wa", r"$\mathdefault{10^{-2}}$"]
+
+
+def _parse(s, size, dpi, family):
+    """A fresh parse (no parse cache): its glyphs (font name, size, glyph, offsets), rules and extent."""
+    prop = FontProperties(size=size, family=family)  # the default font: text outside $…$ and \\mathdefault
+    parse = MathTextParser._parse_cached.original.__wrapped__(MathTextParser("path"), s, dpi, prop, True, 0)
+    return parse.width, parse.height, parse.depth, [(f.fname, sz, c, g, x, y) for f, sz, c, g, x, y in parse.glyphs], \
+        parse.rects
+
+
+def test_math_parses_with_kept_glyph_infos_are_matplotlibs():
+    """The same parse (every glyph's position, so every kern, at every size of sub- and superscripts) with glyph
+    infos kept from earlier parses at other sizes and dpis as with matplotlib's per-parse cache."""
+    import warnings
+
+    kept = _mathtext.TruetypeFonts._get_info
+    cases = [(s, size, dpi, family) for dpi in (150, 100) for size in (9, 11, 9) for family in ("DejaVu Sans", "DejaVu Serif")
+             for s in MATH]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the flags as an int (the parser's own default)
+        kept.infos.clear()
+        ours = [_parse(*c) for c in cases]
+        assert kept.infos
+        _mathtext.TruetypeFonts._get_info = kept.original
+        try:
+            theirs = [_parse(*c) for c in cases]
+        finally:
+            _mathtext.TruetypeFonts._get_info = kept
+    assert ours == theirs
