@@ -2,6 +2,7 @@
 
 import gc
 import os
+import weakref
 from pathlib import Path
 
 from netkf_cli.app import reproduce as R
@@ -79,3 +80,29 @@ def test_reproduce_keeps_no_resume_chunks_a_plain_run_does(tmp_path, monkeypatch
     R.run_scenario(sc, out_dir=tmp_path / "p" / "fig5", runs=sc.montecarlo.quick_size(), quick=True, force=True)
     assert [p for p in stored if p is not None]  # a plain run stores its finished chunks for --resume
     assert (tmp_path / "r" / "fig5" / "fig5.csv").read_bytes() == (tmp_path / "p" / "fig5" / "fig5.csv").read_bytes()
+
+
+def test_what_survives_an_artefact_is_frozen_its_garbage_collected(monkeypatch, tmp_path):
+    class Cycle:
+        pass
+
+    def artefact(sc, **kw):  # leaves one cache entry behind and one garbage cycle
+        keep.append(Cycle())
+        c = Cycle()
+        c.self = c
+        garbage.append(weakref.ref(c))
+
+    keep, garbage = [], []
+    monkeypatch.setattr(R, "run_scenario", artefact)
+    from types import SimpleNamespace
+
+    sc = SimpleNamespace(name="a", montecarlo=SimpleNamespace(quick_size=lambda: 5))
+    R._SCENARIOS[str(tmp_path / "a.yaml")] = sc
+    try:
+        before = gc.get_freeze_count()
+        R._run_one((str(tmp_path / "a.yaml"), str(tmp_path / "a"), True))
+        assert gc.get_freeze_count() > before  # the survivors, the cache entry among them
+        assert garbage[0]() is None  # collected before the freeze, not frozen alive
+    finally:
+        R._SCENARIOS.clear()
+        gc.unfreeze()
