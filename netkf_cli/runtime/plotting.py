@@ -587,30 +587,58 @@ def _write_png(fig: Figure, out: Path, dpi: float) -> None:
     flat colours compress better unfiltered (filter type 0: the 37 full-size figures 5.8 instead of 6.2 MB, the
     encoding 1.1 -> 0.45 s CPU), so the file is written here: signature, IHDR, tEXt, pHYs (dots per metre, as
     Pillow writes the dpi), one IDAT, IEND (PNG spec, ISO/IEC 15948). The canvas is drawn by
-    ``savefig(format="rgba")`` (the raw buffer after savefig's own face-colour and dpi handling), so the
-    pixels are matplotlib's (tests/figures/test_save_cost)."""
+    ``savefig(format="rgba")`` (the raw buffer after savefig's own face-colour and dpi handling, read in place:
+    :class:`_RawCanvas`), so the pixels are matplotlib's (tests/figures/test_save_cost); the rows are built and
+    deflated a band of :data:`PNG_BAND_BYTES` at a time, so the PNG costs no copy of the whole canvas."""
     from PIL import Image  # pillow: matplotlib's own dependency, imported with it (at the first figure)
 
-    buf = io.BytesIO()
-    fig.savefig(buf, dpi=dpi, format="rgba")
+    canvas = _RawCanvas()
+    fig.savefig(canvas, dpi=dpi, format="rgba")
     r = fig.canvas.get_renderer()  # the one savefig drew with: the raw buffer is its (height, width, 4) pixels
     w, h = int(r.width), int(r.height)
-    rgba = np.frombuffer(buf.getbuffer(), dtype=np.uint8).reshape(h, w, 4)
+    rgba = np.asarray(canvas.view, dtype=np.uint8).reshape(h, w, 4)
     mode = "RGB" if rgba[:, :, 3].min() == 255 else "RGBA"
     channels = len(mode)
-    rows = np.empty((h, 1 + w * channels), dtype=np.uint8)  # each row: its filter type (0: none), then its pixels
-    rows[:, 0] = 0
-    # Pillow drops the alpha bytes ~10x faster than a strided numpy copy
-    pixels = Image.frombuffer("RGBA", (w, h), rgba, "raw", "RGBA", 0, 1).tobytes("raw", mode)
-    rows[:, 1:] = np.frombuffer(pixels, dtype=np.uint8).reshape(h, w * channels)
+    # the rows deflated a band at a time (the same stream as one call: no flush in between), each row its filter
+    # type (0: none) then its pixels; Pillow drops the alpha bytes ~10x faster than a strided numpy copy
+    band = max(1, min(h, PNG_BAND_BYTES // (4 * w)))
+    rows = np.zeros((band, 1 + w * channels), dtype=np.uint8)
+    deflate = zlib.compressobj(PNG_COMPRESS_LEVEL)
+    idat = []
+    for top in range(0, h, band):
+        n = min(band, h - top)
+        px = Image.frombuffer("RGBA", (w, n), rgba[top:top + n], "raw", "RGBA", 0, 1).tobytes("raw", mode)
+        rows[:n, 1:] = np.frombuffer(px, dtype=np.uint8).reshape(n, w * channels)
+        idat.append(deflate.compress(rows[:n]))
+    idat.append(deflate.flush())
     software = f"Matplotlib version{_mpl().matplotlib.__version__}, https://matplotlib.org/"
     per_metre = int(dpi / 0.0254 + 0.5)
     out.write_bytes(b"\x89PNG\r\n\x1a\n"
                     + _png_chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2 if mode == "RGB" else 6, 0, 0, 0))
                     + _png_chunk(b"tEXt", b"Software\0" + software.encode("latin-1"))
                     + _png_chunk(b"pHYs", struct.pack(">IIB", per_metre, per_metre, 1))
-                    + _png_chunk(b"IDAT", zlib.compress(rows, PNG_COMPRESS_LEVEL))
+                    + _png_chunk(b"IDAT", b"".join(idat))
                     + _png_chunk(b"IEND", b""))
+
+
+PNG_BAND_BYTES = 1 << 20
+"""Canvas bytes turned into PNG rows at a time (:func:`_write_png`): a figure's whole RGBA canvas copied to bytes,
+to RGB and to filtered rows was 3 copies of up to 12 MB at the peak of a small run (smoothing table1's two panels,
+1712 x 1695 px), ~40 MB over the 300 MB of issue 20."""
+
+
+class _RawCanvas:
+    """The file ``savefig(format="rgba")`` writes into: it keeps the memoryview of the renderer's own buffer that
+    matplotlib's ``print_raw`` writes, without copying it (valid until the figure is drawn again)."""
+
+    view = None
+
+    def write(self, data) -> int:
+        self.view = data
+        return len(memoryview(data).cast("B"))
+
+    def seek(self, offset: int, whence: int = 0) -> int:  # what matplotlib checks to take it as a file handle
+        return 0
 
 
 def _png_chunk(kind: bytes, data: bytes) -> bytes:
