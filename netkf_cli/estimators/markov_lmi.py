@@ -55,8 +55,10 @@ from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
+from scipy import sparse
 
 from netkf_cli.linalg import kalman
+from netkf_cli.linalg import sdp as conic
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators import _markov_codegen
 from netkf_cli.estimators.kf import channel_streams
@@ -185,7 +187,129 @@ def step_closed_form(blocks: _Blocks, rho, Phi):
 
 
 class _SDP:
-    """The prediction and update SDPs of one design, built once with cvxpy Parameters (DPP)."""
+    """The prediction and update SDPs of one design (eqs 34/34a, 37/37a) handed to Clarabel directly.
+
+    The same problems as :class:`_CvxpySDP` (minimize Σ_q ρ_q tr(Γ_F Λ_q Γ_Fᵀ) subject to the LMIs, the LMI
+    block symmetrized as there), in the conic form cvxpy would give Clarabel: every LMI is affine in the
+    unknowns (A_s, G_s, Λ_1..Λ_4 resp. L, Λ_1..Λ_4), read off by probing (:func:`netkf_cli.linalg.sdp.probes`),
+    one PSD-triangle cone each. No cvxpy import (~0.7 s CPU per process) nor its canonicalization (~0.1 s per
+    solve). The optimum agrees with cvxpy's to the solver's tolerance (tests/markov/test_filters.py).
+    """
+
+    def __init__(self, blocks: _Blocks, rho, eps: float, solver: str, tol: float):
+        md = blocks.model
+        n, m, d, p, D = blocks.n, blocks.m, blocks.d, blocks.p, blocks.D
+        self.blocks, self.rho, self.tol, self.eps = blocks, np.asarray(rho, float), tol, eps
+        lams = [conic.Var((D, D), symmetric=True) for _ in range(N_MODES)]
+        self.vars_p = [conic.Var((n, n)), conic.Var((n, m))] + lams
+        self.vars_u = [conic.Var((n, m))] + lams
+        self.Z_dn = np.zeros((d, n))
+
+    def _lmi(self, Lam, AFPh, BFL):
+        """The stacked block [[Λ, A_F Φ^½, B_F L_Σ], [·, I, 0], [·, 0, I]] (symmetrized by svec)."""
+        P, D = Lam.shape[0], Lam.shape[1]
+        p = BFL.shape[2]
+        M = np.zeros((P, 2 * D + p, 2 * D + p))
+        M[:, :D, :D] = Lam
+        M[:, :D, D:2 * D] = AFPh
+        M[:, :D, 2 * D:] = BFL
+        M[:, D:2 * D, :D] = AFPh.transpose(0, 2, 1)
+        M[:, 2 * D:, :D] = BFL.transpose(0, 2, 1)
+        M[:, D:, D:] += np.eye(D + p)
+        return M
+
+    def _solve(self, variables, lmis):
+        """min Σ_q ρ_q tr(Γ_F Λ_q Γ_Fᵀ) s.t. ``lmis`` ⪰ 0 (stacked probes) → (values, objective, status, seconds)."""
+        import clarabel  # here, not at module level: only an SDP check or design: sdp solves one
+
+        rho, Gam = self.rho, self.blocks.Gam
+        units = [(i, E) for i, v in enumerate(variables) for E in v.units()]
+        nx, first = len(units), len(variables) - N_MODES  # the Λ_q are the last N_MODES unknowns
+        c = np.zeros(nx)
+        for k, (i, E) in enumerate(units):
+            if i >= first:
+                c[k] = rho[i - first] * np.trace(Gam @ E @ Gam.T)
+        rows, b, cones = [], [], []
+        for V, _ in conic.probes(variables, lmis, stacked=True):
+            rows.append(-(V[1:] - V[0]).T)
+            b.append(V[0])
+            cones.append(clarabel.PSDTriangleConeT(conic._svec_order(V.shape[1])))
+        settings = clarabel.DefaultSettings()
+        settings.verbose = False
+        settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = self.tol
+        t = time.perf_counter()
+        try:
+            sol = clarabel.DefaultSolver(sparse.csc_matrix((nx, nx)), c, sparse.csc_matrix(np.vstack(rows)),
+                                         np.concatenate(b), cones, settings).solve()
+        except Exception as exc:  # pragma: no cover - a solver crash
+            raise RuntimeError(f"LMI solve failed: {exc}") from None
+        dt = time.perf_counter() - t
+        status = conic.STATUS.get(str(sol.status).split(".")[-1], str(sol.status))
+        x = np.asarray(sol.x, dtype=float)
+        if status not in ("optimal", "optimal_inaccurate") or x.size != nx or not np.all(np.isfinite(x)):
+            raise RuntimeError(f"LMI solve failed: {status}")
+        values = [np.zeros(v.shape) for v in variables]
+        for k, (i, E) in enumerate(units):
+            values[i] = values[i] + x[k] * E
+        return values, float(c @ x), status, dt
+
+    def predict(self, Phi):
+        md, d = self.blocks.model, self.blocks.d
+        Ph = [psd_sqrt(Phi[q]) for q in range(N_MODES)]
+        X0 = []
+        for q in range(N_MODES):
+            X = md.F[q] @ Phi[q][:d, :d] @ md.F[q].T + md.G[q] @ md.Sigma @ md.G[q].T
+            X0.append((X + X.T) / 2 + _eps_block(self.eps, X))
+
+        def lmis(vals):
+            As, Gs, Lams = vals[0], vals[1], vals[2:]
+            out = []
+            for q in range(N_MODES):
+                P = As.shape[0]
+                AF = np.zeros((P,) + Phi[q].shape)
+                AF[:, :d, :d] = md.F[q]
+                AF[:, d:, :d] = Gs @ md.H[q]
+                AF[:, d:, d:] = As
+                BF = np.concatenate([np.broadcast_to(md.G[q], (P,) + md.G[q].shape), Gs @ md.J[q]], axis=1)
+                out.append((self._lmi(Lams[q], AF @ Ph[q], BF @ md.Lsig), False))
+                out.append((X0[q] - Lams[q][:, :d, :d], False))
+            return out
+
+        (a, g, *L), val, status, dt = self._solve(self.vars_p, lmis)
+        return a, g, np.array(L), val, status, dt
+
+    def update(self, Phi):
+        md, d, n = self.blocks.model, self.blocks.d, self.blocks.n
+        Ph = [psd_sqrt(Phi[q]) for q in range(N_MODES)]
+        X0 = [(Phi[q][:d, :d] + Phi[q][:d, :d].T) / 2 + _eps_block(self.eps, Phi[q][:d, :d]) for q in range(N_MODES)]
+
+        def lmis(vals):
+            Lg, Lams = vals[0], vals[1:]
+            out = []
+            for q in range(N_MODES):
+                P = Lg.shape[0]
+                AF = np.zeros((P,) + Phi[q].shape)
+                AF[:, :d, :d] = np.eye(d)
+                AF[:, d:, :d] = Lg @ md.H[q]
+                AF[:, d:, d:] = np.eye(n)
+                BF = np.concatenate([np.zeros((P, d, md.Lsig.shape[0])), Lg @ md.J[q]], axis=1)
+                out.append((self._lmi(Lams[q], AF @ Ph[q], BF @ md.Lsig), False))
+                out.append((X0[q] - Lams[q][:, :d, :d], False))
+            return out
+
+        (Lg, *L), val, status, dt = self._solve(self.vars_u, lmis)
+        return Lg, np.array(L), val, status, dt
+
+
+def _eps_block(eps: float, X0: np.ndarray) -> np.ndarray:
+    """εI of (34a)/(37a), relative to the size of the block: ε·max(1, tr X0 / d)·I."""
+    d = X0.shape[0]
+    return eps * max(1.0, float(np.trace(X0)) / d) * np.eye(d)
+
+
+class _CvxpySDP:
+    """The prediction and update SDPs of one design, built once with cvxpy Parameters (DPP): the path of
+    ``solver: SCS`` (and the reference :class:`_SDP` is tested against)."""
 
     def __init__(self, blocks: _Blocks, rho, eps: float, solver: str, tol: float):
         import cvxpy as cp  # here, not at module level: cvxpy (with the scipy.stats it loads) costs ~40 MB and ~1 s in every process
@@ -301,7 +425,7 @@ def lmi_design(model: AugmentedModel, rho, x0, P0, horizon: int, *, design: str 
     Lam = np.repeat(Lam0[None], N_MODES, axis=0)
     W = design_weights(rho, precedence)
     checks = set(sdp_check_steps(horizon, sdp_check)) if design == "closed_form" else set()
-    sdp = _SDP(blocks, rho, eps, solver, tol) if (design == "sdp" or checks) else None
+    sdp = (_SDP if solver == "CLARABEL" else _CvxpySDP)(blocks, rho, eps, solver, tol) if (design == "sdp" or checks) else None
     K = horizon
     As = np.zeros((K, n, n)); Gs = np.zeros((K, n, m)); Lf = np.zeros((K, n, m))
     mse_p, mse_f = np.empty(K), np.empty(K)

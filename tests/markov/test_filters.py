@@ -181,6 +181,46 @@ def test_sdp_matches_closed_form_and_bound(example):
     np.testing.assert_allclose(des.filter.predicted["design_filt"], cf.filter.predicted["design_filt"], rtol=1e-4)
 
 
+def test_direct_clarabel_sdp_equals_cvxpy(example):
+    # The SDPs handed to Clarabel directly (markov_lmi._SDP, no cvxpy) are cvxpy's problems (_CvxpySDP): at the
+    # design's Φ_q of steps 0, 1 and 5 both solve to the same optimum (objective within 1e-8 + 1e-6 relative: two
+    # interior-point runs at gap tolerance 1e-8), the same gains and the same Λ_q on the error block (not unique
+    # elsewhere). Fails on a wrong objective weight (ρ_q dropped: checked).
+    from netkf_cli.estimators.markov_lmi import _Blocks, _CvxpySDP, _SDP, design_weights
+
+    e = example
+    blocks = _Blocks(e["model"])
+    rho = np.asarray(e["rho"], float)
+    direct, ref = (cls(blocks, rho, 1e-5, "CLARABEL", 1e-8) for cls in (_SDP, _CvxpySDP))
+    W = design_weights(rho)
+    des = lmi_design(e["model"], rho, e["x0"], e["P0"], 6, design="closed_form")
+    Lam = None
+    for k, (As, Gs) in enumerate(zip(des.filter.As, des.filter.Gs)):
+        if Lam is None:  # Λ_j(0), as lmi_design starts
+            xbar, cov = e["model"].prior_moments(e["x0"], e["P0"], "paper")
+            z = np.concatenate([xbar, xbar[: blocks.n]])
+            L0 = np.outer(z, z)
+            L0[: blocks.d, : blocks.d] += cov
+            L0[blocks.d:, blocks.d:] += 1e-5 * np.eye(blocks.n)
+            Lam = np.repeat(L0[None], 4, axis=0)
+        Phi = np.einsum("qj,jab->qab", W, Lam)
+        if k in (0, 1, 5):
+            a1, g1, L1, v1, s1, _ = direct.predict(Phi)
+            a2, g2, L2, v2, s2, _ = ref.predict(Phi)
+            assert s1 == s2 == "optimal"
+            assert abs(v1 - v2) <= 1e-8 + 1e-6 * abs(v2)  # Clarabel's gap tolerances (abs, rel)
+            np.testing.assert_allclose(np.concatenate([a1, g1], axis=1), np.concatenate([a2, g2], axis=1),
+                                       rtol=0, atol=1e-3 * max(1.0, np.abs(a2).max()))
+            G = blocks.Gam
+            np.testing.assert_allclose(G @ L1 @ G.T, G @ L2 @ G.T, rtol=1e-4, atol=1e-6 * max(1.0, abs(v2)))
+            l1, U1, w1, t1, _ = direct.update(Phi)
+            l2, U2, w2, t2, _ = ref.update(Phi)
+            assert t1 == t2 == "optimal"
+            assert abs(w1 - w2) <= 1e-8 + 1e-6 * abs(w2)
+            np.testing.assert_allclose(l1, l2, rtol=0, atol=1e-3 * max(1.0, np.abs(l2).max()))
+        Lam = blocks.propagate(Phi, As, Gs)
+
+
 def test_pinv_psd_zero_variance():
     S = np.array([[[1e-20]], [[2.0]]])
     out = pinv_psd(S, np.array([1.0, 1.0]))
