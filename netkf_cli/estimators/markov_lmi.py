@@ -689,7 +689,8 @@ class MarkovLMIEstimator(EstimatorModel):
         for k, Ps in covs:
             while t < k:  # trace step t carries z_{t+1}: x̂(t+1|t+1) = E_f s + L_f z, s ← A_s s + G_s z
                 z = y[:, t + 1]
-                xf = filt.Ef[t] @ s + filt.Lf[t] @ z
+                if t + 1 == k:  # x̂(k|k) only at the reported steps (the same matmuls, not at the others)
+                    xf = filt.Ef[t] @ s + filt.Lf[t] @ z
                 s = filt.As[t] @ s + filt.Gs[t] @ z
                 t += 1
             yield k, {q: (xf if q == "filtered" else filt.Ep @ s, P) for q, P in Ps.items()}
