@@ -692,3 +692,19 @@ def test_compiled_selection_sampler_gives_the_numpy_bits():
     b = arrivals_given_counts(np.random.default_rng(2), counts, 13, compiled=True)
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(b.sum(axis=0), counts)
+
+
+@pytest.mark.parametrize("P0", [None, 5.0])
+def test_ibf_full_information_table_stops_stepping_only_at_a_fixed_point(P0):
+    # IBF._full repeats P_{j|j} once two consecutive ones are equal bit for bit; from P0 = P̄ (None) that is
+    # at once, from P0 = 5 after a transient. The table equals stepping every j with the numpy core.
+    from netkf_cli.estimators.fusion import IBF
+
+    s = identical_sensors(0.9, 1.0, 1e-4, 1e-2, 6, P0)
+    sens = Sensors.of(s, 6)
+    table = IBF(sens, initial_covariance(s)).packed_full(120)
+    ones = np.ones((6, 1), dtype=bool)
+    P = np.asarray(initial_covariance(s), dtype=float)[:, :, None]
+    for j in range(121):
+        assert np.array_equal(table[j], kalman_codegen.pack(P)[:, 0]), j
+        P = sens.step(P, ones)
