@@ -38,7 +38,7 @@ from netkf_cli.config.kinds import describe
 from netkf_cli.config.loader import attribute, locate, parse_overrides
 from netkf_cli.metrics.critical import critical_answer
 from netkf_cli.app.mind import mind_report
-from netkf_cli.runtime.montecarlo import CHUNK_SUFFIX, usable_cores
+from netkf_cli.runtime.montecarlo import CHUNK_SUFFIX, stored_runs, usable_cores
 from netkf_cli.app.reproduce import reproduce as do_reproduce
 from netkf_cli.app.runner import LARGE_RUN_S, ProgressTotals, duration, plan_run
 from netkf_cli.config.scenario import json_schema
@@ -308,7 +308,8 @@ def run(
                 notify=lambda msg: err.print("[yellow]note:[/] " + escape(msg), highlight=False),
             )
         except KeyboardInterrupt:
-            done = int(prog.tasks[0].completed)
+            # a worker stores its chunk before the parent hears of it: the store is the truth of what --resume reuses
+            done = max(int(prog.tasks[0].completed), stored_runs(cache))
             again = " ".join(["netkf run", _quote(config), *map(_quote, overrides)]
                              + (["--out", _quote(out_dir)] if out_dir else []) + (["--runs", str(runs)] if runs else [])
                              + (["--yes"] if yes else []) + ["--resume"])

@@ -25,6 +25,7 @@ import json
 import math
 import os
 import pickle
+import re
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -278,6 +279,16 @@ def _cache_path(ex: Execution, call: int, label: str, c: Chunk) -> Path | None:
 
 CHUNK_SUFFIX = ".chunk"
 """A finished chunk's statistics in the resume store (``<parent>/.netkf-cache/<folder>/``)."""
+
+
+def stored_runs(cache_dir: Path) -> int:
+    """How many Monte Carlo runs the resume store under ``cache_dir`` holds (what ``--resume`` reuses),
+    read off its chunk files' names (``…-runs<n>-…``); a chunk is stored before its runs are reported to
+    the progress bar, so after an interrupt this can be ahead of it."""
+    if not cache_dir.is_dir():
+        return 0
+    return sum(int(m.group(1)) for p in cache_dir.rglob(f"*{CHUNK_SUFFIX}")
+               if (m := re.search(r"-runs(\d+)-seed", p.name)))
 _CHUNK_MAGIC = b"netkf-chunk-1\n"
 
 

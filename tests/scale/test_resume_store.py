@@ -40,3 +40,17 @@ def test_object_arrays_are_not_stored(tmp_path):
     path = tmp_path / f"c{mc.CHUNK_SUFFIX}"
     mc._store(path, {"x": np.array([object()], dtype=object)})
     assert not path.exists()
+
+
+def test_stored_runs_counts_the_chunks_a_resume_reuses(tmp_path):
+    """The interrupt message counts finished runs from the store (a worker stores a chunk before the parent's
+    progress bar hears of it): the chunks' names, as _cache_path writes them, over every call."""
+    from types import SimpleNamespace
+    ex = SimpleNamespace(cache_dir=tmp_path)
+    plan = mc.plan_chunks(runs=25_000, chunk=10_000, seed=7)
+    for call, label in ((0, "mc"), (1, "sweep point 2")):
+        for i in (0, 2):  # chunk 1 not finished
+            mc._store(mc._cache_path(ex, call, label, plan[i]), _stats())
+    (tmp_path / "call0000-mc" / "x.chunk.tmp123").write_bytes(b"torn")  # a temporary is no finished chunk
+    assert mc.stored_runs(tmp_path) == 2 * (10_000 + 5_000)
+    assert mc.stored_runs(tmp_path / "absent") == 0
