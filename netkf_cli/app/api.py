@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from netkf_cli.core.lazy import pandas as pd
 
-from netkf_cli.runtime import montecarlo
+from netkf_cli.runtime import montecarlo, plotting
 from netkf_cli.app import runner
 from netkf_cli.config import sweep
 from netkf_cli.channels.trace_file import TraceChannel
@@ -225,4 +225,4 @@ def run(scenario, *, runs: int | None = None, arrivals: np.ndarray | None = None
         fig = scenario.analysis.plot(tables, scenario)
     else:
         fig = sweep.plot(tables, scenario)
-    return Result(art.table, tables, fig, art.meta)
+    return Result(art.table, tables, plotting.detach(fig), art.meta)
