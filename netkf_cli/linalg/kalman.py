@@ -24,6 +24,8 @@ P_{k−N|k} (a lag-N smoother). A channel's arrival stream s carries sensor s of
 
 from __future__ import annotations
 
+import contextlib
+
 from dataclasses import dataclass
 from typing import Iterable, Iterator
 
@@ -546,6 +548,21 @@ numba and load it (measured 2026-12-04: 0.26 + 0.24 s), which the compiled recur
 at n = 4, benchmarks/) repays within the first few such chunks (Shi Fig. 9, 10 chunks of 20 000 × 60 on
 the 4-state vehicle: `netkf run` 5.1 -> 4.8 s wall, the same CSVs); small test-sized runs stay on numpy."""
 
+_auto_min_run_steps = AUTO_MIN_RUN_STEPS
+
+
+@contextlib.contextmanager
+def auto_min_run_steps(n: int):
+    """Within the block, ``backend: auto`` compiles batches of at least ``n`` run-steps (instead of
+    AUTO_MIN_RUN_STEPS): for a command that pays numba's import and the system's kernel anyway (``netkf
+    reproduce``); a function of the batch size only, so the numbers do not depend on the process's state."""
+    global _auto_min_run_steps
+    old, _auto_min_run_steps = _auto_min_run_steps, int(n)
+    try:
+        yield
+    finally:
+        _auto_min_run_steps = old
+
 
 def numba_available() -> bool:
     """numba importable (an optional dependency: where it is missing, everything runs on numpy)."""
@@ -559,8 +576,9 @@ def numba_available() -> bool:
 def choose_backend(backend: str, f: "Filter", run_steps: int, path: str = "estimator.backend") -> str:
     """The backend that runs: ``numpy``; ``numba`` (refused with a message when numba is missing or the
     recursion is not sequential); ``auto`` = numba when importable, the sensors are independent
-    (block-diagonal R) and the batch has ≥ AUTO_MIN_RUN_STEPS run-steps, else numpy."""
-    if backend == "numpy" or (backend == "auto" and run_steps < AUTO_MIN_RUN_STEPS):
+    (block-diagonal R) and the batch has ≥ AUTO_MIN_RUN_STEPS run-steps (:func:`auto_min_run_steps` in a
+    block), else numpy."""
+    if backend == "numpy" or (backend == "auto" and run_steps < _auto_min_run_steps):
         return "numpy"  # (auto on a small batch: numba is not even imported, ~0.5 s saved per process)
     ok = numba_available() and f.sequential
     if backend == "numba":
@@ -568,7 +586,7 @@ def choose_backend(backend: str, f: "Filter", run_steps: int, path: str = "estim
             raise ConfigError.at(path, "backend numba needs numba installed and independent sensors (R block-diagonal "
                                        "across the channel's streams); use backend: numpy or auto")
         return "numba"
-    return "numba" if ok and run_steps >= AUTO_MIN_RUN_STEPS else "numpy"
+    return "numba" if ok else "numpy"
 
 
 def report(P_filtered: np.ndarray, quantities: tuple[str, ...], A: np.ndarray, Q: np.ndarray) -> dict[str, np.ndarray]:

@@ -216,6 +216,24 @@ def test_auto_backend_picks_compiled_with_numba_and_numpy_without(monkeypatch):
         KalmanFilterEstimator(kind="kf", backend="numba").backend_used(s, ch, big, 1)
 
 
+def test_auto_min_run_steps_moves_the_floor_in_a_block_only(monkeypatch):
+    """kalman.auto_min_run_steps (netkf reproduce's floor): within the block auto compiles from n run-steps,
+    a function of the batch size alone; outside it, AUTO_MIN_RUN_STEPS again, also after an error."""
+    from netkf_cli.estimators.kf import KalmanFilterEstimator
+    from netkf_cli.channels.bernoulli import BernoulliChannel
+
+    monkeypatch.setattr(kalman, "numba_available", lambda: True)
+    s, ch = LinearSystem.create(1.3, 1.0, 0.5, 0.8), BernoulliChannel(kind="bernoulli", arrival=0.7)
+    est = KalmanFilterEstimator(kind="kf")
+    with kalman.auto_min_run_steps(50_000):
+        assert est.backend_used(s, ch, 50_000, 1) == "numba" and est.backend_used(s, ch, 49_999, 1) == "numpy"
+        assert KalmanFilterEstimator(kind="kf", backend="numpy").backend_used(s, ch, 10**7, 1) == "numpy"
+    assert est.backend_used(s, ch, 50_000, 1) == "numpy"
+    with pytest.raises(RuntimeError), kalman.auto_min_run_steps(1):
+        raise RuntimeError
+    assert est.backend_used(s, ch, kalman.AUTO_MIN_RUN_STEPS - 1, 1) == "numpy"
+
+
 def test_manifest_says_which_backend_ran(tmp_path):
     from netkf_cli import load, run
 
