@@ -244,9 +244,9 @@ def main() -> None:
         if c["system"] not in base_cache:
             try:
                 base_cache[c["system"]] = baselines(c["system"])
-            except Exception:  # noqa: BLE001
-                base_cache[c["system"]] = {}
-        fp = base_cache[c["system"]].get("FilterPy")
+            except Exception as exc:  # noqa: BLE001 - said on the baseline's line
+                base_cache[c["system"]] = {"none": f"{type(exc).__name__}: {exc}"[:120]}
+        fp = base_cache[c["system"]].get("FilterPy")  # (absent: no baseline for this system)
         kind = "numpy" if c["backend"] == "numpy" else "compiled"
         best = max(r1, r2 if np.isfinite(r2) else 0)
         target = c.get("target", TARGET[kind])
@@ -259,7 +259,7 @@ def main() -> None:
         print(f"{topic:10s} {est:22s} {c['system']:8s} {c['backend']:13s} {first:6.2f}s {r1:10.3e} {r2:10.3e} "
               f"{(best / fp if fp else float('nan')):9.0f}  {ok}")
     for name, b in base_cache.items():
-        print("baseline", name, ", ".join(f"{k}: {v:.3e}" for k, v in b.items()))
+        print("baseline", name, ", ".join(f"{k}: {v:.3e}" if k != "none" else f"none here ({v})" for k, v in b.items()))
     for topic, fn_name, fn in anchors(args.only):
         try:
             print(f"anchor {topic}: {fn_name}: {fn():.3e} run-steps/s (1 core)")
