@@ -424,15 +424,6 @@ def compare_golden(fresh: Path, golden: Path, name: str, rules=None) -> list[str
     return [f"{name}: {p}" for p in res.problems]
 
 
-AUTO_MIN_RUN_STEPS = 50_000
-"""``backend: auto`` compiles the Kalman recursions' batches from this many run-steps here (kalman.AUTO_MIN_RUN_STEPS,
-1e6, everywhere else): the reproduction imports numba in every process anyway and its full size compiles the same
-per-system kernels, so only the compiled step's speed counts, which beats numpy's per-step overhead from a few 10⁴
-run-steps. Every full-size batch is ≥ 1e6 already (the committed numbers are unchanged); the quick sizes (5e4-4.5e5
-per batch) move to the compiled kernels: ``--quick --check --jobs 2`` 11.3 -> 9.8 s wall, 18.7 -> 15.5 s CPU in
-the workers (2026-12-06; the numbers differ from numpy's by round-off only, tests/unit/test_kalman_core)."""
-
-
 def _run_one(args) -> tuple[str, str | None, float, str | None]:
     """Worker: run one config into its folder; returns (name, folder, wall time, error)."""
     config, folder, quick = args
@@ -443,7 +434,7 @@ def _run_one(args) -> tuple[str, str | None, float, str | None]:
         if sc is None:  # not discovered in this process (a spawned worker, or a direct call)
             sc = load_scenario(config)
         runs = sc.montecarlo.quick_size() if quick else None
-        with kalman.auto_min_run_steps(AUTO_MIN_RUN_STEPS):
+        with kalman.eager_compile():  # numba is paid here anyway: small batches compiled too
             run_scenario(sc, source=config, out_dir=folder, runs=runs, quick=quick, force=True, resumable=False)
         return sc.name, str(folder), time.perf_counter() - t0, None
     except NetkfError as exc:

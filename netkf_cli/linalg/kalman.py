@@ -548,20 +548,33 @@ numba and load it (measured 2026-12-04: 0.26 + 0.24 s), which the compiled recur
 at n = 4, benchmarks/) repays within the first few such chunks (Shi Fig. 9, 10 chunks of 20 000 × 60 on
 the 4-state vehicle: `netkf run` 5.1 -> 4.8 s wall, the same CSVs); small test-sized runs stay on numpy."""
 
-_auto_min_run_steps = AUTO_MIN_RUN_STEPS
+EAGER_MIN_RUN_STEPS = 50_000
+"""``backend: auto``'s floor within :func:`eager_compile` (``netkf reproduce``): its processes import numba anyway and
+its full size compiles the same per-system kernels, so only the compiled step's speed counts, which beats numpy's
+per-step overhead from a few 10⁴ run-steps. The quick reproduction's batches (5e4-4.5e5 run-steps) move to the
+compiled kernels (workers' CPU 18.7 -> 14.5-15.0 s, 2026-12-06); every full-size batch is ≥ AUTO_MIN_RUN_STEPS
+already. Compiled and numpy differ by round-off only (tests/unit/test_kalman_core)."""
+
+_eager = False
 
 
 @contextlib.contextmanager
-def auto_min_run_steps(n: int):
-    """Within the block, ``backend: auto`` compiles batches of at least ``n`` run-steps (instead of
-    AUTO_MIN_RUN_STEPS): for a command that pays numba's import and the system's kernel anyway (``netkf
-    reproduce``); a function of the batch size only, so the numbers do not depend on the process's state."""
-    global _auto_min_run_steps
-    old, _auto_min_run_steps = _auto_min_run_steps, int(n)
+def eager_compile():
+    """Within the block, ``backend: auto`` compiles small batches too: the Kalman recursions from
+    EAGER_MIN_RUN_STEPS run-steps, the engine's reductions from ``engine.EAGER_REDUCE_MIN_RUNS`` runs. For a command
+    that pays numba's import and the systems' kernels anyway (``netkf reproduce``); still a function of the batch's
+    size alone, so the numbers do not depend on the process's state (the manifest says which backend ran)."""
+    global _eager
+    old, _eager = _eager, True
     try:
         yield
     finally:
-        _auto_min_run_steps = old
+        _eager = old
+
+
+def eager() -> bool:
+    """Whether this is inside :func:`eager_compile`."""
+    return _eager
 
 
 def numba_available() -> bool:
@@ -576,9 +589,9 @@ def numba_available() -> bool:
 def choose_backend(backend: str, f: "Filter", run_steps: int, path: str = "estimator.backend") -> str:
     """The backend that runs: ``numpy``; ``numba`` (refused with a message when numba is missing or the
     recursion is not sequential); ``auto`` = numba when importable, the sensors are independent
-    (block-diagonal R) and the batch has ≥ AUTO_MIN_RUN_STEPS run-steps (:func:`auto_min_run_steps` in a
-    block), else numpy."""
-    if backend == "numpy" or (backend == "auto" and run_steps < _auto_min_run_steps):
+    (block-diagonal R) and the batch has ≥ AUTO_MIN_RUN_STEPS run-steps (EAGER_MIN_RUN_STEPS within
+    :func:`eager_compile`), else numpy."""
+    if backend == "numpy" or (backend == "auto" and run_steps < (EAGER_MIN_RUN_STEPS if _eager else AUTO_MIN_RUN_STEPS)):
         return "numpy"  # (auto on a small batch: numba is not even imported, ~0.5 s saved per process)
     ok = numba_available() and f.sequential
     if backend == "numba":

@@ -85,9 +85,9 @@ def test_reproduce_keeps_no_resume_chunks_a_plain_run_does(tmp_path, monkeypatch
     assert (tmp_path / "r" / "fig5" / "fig5.csv").read_bytes() == (tmp_path / "p" / "fig5" / "fig5.csv").read_bytes()
 
 
-def test_reproduce_compiles_from_its_own_floor_and_says_so(tmp_path):
-    """netkf reproduce runs auto's Kalman recursions compiled from R.AUTO_MIN_RUN_STEPS run-steps (numba is imported
-    in its processes anyway); a plain run of the same size stays on numpy; each manifest says which ran."""
+def test_reproduce_compiles_small_batches_and_says_so(tmp_path):
+    """netkf reproduce runs auto's Kalman recursions compiled from kalman.EAGER_MIN_RUN_STEPS run-steps (numba is
+    imported in its processes anyway); a plain run of the same size stays on numpy; each manifest says which ran."""
     pytest.importorskip("numba")
     import json
     from netkf_cli.config.loader import load_scenario
@@ -96,7 +96,7 @@ def test_reproduce_compiles_from_its_own_floor_and_says_so(tmp_path):
     cfg = root / "configs" / "fig9.yaml"
     sc = load_scenario(cfg)
     runs = sc.montecarlo.quick_size()
-    assert R.AUTO_MIN_RUN_STEPS <= runs * sc.montecarlo.horizon < kalman.AUTO_MIN_RUN_STEPS  # the case in between
+    assert kalman.EAGER_MIN_RUN_STEPS <= runs * sc.montecarlo.horizon < kalman.AUTO_MIN_RUN_STEPS  # in between
     name, folder, _, err = R._run_one((str(cfg), str(tmp_path / "r" / "fig9"), True))
     assert err is None
     R.run_scenario(sc, out_dir=tmp_path / "p" / "fig9", runs=runs, quick=True, force=True)
@@ -105,7 +105,7 @@ def test_reproduce_compiles_from_its_own_floor_and_says_so(tmp_path):
         return json.loads((folder / "manifest.json").read_text())["meta"]["backends"]
     assert backends(tmp_path / "r" / "fig9")["buffered"] == "numba"
     assert backends(tmp_path / "p" / "fig9")["buffered"] == "numpy"
-    assert kalman._auto_min_run_steps == kalman.AUTO_MIN_RUN_STEPS  # the floor is reproduce's only while it runs
+    assert not kalman.eager()  # reproduce's floors only while it runs
 
 
 def test_what_survives_an_artefact_is_frozen_its_garbage_collected(monkeypatch, tmp_path):

@@ -216,22 +216,29 @@ def test_auto_backend_picks_compiled_with_numba_and_numpy_without(monkeypatch):
         KalmanFilterEstimator(kind="kf", backend="numba").backend_used(s, ch, big, 1)
 
 
-def test_auto_min_run_steps_moves_the_floor_in_a_block_only(monkeypatch):
-    """kalman.auto_min_run_steps (netkf reproduce's floor): within the block auto compiles from n run-steps,
-    a function of the batch size alone; outside it, AUTO_MIN_RUN_STEPS again, also after an error."""
+def test_eager_compile_moves_the_floors_in_a_block_only(monkeypatch):
+    """kalman.eager_compile (netkf reproduce): within the block auto compiles the recursions from EAGER_MIN_RUN_STEPS
+    run-steps and the engine's reductions from EAGER_REDUCE_MIN_RUNS runs, functions of the batch size alone;
+    outside it, the default floors again, also after an error."""
+    from netkf_cli import engine
     from netkf_cli.estimators.kf import KalmanFilterEstimator
     from netkf_cli.channels.bernoulli import BernoulliChannel
 
     monkeypatch.setattr(kalman, "numba_available", lambda: True)
     s, ch = LinearSystem.create(1.3, 1.0, 0.5, 0.8), BernoulliChannel(kind="bernoulli", arrival=0.7)
     est = KalmanFilterEstimator(kind="kf")
-    with kalman.auto_min_run_steps(50_000):
-        assert est.backend_used(s, ch, 50_000, 1) == "numba" and est.backend_used(s, ch, 49_999, 1) == "numpy"
+    e, r = kalman.EAGER_MIN_RUN_STEPS, engine.EAGER_REDUCE_MIN_RUNS
+    assert e < kalman.AUTO_MIN_RUN_STEPS and r < engine.REDUCE_MIN_RUNS
+    with kalman.eager_compile():
+        assert est.backend_used(s, ch, e, 1) == "numba" and est.backend_used(s, ch, e - 1, 1) == "numpy"
         assert KalmanFilterEstimator(kind="kf", backend="numpy").backend_used(s, ch, 10**7, 1) == "numpy"
-    assert est.backend_used(s, ch, 50_000, 1) == "numpy"
-    with pytest.raises(RuntimeError), kalman.auto_min_run_steps(1):
+        assert engine._compiled("auto", np.zeros((1, 1, r)), None)
+        assert not engine._compiled("auto", np.zeros((1, 1, r - 1)), None)
+        assert not engine._compiled("auto", np.zeros((1, 1, r)), np.ones(r))  # weighted: never compiled
+    assert est.backend_used(s, ch, e, 1) == "numpy" and not engine._compiled("auto", np.zeros((1, 1, r)), None)
+    with pytest.raises(RuntimeError), kalman.eager_compile():
         raise RuntimeError
-    assert est.backend_used(s, ch, kalman.AUTO_MIN_RUN_STEPS - 1, 1) == "numpy"
+    assert not kalman.eager() and est.backend_used(s, ch, kalman.AUTO_MIN_RUN_STEPS - 1, 1) == "numpy"
 
 
 def test_manifest_says_which_backend_ran(tmp_path):
