@@ -69,3 +69,13 @@ print(seen, 'pandas' in sys.modules)
     seen, loaded = out.stdout.strip().rsplit(" ", 1)
     assert loaded == "True"  # the tables were built
     assert "('fork', False)" in seen and "('chunk', False)" in seen and "True)" not in seen, seen
+
+
+def test_a_command_freezes_its_objects_at_exit():
+    """The interpreter's last garbage collection skips what a finished command is about to free (cli.NetkfGroup
+    registers gc.freeze at exit): an exit handler registered before netkf's runs after it and sees a frozen heap."""
+    code = ("import atexit, gc, sys; atexit.register(lambda: print('frozen', gc.get_freeze_count() > 0)); "
+            "from netkf_cli.app.cli import app; sys.argv = ['netkf', 'list']; app()")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "frozen True"
