@@ -25,7 +25,6 @@ P_{k−N|k} (a lag-N smoother). A channel's arrival stream s carries sensor s of
 from __future__ import annotations
 
 import contextlib
-
 from dataclasses import dataclass
 from typing import Iterable, Iterator
 
@@ -563,7 +562,8 @@ def eager_compile():
     """Within the block, ``backend: auto`` compiles small batches too: the Kalman recursions from
     EAGER_MIN_RUN_STEPS run-steps, the engine's reductions from ``engine.EAGER_REDUCE_MIN_RUNS`` runs. For a command
     that pays numba's import and the systems' kernels anyway (``netkf reproduce``); still a function of the batch's
-    size alone, so the numbers do not depend on the process's state (the manifest says which backend ran)."""
+    size alone, so the numbers do not depend on the process's state (the manifest says which backend each estimator
+    ran on; the reductions agree with numpy's to round-off with the same decisions)."""
     global _eager
     old, _eager = _eager, True
     try:
@@ -591,7 +591,8 @@ def choose_backend(backend: str, f: "Filter", run_steps: int, path: str = "estim
     recursion is not sequential); ``auto`` = numba when importable, the sensors are independent
     (block-diagonal R) and the batch has ≥ AUTO_MIN_RUN_STEPS run-steps (EAGER_MIN_RUN_STEPS within
     :func:`eager_compile`), else numpy."""
-    if backend == "numpy" or (backend == "auto" and run_steps < (EAGER_MIN_RUN_STEPS if _eager else AUTO_MIN_RUN_STEPS)):
+    floor = EAGER_MIN_RUN_STEPS if _eager else AUTO_MIN_RUN_STEPS
+    if backend == "numpy" or (backend == "auto" and run_steps < floor):
         return "numpy"  # (auto on a small batch: numba is not even imported, ~0.5 s saved per process)
     ok = numba_available() and f.sequential
     if backend == "numba":

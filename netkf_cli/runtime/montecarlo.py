@@ -289,6 +289,8 @@ def stored_runs(cache_dir: Path) -> int:
         return 0
     return sum(int(m.group(1)) for p in cache_dir.rglob(f"*{CHUNK_SUFFIX}")
                if (m := re.search(r"-runs(\d+)-seed", p.name)))
+
+
 _CHUNK_MAGIC = b"netkf-chunk-1\n"
 
 
