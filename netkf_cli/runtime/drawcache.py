@@ -70,6 +70,21 @@ def install(m: SimpleNamespace) -> dict[str, bool]:
 
 
 # ---------------------------------------------------------------------------------------------- glyph bitmaps
+def _install(owner, name: str, fn, current, cache_name: str | None = None, cache: dict | None = None,
+             forget_at_fork: bool = False) -> bool:
+    """Put ``fn`` in place of ``owner.<name>`` (``current``, kept as ``fn.original``), marked installed (the
+    installers are idempotent); its per-process ``cache`` is kept as ``fn.<cache_name>`` (the tests read it) and,
+    with ``forget_at_fork``, cleared in a forked child (which must not use the parent's FT2Font objects). True."""
+    if forget_at_fork:
+        os.register_at_fork(after_in_child=cache.clear)
+    fn._netkf_shared = True
+    fn.original = current
+    if cache_name is not None:
+        setattr(fn, cache_name, cache)
+    setattr(owner, name, fn)
+    return True
+
+
 def _source_hash(fn) -> str | None:
     try:
         return hashlib.sha256(inspect.getsource(fn).encode()).hexdigest()[:16]
@@ -142,15 +157,8 @@ def share_glyph_bitmaps(m: SimpleNamespace) -> bool:
         if boxes:  # mathtext's rules (fraction bars, roots): matplotlib's own code, no glyph left to draw
             current(self, gc, x, y, angle, (), boxes)
 
-    def forget():  # a forked child must not draw with the parent's FT2Font objects (plotting's mathtext cache)
-        bitmaps.clear()
-
-    os.register_at_fork(after_in_child=forget)
-    _draw_text_glyphs_and_boxes._netkf_shared = True
-    _draw_text_glyphs_and_boxes.original = current
-    _draw_text_glyphs_and_boxes.bitmaps = bitmaps
-    Renderer._draw_text_glyphs_and_boxes = _draw_text_glyphs_and_boxes
-    return True
+    return _install(Renderer, "_draw_text_glyphs_and_boxes", _draw_text_glyphs_and_boxes, current, "bitmaps", bitmaps,
+                    forget_at_fork=True)
 
 
 def share_glyph_positions(m: SimpleNamespace) -> bool:
@@ -191,15 +199,7 @@ def share_glyph_positions(m: SimpleNamespace) -> bool:
         self._draw_text_glyphs_and_boxes(
             gc, x, y, angle, ((ft_object, size, index, 0, 1, gx, gy) for ft_object, index, gx, gy in glyphs), [])
 
-    def forget():  # a forked child must not draw with the parent's FT2Font objects
-        positions.clear()
-
-    os.register_at_fork(after_in_child=forget)
-    draw_text._netkf_shared = True
-    draw_text.original = current
-    draw_text.positions = positions
-    Renderer.draw_text = draw_text
-    return True
+    return _install(Renderer, "draw_text", draw_text, current, "positions", positions, forget_at_fork=True)
 
 
 # ---------------------------------------------------------------------------------------------- ticks
@@ -259,10 +259,7 @@ def clone_ticks(m: SimpleNamespace) -> bool:
             self.__dict__.setdefault(PROTOTYPES, {})[major] = (dict(kw), dict.copy(rc), _copy_tick(tick, registry))
         return tick
 
-    _get_tick._netkf_shared = True
-    _get_tick.original = current
-    maxis.Axis._get_tick = _get_tick
-    return True
+    return _install(maxis.Axis, "_get_tick", _get_tick, current)
 
 
 # ---------------------------------------------------------------------------------------------- text metrics
@@ -324,11 +321,7 @@ def share_text_metrics(m: SimpleNamespace) -> bool:
         finally:
             measuring.pop()
 
-    _get_text_metrics_with_cache._netkf_shared = True
-    _get_text_metrics_with_cache.original = current
-    _get_text_metrics_with_cache.cache = shared
-    mtext._get_text_metrics_with_cache = _get_text_metrics_with_cache
-    return True
+    return _install(mtext, "_get_text_metrics_with_cache", _get_text_metrics_with_cache, current, "cache", shared)
 
 
 # ---------------------------------------------------------------------------------------------- text layouts
@@ -387,11 +380,7 @@ def share_text_layouts(m: SimpleNamespace) -> bool:
         bbox, info, corner = kept
         return bbox.frozen(), list(info), corner
 
-    _get_layout._netkf_shared = True
-    _get_layout.original = current
-    _get_layout.layouts = layouts
-    Text._get_layout = _get_layout
-    return True
+    return _install(Text, "_get_layout", _get_layout, current, "layouts", layouts)
 
 
 # ---------------------------------------------------------------------------------------------- mathtext glyph infos
@@ -431,12 +420,4 @@ def share_math_glyph_infos(m: SimpleNamespace) -> bool:
             info.font.set_size(fontsize, dpi)  # what the method does to the font before loading the glyph
         return info
 
-    def forget():  # a forked child must not use the parent's FT2Font objects
-        infos.clear()
-
-    os.register_at_fork(after_in_child=forget)
-    _get_info._netkf_shared = True
-    _get_info.original = current
-    _get_info.infos = infos
-    TruetypeFonts._get_info = _get_info
-    return True
+    return _install(TruetypeFonts, "_get_info", _get_info, current, "infos", infos, forget_at_fork=True)
