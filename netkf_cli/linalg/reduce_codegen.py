@@ -118,13 +118,19 @@ def source_stationary(n: int) -> str:
     L = _head("stationary_acc", "T, thr, tr_acc, bad, hist, amb")
     L += ["    nM = thr.shape[0]", "    for r in range(T.shape[1]):"]
     L += _loads(n, "        ")
-    L += ["        if not fin:", "            bad[r] = True", "            continue",
-          "        tr_acc[r] += " + " + ".join(_p(i, i) for i in range(n)),
-          "        if nM == 0:", "            continue"]
-    L += _search(n, "        ")
-    L += ["        if ambig:", "            amb[r] = True", "            continue",
-          "        hist[i0, r] += 1.0"]
+    L += _stationary_step(n, "        ", "amb")
     return "\n".join(L) + "\n"
+
+
+def _stationary_step(n: int, ind: str, amb: str) -> list[str]:
+    """The per-run body of the stationary accumulation, its packed triangle and ``fin`` loaded (at indent ``ind``;
+    ``amb`` the array its ambiguous runs are raised in)."""
+    return [f"{ind}if not fin:", f"{ind}    bad[r] = True", f"{ind}    continue",
+            f"{ind}tr_acc[r] += " + " + ".join(_p(i, i) for i in range(n)),
+            f"{ind}if nM == 0:", f"{ind}    continue",
+            *_search(n, ind),
+            f"{ind}if ambig:", f"{ind}    {amb}[r] = True", f"{ind}    continue",
+            f"{ind}hist[i0, r] += 1.0"]
 
 
 def source_stationary_block(n: int) -> str:
@@ -140,12 +146,7 @@ def source_stationary_block(n: int) -> str:
           "        for r in range(X.shape[3]):"]
     L += [f"            {_p(i, j)} = (Xs[{i}, {j}, r] + Xs[{j}, {i}, r]) * 0.5" for i, j in _tri(n)]
     L.append("            fin = " + " and ".join(f"math.isfinite({_p(i, j)})" for i, j in _tri(n)))
-    L += ["            if not fin:", "                bad[r] = True", "                continue",
-          "            tr_acc[r] += " + " + ".join(_p(i, i) for i in range(n)),
-          "            if nM == 0:", "                continue"]
-    L += _search(n, "            ")
-    L += ["            if ambig:", "                ams[r] = True", "                continue",
-          "            hist[i0, r] += 1.0"]
+    L += _stationary_step(n, "            ", "ams")
     return "\n".join(L) + "\n"
 
 
