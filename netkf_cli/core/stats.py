@@ -45,6 +45,10 @@ def wilson_interval(successes, n, z: float = 1.96) -> tuple[np.ndarray, np.ndarr
     """Wilson score interval for a binomial proportion (never of zero width, also at p̂ ∈ {0, 1}).
 
     p̃ = (p̂ + z²/2n) / (1 + z²/n),  half-width = z/(1 + z²/n) · √(p̂(1−p̂)/n + z²/4n²).
+
+    The interval contains p̂ (exactly: at p̂ = 1 the upper end is 1, at p̂ = 0 the lower end 0); the ends are
+    clamped to p̂ so that rounding cannot put p̂ outside it (p̃ + half came out 1 − 2⁻⁵³ at p̂ = 1, and a
+    figure's error bar hi − p̂ negative).
     """
     k = np.asarray(successes, dtype=float)
     n = np.asarray(n, dtype=float)
@@ -53,7 +57,7 @@ def wilson_interval(successes, n, z: float = 1.96) -> tuple[np.ndarray, np.ndarr
     denom = 1.0 + z2 / n
     centre = (p + z2 / (2 * n)) / denom
     half = z / denom * np.sqrt(np.clip(p * (1 - p), 0, None) / n + z2 / (4 * n * n))
-    return np.clip(centre - half, 0.0, 1.0), np.clip(centre + half, 0.0, 1.0)
+    return np.clip(np.minimum(centre - half, p), 0.0, 1.0), np.clip(np.maximum(centre + half, p), 0.0, 1.0)
 
 
 def central4(s1, s2, s3, s4, n):
