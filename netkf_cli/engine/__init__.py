@@ -65,6 +65,27 @@ def _rn():
     return rn
 
 
+REDUCED = "reduced_steps"
+"""Stats key: (compiled, numpy), how many (estimator, step) reductions of the batch each path made, summed over
+the chunks: what the manifest's ``reduction`` reports (recorded, not predicted: :func:`reduction_used`)."""
+
+
+def _record(stats: dict, compiled: bool, count: int = 1) -> None:
+    stats.setdefault(REDUCED, np.zeros(2, dtype=np.int64))[0 if compiled else 1] += count
+
+
+def reduction_used(stats: dict) -> str:
+    """The manifest's statement of which reductions ran, from the counts :data:`REDUCED` recorded: ``numpy``,
+    the compiled label, or both with their shares (a last, smaller chunk below the floor, or weighted runs)."""
+    c, p = (int(x) for x in np.asarray(stats.get(REDUCED, (0, 0))))
+    if c and p:
+        return f"{REDUCTION_LABEL} ({c} of {c + p} step reductions), numpy ({p})"
+    return REDUCTION_LABEL if c else "numpy"
+
+
+REDUCTION_LABEL = "numba (compiled reductions: linalg/_reduce_numba)"
+
+
 def _compiled(backend: str, P: np.ndarray, w) -> bool:
     """Whether a reducer with ``backend`` (numpy | numba | auto) reduces the batch P compiled (never for
     weighted statistics: the compiled reductions have no weights)."""
@@ -169,10 +190,12 @@ class DistributionReducer:
             row += _ambiguous(T, n, amb, self.M)[1].sum(axis=1)
         cnt[i] += row
         stats["n"] = T.shape[-1]
+        _record(stats, True)
 
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         if _compiled(self.backend, P, w):
             return self.update_tri(stats, j, k, _tri(P), P.shape[0])
+        _record(stats, False)
         i = _step_index(self, k)
         cnt = stats.setdefault(f"count_{j}", np.zeros((len(self.steps), len(self.M))))
         bad = stats.setdefault(f"nonfinite_{j}", np.zeros(len(self.steps)))
@@ -222,10 +245,12 @@ class MomentReducer:
         m = stats.setdefault(f"max_tr_{j}", np.zeros(K))
         m[i] = max(m[i], float(out[7]))
         stats["n"] = T.shape[-1]
+        _record(stats, True)
 
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         if _compiled(self.backend, P, w):
             return self.update_tri(stats, j, k, _tri(P), P.shape[0])
+        _record(stats, False)
         i, K, n = _step_index(self, k), len(self.steps), P.shape[0]
         tr = batched.trace(P)
         finite = np.isfinite(P).all(axis=(0, 1))
@@ -507,6 +532,7 @@ class StationaryReducer:
             idx, ok = _ambiguous(T, n, amb, self.M)
             a["ind"][:, idx] += ok
         a["steps"] += 1
+        _record(stats, True)
 
     def update_block(self, stats: dict, j: int, ks: list[int], P: np.ndarray, w: np.ndarray | None = None) -> None:
         """:meth:`update` for the steps ``ks`` of one block P (K, n, n, runs) in one compiled call
@@ -535,12 +561,14 @@ class StationaryReducer:
                 idx, ok = _ambiguous(_tri(X[s]), n, amb[s], self.M)
                 a["ind"][:, idx] += ok
         a["steps"] += len(sel)
+        _record(stats, True, len(sel))
 
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         if _step_pos(self, k) is None:
             return
         if _compiled(self.backend, P, w):
             return self.update_tri(stats, j, k, _tri(P), P.shape[0])
+        _record(stats, False)
         a = self._acc(stats, j, P.shape[-1])
         tr = batched.trace(P)
         finite = np.isfinite(P).all(axis=(0, 1))
@@ -589,12 +617,14 @@ class TimeAverageReducer:
         if acc is None or k == self.steps[0]:
             acc = stats["_acc"] = np.zeros(T.shape[-1])
         _rn().trace_acc(T, n, float(len(self.steps)), acc)
+        _record(stats, True)
         if k == self.steps[-1]:
             self._close(stats, acc)
 
     def update(self, stats: dict, j: int, k: int, P: np.ndarray, w: np.ndarray | None = None) -> None:
         if _compiled(self.backend, P, w):
             return self.update_tri(stats, j, k, _tri(P), P.shape[0])
+        _record(stats, False)
         acc = stats.get("_acc")
         if acc is None or k == self.steps[0]:
             acc = stats["_acc"] = np.zeros(P.shape[-1])

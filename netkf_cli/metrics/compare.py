@@ -84,6 +84,7 @@ class Compare(GenericMetric):
                         meta={"runs": n, "at": k, "estimators": labs, "reference": labs[0], "quantity": self.quantity,
                               "labels": dict(zip(labs, lab_cols)),
                               "backends": backends(scenario, s, ests, labs, n_runs_of(st), horizon_of(scenario, self), st, [k]),
+                              "reduction": engine.reduction_used(st),
                               "common_random_numbers": "every estimator runs on the same sampled traces"})
 
     def plot(self, tables, scenario):

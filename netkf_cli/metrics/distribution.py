@@ -175,6 +175,7 @@ class Distribution(GenericMetric):
         rows, curves, meta = [], [], {"at": k, "runs": n, "estimators": labs, "closed_forms": {},
                                       "quantity": self.quantity, "labels": dict(zip(labs, lab_cols)),
                               "backends": backends(scenario, s, ests, labs, n_runs_of(st), horizon_of(scenario, self), st, [k]),
+                              "reduction": engine.reduction_used(st),
                                       "M_means": "M·I_n (PSD order)", "warnings": []}
         for j, (est, lab) in enumerate(zip(ests, labs)):
             cnt = st[f"count_{j}"][0]

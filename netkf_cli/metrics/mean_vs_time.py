@@ -101,6 +101,7 @@ class MeanVsTime(GenericMetric):
         return Artefact(table, meta={"runs": int(st["n"]), "estimators": labs, "steps": f"{ks[0]}…{ks[-1]}",
                                      "quantity": self.quantity, "labels": dict(zip(labs, lab_cols)),
                               "backends": backends(scenario, s, ests, labs, n_runs_of(st), horizon_of(scenario, self), st, ks),
+                              "reduction": engine.reduction_used(st),
                                      "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE} "
                                                         f"or any non-finite run",
                                      "rare_event_rule": "one run carries more than half of the sum",

@@ -48,7 +48,8 @@ from netkf_cli.analysis import critical as cr
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.estimators.kf import KalmanFilterEstimator
 from netkf_cli.linalg import kalman
-from netkf_cli.metrics.common import kf_tail_exponent, loss_burst_law, MGrid, PaperRef, labels, m_values, needs
+from netkf_cli.metrics.common import (backends, kf_tail_exponent, loss_burst_law, MGrid, PaperRef, labels, m_values,
+                                      needs)
 from netkf_cli.runtime.montecarlo import run_chunked, wilson_interval
 from netkf_cli.runtime.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.core.artefact import Artefact, RunContext
@@ -136,6 +137,15 @@ COMPILED_MIN_RUNS = engine.REDUCE_MIN_RUNS
 same sums compiled) when numba is importable; smaller ones (tests, quick runs) stay on numpy."""
 
 
+def loglik_compiled(backend: str, runs: int) -> bool:
+    """Whether :func:`window_loglik` sums a window of ``runs`` runs compiled (its ``backend`` rule)."""
+    return backend == "numba" or (backend == "auto" and runs >= COMPILED_MIN_RUNS and kalman.numba_available())
+
+
+LOGLIK_CHUNKS = "loglik_chunks"
+"""Stats key: (compiled, numpy), how many chunks' window likelihoods each path summed (the manifest's ``likelihood``)."""
+
+
 def window_loglik(law, prev: np.ndarray, win: np.ndarray, *, backend: str = "auto") -> np.ndarray:
     """log-probability of each run's window (W, runs) given the arrival just before it (runs,).
 
@@ -143,7 +153,7 @@ def window_loglik(law, prev: np.ndarray, win: np.ndarray, *, backend: str = "aut
     auto (numba for ≥ :data:`COMPILED_MIN_RUNS` runs when importable)."""
     kind, par = law
     W, runs = win.shape
-    compiled = backend == "numba" or (backend == "auto" and runs >= COMPILED_MIN_RUNS and kalman.numba_available())
+    compiled = loglik_compiled(backend, runs)
     g = win.astype(bool)
     with np.errstate(divide="ignore"):
         if kind in ("bernoulli", "bernoulli_steps"):
@@ -254,7 +264,10 @@ class TailKernel:
                 logr[c] = window_loglik(tl, prev, win) - window_loglik(self.law, prev, win)
             with np.errstate(over="ignore"):
                 w = 1.0 / ((1.0 + np.exp(logr).sum(axis=0)) / K)
-        stats: dict = {"n_c": np.bincount(comp, minlength=K).astype(float),
+        used = np.zeros(2, dtype=np.int64)
+        if K > 1:
+            used[0 if loglik_compiled("auto", runs) else 1] = 1
+        stats: dict = {LOGLIK_CHUNKS: used, "n_c": np.bincount(comp, minlength=K).astype(float),
                        "n_b": np.bincount(batch, minlength=self.batches).astype(float), "wsum": np.asarray(w.sum())}
         for j, est in enumerate(self.estimators):
             for k, P in covariances(est, self.system, trace, [self.step], self.quantity):
@@ -268,6 +281,15 @@ class TailKernel:
                 stats[f"bwf_{j}"] = np.stack([wf[:, batch == b].sum(axis=1) for b in range(self.batches)])
                 stats[f"max_x_{j}"] = np.asarray(float(np.max(np.where(np.isfinite(x), x, -np.inf), initial=0.0)))
         return stats
+
+
+def _likelihood_used(st: dict) -> str:
+    """The manifest's statement of which path summed the components' window log-likelihoods (recorded per chunk)."""
+    c, p = (int(x) for x in np.asarray(st.get(LOGLIK_CHUNKS, (0, 0))))
+    if not c + p:
+        return "none (plain Monte Carlo: no likelihood ratios)"
+    label = "numba (metrics/_tail_numba)"
+    return label if not p else "numpy" if not c else f"{label} ({c} of {c + p} chunks), numpy ({p})"
 
 
 def importance_estimate(st: dict, j: int) -> tuple[np.ndarray, np.ndarray]:
@@ -442,6 +464,8 @@ class TailMetric(AnalysisModel):
                                                     "Monte Carlo)"}
                                         if K > 1 else "off (plain Monte Carlo: no tilt for this channel or importance: false)"),
                 "weight_mean": float(st["wsum"]) / float(st["n_c"].sum()),
+                "backends": backends(scenario, s, ests, labs, runs, H, None, [step]),
+                "likelihood": _likelihood_used(st),
                 "exponent_fit": "least squares of log p̂ on log M where p̂ ≤ fit_below and rel. s.e. ≤ 0.25; 95 % "
                                 "interval: delete-one-batch jackknife (Student t) + staircase allowance |φ|·2 log ρ/Δ"}
         return Artefact(table, meta=meta, extra_tables={"fit": fit})

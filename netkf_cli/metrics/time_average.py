@@ -150,6 +150,7 @@ class TimeAverage(GenericMetric):
         return Artefact(table, meta={"runs": n, "estimators": labs, "quantities": qs,
                                      "average": self._average_text(steps),
                                      "backends": backends(scenario, s, ests, labs, n, mc.horizon, st, steps),
+                                     "reduction": engine.reduction_used(st),
                                      "references": list(self.references),
                                      "heavy_tail_rule": f"relative s.e. of the sample variance > {engine.HEAVY_TAIL_RSE}, "
                                                         f"any non-finite run, or (kf and the smoother on i.i.d. or "
@@ -202,6 +203,7 @@ class TimeAverage(GenericMetric):
         return Artefact(table, meta={"runs": n, "estimators": labs, "quantities": qs, "statistic": self.statistic,
                                      "average": self._average_text(steps),
                                      "backends": backends(scenario, s, ests, labs, n, mc.horizon, st, steps),
+                                     "reduction": engine.reduction_used(st),
                                      "references": list(self.references),
                                      "norm_of_mean": "‖E P̄‖₂ = λ_max of the mean of the per-run packed P̄; s.e. by the "
                                                      "delta method (gradient u uᵀ); eigen_gap column = λ1 − λ2 of the "

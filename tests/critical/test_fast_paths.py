@@ -23,7 +23,7 @@ from netkf_cli.channels.bernoulli import BernoulliChannel
 from netkf_cli.channels.gilbert_elliott import GilbertElliottChannel
 from netkf_cli.core.system import LinearSystem
 from netkf_cli.estimators.kf import KalmanFilterEstimator
-from netkf_cli.linalg import sdp
+from netkf_cli.linalg import kalman, sdp
 from netkf_cli.metrics.tail import covariances, kf_for, time_average_mean
 from netkf_cli.runtime.montecarlo import run_chunked
 
@@ -238,3 +238,30 @@ def test_compiled_trace_average_is_numpys_bit_for_bit(n):
         with np.errstate(over="ignore", invalid="ignore"):
             acc_np += np.einsum("iir->r", P) / 7.0
         assert np.array_equal(acc_nb, acc_np, equal_nan=True)
+
+
+def test_tail_manifest_says_which_likelihood_and_filter_ran(monkeypatch):
+    """The tail's manifest names the estimators' backends and the likelihood path its chunks took (recorded per
+    chunk, tail.LOGLIK_CHUNKS): numpy below the floor, compiled above it, both with shares when the last chunk
+    is smaller; plain Monte Carlo has none. The numbers do not depend on it."""
+    import netkf_cli
+    from netkf_cli.metrics import tail
+
+    def run(runs, chunk, importance=True):
+        sc = netkf_cli.load({"name": "tail_paths", "system": {"A": [[1.3, 0], [0, 1.1]], "C": [[1, 1]],
+                                                              "Q": [[1, 0], [0, 1]], "R": 1},
+                             "channel": {"kind": "gilbert_elliott", "p_gb": 0.2, "p_bg": 0.6},
+                             "estimator": {"kind": "kf"},
+                             "analysis": {"kind": "tail", "M": [10.0, 100.0], "importance": importance},
+                             "montecarlo": {"runs": runs, "horizon": 40, "seed": 3, "chunk": chunk}})
+        return netkf_cli.run(sc)
+
+    small = run(900, 900)
+    assert small.meta["likelihood"] == "numpy" and small.meta["backends"] == {"kf": "numpy"}
+    assert run(900, 900, importance=False).meta["likelihood"].startswith("none")
+    monkeypatch.setattr(tail, "COMPILED_MIN_RUNS", 500)
+    if kalman.numba_available():
+        big = run(900, 900)
+        assert big.meta["likelihood"] == "numba (metrics/_tail_numba)"
+        np.testing.assert_array_equal(big.table["value"].to_numpy(float), small.table["value"].to_numpy(float))
+        assert run(1200, 900).meta["likelihood"] == "numba (metrics/_tail_numba) (1 of 2 chunks), numpy (1)"

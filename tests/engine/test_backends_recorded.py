@@ -92,3 +92,32 @@ def test_a_stale_manifest_statement_is_rewritten(tmp_path, monkeypatch):
     netkf_cli.run(sc, out=out)
     assert (out / "backends.csv").read_bytes() == csv
     assert '"numba, fused (relabelled)"' in (out / "manifest.json").read_text()
+
+
+@pytest.mark.parametrize("analysis", [{"kind": "mean_vs_time"}, {"kind": "distribution", "M": [0.5, 1.0], "at": 20},
+                                      {"kind": "time_average", "M": [1.0]}])
+def test_the_reductions_that_ran_are_recorded(monkeypatch, analysis):
+    """The manifest's ``reduction`` is counted by the reducers as they decide (engine.REDUCED), chunk by chunk: a
+    batch below the floor says numpy, one above it the compiled label, a run whose last chunk falls below it both
+    with their shares; hiding numba says numpy; the numbers agree."""
+    def run(runs, chunk):
+        sc = netkf_cli.load({"name": "reductions", "system": VEHICLE, "channel": {"kind": "bernoulli", "arrival": 0.7},
+                             "estimator": {"kind": "kf", "backend": "numpy"}, "analysis": analysis,
+                             "montecarlo": {"runs": runs, "horizon": 30, "seed": 1, "chunk": chunk}})
+        return netkf_cli.run(sc)
+
+    small = run(300, 300)
+    assert small.meta["reduction"] == "numpy"
+    monkeypatch.setattr(engine, "REDUCE_MIN_RUNS", 250)
+    compiled = run(300, 300)
+    if kalman.numba_available():
+        assert compiled.meta["reduction"] == engine.REDUCTION_LABEL
+        mixed = run(400, 300)  # a chunk of 300 runs (compiled) and one of 100 (numpy): the same steps each
+        c = mixed.meta["reduction"].split(" (")[2].split(" of ")[0]
+        assert mixed.meta["reduction"] == f"{engine.REDUCTION_LABEL} ({c} of {2 * int(c)} step reductions), numpy ({c})"
+    monkeypatch.setattr(kalman, "numba_available", lambda: False)
+    hidden = run(300, 300)
+    assert hidden.meta["reduction"] == "numpy"
+    for r in (compiled, hidden):
+        a, b = (x.table["value"].to_numpy(float) for x in (small, r))
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=0)
