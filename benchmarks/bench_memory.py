@@ -50,17 +50,28 @@ def _descendants(pid: int) -> list[int]:
 
 
 def _tree_mb(pid: int) -> dict[str, float]:
-    """PSS, RSS and PSS's anonymous and file-backed parts in MB, over a process and its descendants."""
+    """PSS, RSS, PSS's anonymous and file-backed parts, and the PSS of numba's LLVM library (libllvmlite.so) in MB,
+    over a process and its descendants (/proc/<p>/smaps_rollup and smaps, read together: a process that exits
+    between the two reads is left out of both)."""
     keys = {"Pss:": "pss", "Rss:": "rss", "Pss_Anon:": "anon", "Pss_File:": "file"}
-    out = dict.fromkeys(keys.values(), 0.0)
+    out = dict.fromkeys([*keys.values(), "llvm"], 0.0)
     for p in [pid, *_descendants(pid)]:
         try:
-            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
-                k = keys.get(line.split(maxsplit=1)[0]) if line else None
-                if k:
-                    out[k] += int(line.split()[1]) / 1024
+            rollup = Path(f"/proc/{p}/smaps_rollup").read_text()
+            maps = Path(f"/proc/{p}/smaps").read_text()
         except OSError:
-            pass
+            continue
+        for line in rollup.splitlines():
+            k = keys.get(line.split(maxsplit=1)[0]) if line else None
+            if k:
+                out[k] += int(line.split()[1]) / 1024
+        inside = False
+        for line in maps.splitlines():
+            head = line.split(maxsplit=1)[0] if line else ""
+            if not head.endswith(":"):  # a mapping's header: address range, perms, offset, device, inode, path
+                inside = "libllvmlite" in line
+            elif inside and head == "Pss:":
+                out["llvm"] += int(line.split()[1]) / 1024
     return out
 
 
@@ -70,7 +81,7 @@ def measure(config: Path, out: Path, runs: int | None) -> dict:
            "--out", str(out)] + (["--runs", str(runs)] if runs else [])
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
-    peak = {"pss": 0.0, "rss": 0.0, "anon": 0.0, "file": 0.0, "procs": 1}
+    peak = {"pss": 0.0, "rss": 0.0, "anon": 0.0, "file": 0.0, "llvm": 0.0, "procs": 1}
 
     def watch():
         while proc.poll() is None:
@@ -100,8 +111,8 @@ def main() -> None:
         load = f.read().split()[0]
     print(f"netkf run --jobs 2, {'the configs’ own runs' if a.runs is None else f'{a.runs} runs'}; load average {load} "
           f"on this machine at the start (2 cores)")
-    print(f"{'config':42s} {'peak PSS':>9s} {'(anon':>7s} {'file)':>7s} {'(RSS sum)':>10s} {'procs':>5s} {'wall':>7s} "
-          f"{'compute':>8s}")
+    print(f"{'config':42s} {'peak PSS':>9s} {'(anon':>7s} {'file':>7s} {'llvm)':>6s} {'(RSS sum)':>10s} {'procs':>5s} "
+          f"{'wall':>7s} {'compute':>8s}")
     worst = 0.0
     with tempfile.TemporaryDirectory() as tmp:
         for c in cfgs:
@@ -112,7 +123,8 @@ def main() -> None:
                 continue
             worst = max(worst, r["pss"])
             flag = "ok" if r["pss"] <= TARGET_MB else f"OVER {TARGET_MB:.0f} MB"
-            print(f"{name:42s} {r['pss']:7.0f} MB {r['anon']:7.0f} {r['file']:7.0f} {r['rss']:7.0f} MB {r['procs']:5d} "
+            print(f"{name:42s} {r['pss']:7.0f} MB {r['anon']:7.0f} {r['file']:7.0f} {r['llvm']:6.0f} {r['rss']:7.0f} MB "
+                  f"{r['procs']:5d} "
                   f"{r['wall']:6.1f}s {r['compute']:7.1f}s  {flag}", flush=True)
     with open("/proc/loadavg") as f:
         load = f.read().split()[0]
