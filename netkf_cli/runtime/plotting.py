@@ -287,8 +287,11 @@ def footnote(fig: Figure, text: str) -> None:
 
 
 def _wrap(text: str, width: int) -> str:
-    """textwrap that never breaks inside a $…$ mathtext span."""
-    protected = re.sub(r"\$[^$]*\$", lambda m: m.group(0).replace(" ", "\x00"), text)
+    """textwrap that never breaks inside a $…$ mathtext span, nor inside a short parenthesis such as
+    "diag(1.3, 1.1)" (up to 24 characters: a longer one may break), nor around an "=" ("A = diag(1.3, 1.1)")."""
+    protected = text
+    for span in (r"\$[^$]*\$", r"\([^()$]{0,24}\)", r"\S+ = \S+"):  # in turn: a joined span is one word for the next
+        protected = re.sub(span, lambda m: m.group(0).replace(" ", "\x00"), protected)
     out = "\n".join(textwrap.fill(line, max(width, 10), break_long_words=False, break_on_hyphens=False)
                     for line in protected.split("\n"))
     return out.replace("\x00", " ")

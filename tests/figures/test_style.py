@@ -107,6 +107,20 @@ def test_a_title_wider_than_the_canvas_is_wrapped_not_cut(tmp_path):
     assert "\n" in ax.get_title() and r"$\Pr[P_{k \mid k+N} \leq M]$" in ax.get_title().replace("\n", " ")
 
 
+def test_a_wrapped_title_keeps_short_parentheses_and_assignments_whole():
+    """A break falls between phrases, not in "diag(1.3, 1.1)" nor between "A =" and its value (the tail figure's
+    title once ended "A =" / "diag(1.3, 1.1)"); a parenthesis longer than 24 characters may still break."""
+    t = r"tail of $\mathrm{tr}\,P_k$ (Mo & Sinopoli 2012) over Gilbert–Elliott loss p = 0.2, q = 0.6, A = diag(1.3, 1.1)"
+    for width in range(12, 90, 3):
+        lines = P._wrap(t, width).split("\n")
+        assert " ".join(lines) == t
+        for whole in ("diag(1.3, 1.1)", "A = diag(1.3, 1.1)", "p = 0.2,", "q = 0.6,", r"$\mathrm{tr}\,P_k$",
+                      "(Mo & Sinopoli 2012)"):
+            assert any(whole in line for line in lines), (width, whole, lines)
+    long = "x (a parenthesis of more than twenty-four characters) y"
+    assert "\n" in P._wrap(long, 20).strip("\n") and P._wrap(long, 20).replace("\n", " ") == long
+
+
 def test_lint_sees_a_legend_over_the_data():
     import numpy as np
 
