@@ -122,7 +122,8 @@ def main() -> None:
                 print(f"{name:42s} FAILED: {r['err']}")
                 continue
             worst = max(worst, r["pss"])
-            flag = "ok" if r["pss"] <= TARGET_MB else f"OVER {TARGET_MB:.0f} MB"
+            flag = "ok" if r["pss"] <= TARGET_MB else f"OVER {TARGET_MB:.0f} MB" + (
+                f" (numba's LLVM library maps {r['llvm']:.0f} MB of it, see the docstring)" if r["llvm"] >= 1 else "")
             print(f"{name:42s} {r['pss']:7.0f} MB {r['anon']:7.0f} {r['file']:7.0f} {r['llvm']:6.0f} {r['rss']:7.0f} MB "
                   f"{r['procs']:5d} "
                   f"{r['wall']:6.1f}s {r['compute']:7.1f}s  {flag}", flush=True)
