@@ -32,6 +32,12 @@ def _num(x):
     return int(x) if float(x).is_integer() else float(x)
 
 
+def one_minus(eps: float) -> str:
+    """1 − ε as the verdict prints it: ``0.97`` for ε = 0.03, but ``1 − 1e-09`` where 6 digits would round it to 1."""
+    text = f"{1 - eps:g}"
+    return text if abs((1 - float(text)) - eps) <= 0.01 * eps else f"1 − {eps:g}"
+
+
 def _mat(X: np.ndarray):
     X = np.asarray(X)
     return float(X.ravel()[0]) if X.size == 1 else X.tolist()
@@ -75,12 +81,12 @@ class MindReport:
         s = self.sizing
         if s.sensor == "smart":
             if s.D_star is not None:
-                return (f"A buffer of D* = {s.D_star} is necessary and sufficient for Pr[P_k ≤ {s.M:g}] ≥ {1 - s.eps:g} "
+                return (f"A buffer of D* = {s.D_star} is necessary and sufficient for Pr[P_k ≤ {s.M:g}] ≥ {one_minus(s.eps)} "
                         f"with a smart sensor (Thm 4.1).")
             return (f"No buffer length meets the requirement: even D → ∞ leaves Pr[P_k > {s.M:g}] = θ(k2) = "
                     f"{s.theta_floor_2:.4g} > ε = {s.eps:g}; the smallest ε any buffer achieves is {s.theta_floor_2:.4g}.")
         if s.D_s is not None:
-            return (f"A buffer of D = {s.D_s} guarantees Pr[P_k ≤ {s.M:g}] ≥ {1 - s.eps:g} (sufficient, Thm 3.8); "
+            return (f"A buffer of D = {s.D_s} guarantees Pr[P_k ≤ {s.M:g}] ≥ {one_minus(s.eps)} (sufficient, Thm 3.8); "
                     f"no buffer shorter than D_n = {s.D_n} can achieve it (necessary)."
                     + ("" if s.D_s == s.D_n else f" The minimum lies in [{s.D_n}, {s.D_s}]."))
         if s.D_n is not None:

@@ -367,8 +367,10 @@ class TailMetric(AnalysisModel):
         base = max(float(np.trace(s.Q)), 1e-12)
         # a burst of L losses makes tr P ≈ tr Q·ρ^{2L}: reaching Mmax needs L ≈ log(Mmax/tr Q)/(2 log ρ)
         L = math.log(max(Mmax / base, 2.0)) / (2 * math.log(rho)) if rho > 1 + 1e-9 else 20.0
-        top = int(max(2, min(step - 1, math.ceil(1.2 * L) + 2)))
-        return sorted(set(int(round(x)) for x in np.geomspace(2, top, 8)))
+        top = int(min(step - 1, max(2, math.ceil(1.2 * L) + 2)))  # a window ends before the reported step
+        if top < 1:  # k = 1: no step before it to tilt (plain Monte Carlo)
+            return []
+        return sorted(set(int(round(x)) for x in np.geomspace(min(2, top), top, 8)))
 
     def check(self, scenario) -> None:
         needs(scenario, "channel")
@@ -462,7 +464,8 @@ class TailMetric(AnalysisModel):
                                          "weights": "w = 1 / (α₀ + Σ_c α_c q_c/p) ≤ K over each component's window "
                                                     "(balance heuristic); component 0 is the channel itself (plain "
                                                     "Monte Carlo)"}
-                                        if K > 1 else "off (plain Monte Carlo: no tilt for this channel or importance: false)"),
+                                        if K > 1 else "off (plain Monte Carlo: no tilt for this channel, importance: false, or no step "
+                                                  "before the reported one to tilt)"),
                 "weight_mean": float(st["wsum"]) / float(st["n_c"].sum()),
                 "backends": backends(scenario, s, ests, labs, runs, H, None, [step]),
                 "likelihood": _likelihood_used(st),

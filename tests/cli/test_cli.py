@@ -166,6 +166,15 @@ def test_mind_json_keys_and_min_D():
     assert json.loads(r.output)["D_s"] == 7  # one more under eq. (4)'s convention
 
 
+def test_mind_verdict_prints_the_confidence_it_guarantees():
+    """1 − ε as the verdict prints it: never rounded to 1 (ε = 1e-9 read "≥ 1")."""
+    from netkf_cli.app.mind import one_minus
+
+    assert [one_minus(e) for e in (0.03, 0.5, 1e-4, 1e-9, 0.0)] == ["0.97", "0.5", "0.9999", "1 − 1e-09", "1"]
+    r = invoke("mind", "--M", 1e9, "--eps", 1e-9)
+    assert r.exit_code == 0 and "Pr[P_k ≤ 1e+09] ≥ 1 − 1e-09" in " ".join(r.output.split()), r.output
+
+
 def test_mind_smart_sensor():
     j = json.loads(invoke("mind", "--M", 150, "--eps", 0.001, "--sensor", "smart", "--json").output)
     assert j["D_star"] == 7 and j["D_s"] is None and j["feasible"]

@@ -265,3 +265,19 @@ def test_tail_manifest_says_which_likelihood_and_filter_ran(monkeypatch):
         assert big.meta["likelihood"] == "numba (metrics/_tail_numba)"
         np.testing.assert_array_equal(big.table["value"].to_numpy(float), small.table["value"].to_numpy(float))
         assert run(1200, 900).meta["likelihood"] == "numba (metrics/_tail_numba) (1 of 2 chunks), numpy (1)"
+
+
+@pytest.mark.parametrize("horizon, windows", [(1, []), (2, [1]), (3, [2])])
+def test_tail_default_windows_end_before_the_reported_step(horizon, windows):
+    """The default tilt windows fit before the reported step k (a window W resamples steps k − W … k − 1): at k = 1
+    none does and the run is plain Monte Carlo; it raised a shape mismatch in the chunk before."""
+    import netkf_cli
+
+    sc = netkf_cli.load({"name": "tail_short", "system": {"A": 1.2, "C": 1, "Q": 1, "R": 1},
+                         "channel": {"kind": "bernoulli", "arrival": 0.8}, "estimator": {"kind": "kf"},
+                         "analysis": {"kind": "tail", "M": [1.0, 2.0]},
+                         "montecarlo": {"runs": 40, "horizon": horizon, "seed": 1, "chunk": 40}})
+    res = netkf_cli.run(sc)
+    imp = res.meta["importance_sampling"]
+    assert (imp["windows"] if isinstance(imp, dict) else []) == windows
+    assert (res.table["value"].between(0, 1)).all()
