@@ -284,11 +284,23 @@ def validation_problems(exc: ValidationError, data: Any, index: dict, file: str 
 _FIELD_PREFIX = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)((?:\[\d+\])*): (.+)$", re.S)
 
 
+_FIELD_SUBJECT = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*) (?:must|needs|has|is|cannot) ")
+
+
 def _hoist_field(loc: tuple, msg: str, data: Any) -> tuple[tuple, str]:
     """A model-level check that names its field (``"initial: needs 4 probabilities"`` at
-    ``channel``) is reported at that field (``channel.initial``), so its line is the field's."""
+    ``channel``) is reported at that field (``channel.initial``), so its line is the field's. So is one
+    whose sentence starts with the field (``"M must be finite and > 0"`` at ``analysis``): the message kept
+    whole, and an override of that field (``analysis.M=[-1]``) is named as its source."""
     m = _FIELD_PREFIX.match(msg)
     if not m:
+        s = _FIELD_SUBJECT.match(msg)
+        try:
+            block = _get(data, loc) if s else None
+        except (KeyError, IndexError, TypeError):
+            block = None
+        if isinstance(block, dict) and s[1] in block:
+            return loc + (s[1],), msg
         return loc, msg
     try:
         block = _get(data, loc)

@@ -118,6 +118,8 @@ CASES = [
     # lags are estimator blocks now (the predictor P_{k|k-1} is `quantity: predicted`): a negative lag is refused
     ("smoothing-lag-below-minus-1", "smoothing/table1.yaml", "{kind: smoother, lag: 0}", "{kind: smoother, lag: -1}", "estimators[0].lag", "greater than or equal to 0", None, V),
     ("smoothing-M-nan", "smoothing/table1.yaml", "M: 6.25", "M: .nan", "analysis.M", "must be a finite number", None, V),
+    # a model-level check whose sentence starts with the field: reported at the field's line (hoisted)
+    ("time-average-M-negative", "smoothing/burstiness.yaml", "M: 6.25", "M: -6.25", "analysis.M", "M must be finite and > 0", None, V),
     ("smoothing-retrans-p-above-1", "smoothing/retransmission.yaml", "channel.p: [0.0, 0.25,", "channel.p: [1.5, 0.25,", "channel.p", "less than or equal to 1, got 1.5 (over point channel.p=1.5)", None, V),
     ("smoothing-retrans-channel-p-above-1", "smoothing/retransmission.yaml", "p: 1.0}", "p: 1.5}", "channel.p", "less than or equal to 1", None, V),
     ("smoothing-arrival-above-1", "smoothing/retransmission.yaml", "arrival: 0.6,", "arrival: 1.2,", "channel.arrival", "less than or equal to 1", None, V),
@@ -151,6 +153,15 @@ def test_broken_config(tmp_path, case):
     assert "Traceback" not in r.output and "internal error" not in r.output
     assert not out.exists()
     assert not out.parent.exists() or not list(out.parent.iterdir()), list(out.parent.iterdir())
+
+
+def test_an_override_is_named_for_a_model_level_check_on_its_field(tmp_path):
+    """analysis.M=[-1] on the command line fails a check of the analysis model ("M must be finite and > 0"): the
+    error names the override, not the file's line of analysis (which holds another value)."""
+    r = invoke("run", CONFIGS / "smoothing" / "burstiness.yaml", "analysis.M=[-1]", "--out", tmp_path / "o", "-q")
+    assert r.exit_code == 1, r.output
+    assert "command line (analysis.M=[-1]) analysis.M: M must be finite and > 0" in " ".join(r.output.split())
+    assert "burstiness.yaml" not in r.output and not (tmp_path / "o").exists()
 
 
 def test_corpus_is_large_enough():
