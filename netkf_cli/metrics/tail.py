@@ -477,20 +477,24 @@ class TailMetric(AnalysisModel):
         t, fit = tables["main"], tables.get("fit")
         fig, ax = new_figure(width=7.6, height=5.4)
         X = r"\mathrm{tr}\,P_k" if self.of == "trace" else r"\lambda_{\max}(P_k)"
+        drawn = False
         for j, (lab, g) in enumerate(t.groupby("estimator", sort=False)):
             sty = series_style(j)
             allm = g[g.series.isin(["importance", "monte_carlo"])]
             allm = allm[allm.value > 0]
             rel_ok = allm.reliable > 0 if "reliable" in allm else np.ones(len(allm), bool)
             main, weak = allm[rel_ok], allm[~rel_ok]
-            is_imp = (allm.series == "importance").any()
-            ax.errorbar(main.M, main.value, yerr=[main.value - main.lo.clip(lower=main.value * 1e-3), main.hi - main.value],
-                        fmt=sty["marker"], color=sty["color"], ms=4, capsize=2, lw=1,
-                        label=f"{lab}: {'importance sampling' if is_imp else 'Monte Carlo'} (95 % interval)")
+            is_imp = (g.series == "importance").any()
+            drawn = drawn or len(allm) > 0
+            if len(main):
+                ax.errorbar(main.M, main.value, yerr=[main.value - main.lo.clip(lower=main.value * 1e-3), main.hi - main.value],
+                            fmt=sty["marker"], color=sty["color"], ms=4, capsize=2, lw=1,
+                            label=f"{lab}: {'importance sampling' if is_imp else 'Monte Carlo'} (95 % interval)")
             if len(weak):
                 ax.plot(weak.M, weak.value, linestyle="none", marker=sty["marker"], mfc="none", color=sty["color"], ms=6,
                         label=f"{lab}: fewer than {MIN_CONTRIBUTORS} runs above M or rel. s.e. > 0.25 (not a result)")
             pl = g[(g.series == "plain") & (g.value > 0)]
+            drawn = drawn or len(pl) > 0
             if len(pl):
                 ax.errorbar(pl.M, pl.value, yerr=[pl.value - pl.lo, pl.hi - pl.value], linestyle="none", marker="o",
                             mfc="none", color="0.35", ms=6, capsize=2, lw=0.8,
@@ -511,13 +515,19 @@ class TailMetric(AnalysisModel):
                                 label=rf"theory: $\varphi$ = {f.exponent_theory:.3f} (slope only)")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        n = int(t.n.max()) if len(t) else 0
+        if not drawn:  # every estimate 0 (a short run): the empty axes at the M range, the run's resolution, and why
+            ax.set_xlim(float(t.M.min()), float(t.M.max()))
+            ax.set_ylim(min(0.1, 0.5 / max(n, 1)), 1.0)
+            ax.text(0.5, 0.5, f"no run above any M (every estimate 0, n = {n:,})", transform=ax.transAxes,
+                    ha="center", va="center", color="0.3")
         ax.set_xlabel(r"threshold $M$ (log scale)")
         ax.set_ylabel(rf"$\Pr[{X} > M]$ (log scale)")
         what = self.title or rf"tail of ${X}$: power law $M^{{\varphi}}$"
         ax.set_title(paper_title(self.paper.topic if self.paper else None, self.paper.figure if self.paper else None, what))
-        legend_outside(ax, loc="below", ncol=1, bbox_to_anchor=(0.5, -0.2))
-        n = int(t.n.max()) if len(t) else 0
-        footnote(fig, f"n = {n:,} runs; theory (Mo & Sinopoli 2012): φ = log s / (2 log ρ(A)), s = 1 − λ "
+        if ax.get_legend_handles_labels()[0]:
+            legend_outside(ax, loc="below", ncol=1, bbox_to_anchor=(0.5, -0.2))
+        footnote(fig, f"n = {n:,} run{'s' if n != 1 else ''}; theory (Mo & Sinopoli 2012): φ = log s / (2 log ρ(A)), s = 1 − λ "
                       f"(i.i.d.) or 1 − q (Gilbert–Elliott); importance weights ≤ number of mixture components")
         return fig
 

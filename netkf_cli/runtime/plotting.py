@@ -501,9 +501,26 @@ def _tight_bboxes_once():
         martist._get_tightbbox_for_layout_only = orig
 
 
+EMPTY_LOG_NOTE = "nothing to draw: no positive value on this log scale"
+
+
+def empty_log_axes(fig: Figure) -> None:
+    """A log axis with nothing positive to draw (a tail run of one run: every probability 0) gets the decade
+    [1, 10] and says so in the axes: matplotlib (3.11) refuses to draw a log axis whose data are all ≤ 0."""
+    for ax in fig.axes:
+        empty = [name for name, scale, minpos, lim in (("x", ax.get_xscale(), ax.dataLim.minposx, ax.get_xlim()),
+                                                        ("y", ax.get_yscale(), ax.dataLim.minposy, ax.get_ylim()))
+                 if scale == "log" and not np.isfinite(minpos) and min(lim) <= 0]  # limits the plot set are kept
+        for name in empty:
+            getattr(ax, f"set_{name}lim")(1, 10)
+        if empty:
+            ax.text(0.5, 0.5, EMPTY_LOG_NOTE, transform=ax.transAxes, ha="center", va="center", color="0.3")
+
+
 def _layout(fig: Figure) -> None:
     """tight_layout with room at the bottom for the (wrapped) footnotes; long titles wrapped; short log axes
-    labelled with plain numbers (:func:`plain_log_labels`)."""
+    labelled with plain numbers (:func:`plain_log_labels`); an empty log axis drawable (:func:`empty_log_axes`)."""
+    empty_log_axes(fig)
     plain_log_labels(fig)
     _fit_titles(fig)
     notes = getattr(fig, "_netkf_footnotes", [])

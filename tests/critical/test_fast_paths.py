@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -281,3 +282,16 @@ def test_tail_default_windows_end_before_the_reported_step(horizon, windows):
     imp = res.meta["importance_sampling"]
     assert (imp["windows"] if isinstance(imp, dict) else []) == windows
     assert (res.table["value"].between(0, 1)).all()
+
+
+def test_a_tail_where_no_run_exceeds_any_M_draws_its_empty_axes(tmp_path):
+    """One run, every estimate 0: the figure shows the M range and says why it is empty (matplotlib refused the log
+    axis before: an internal error from `netkf run configs/critical/tail_parity.yaml --runs 1`)."""
+    from typer.testing import CliRunner
+
+    from netkf_cli.app.cli import app
+
+    cfg = Path(__file__).resolve().parents[2] / "configs" / "critical" / "tail_parity.yaml"
+    r = CliRunner().invoke(app, ["run", str(cfg), "--runs", "1", "--out", str(tmp_path / "o"), "-q", "--yes"])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "o" / "critical_tail_parity.png").stat().st_size > 0

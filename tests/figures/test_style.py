@@ -185,3 +185,23 @@ def test_save_labels_a_short_log_axis_with_plain_numbers(tmp_path, monkeypatch):
     P.plain_log_labels(fig)
     assert type(ax.xaxis.get_major_formatter()).__name__ == "LogFormatterSciNotation"
     P._mpl().plt.close(fig)
+
+
+def test_a_log_axis_with_nothing_positive_is_drawn_and_says_so(tmp_path):
+    """matplotlib (3.11) refuses to draw a log axis whose data are all ≤ 0 ("Data cannot be log-scaled"): save gives
+    it a decade and a note instead of failing; limits a plot set itself are kept."""
+    fig, ax = P.new_figure()
+    ax.errorbar([], [], yerr=[[], []], fmt="o")  # what the tail drew for a run with every estimate 0
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("M (1)")
+    ax.set_ylabel("p (1)")
+    P.save(fig, tmp_path / "empty.png")
+    assert (tmp_path / "empty.png").stat().st_size > 0
+    assert ax.get_ylim() == (1.0, 10.0) and any(t.get_text() == P.EMPTY_LOG_NOTE for t in ax.texts)
+    fig, ax = P.new_figure()
+    ax.plot([], [])
+    ax.set_yscale("log")
+    ax.set_ylim(1e-3, 1)
+    P.save(fig, tmp_path / "kept.png")
+    assert ax.get_ylim() == (1e-3, 1) and not ax.texts
