@@ -69,7 +69,8 @@ def check_scenario(scenario) -> None:
 
     mc = scenario.montecarlo
     if mc.burn_in >= mc.horizon:
-        problems.append(Problem("montecarlo.burn_in", f"must be < horizon = {mc.horizon}, got {mc.burn_in}"))
+        problems.append(Problem("montecarlo.burn_in", f"must be < horizon = {mc.horizon} (time averages are over k in "
+                                                      f"(burn_in, horizon]), got {mc.burn_in}"))
     ch, ests = scenario.channel, scenario.estimator_list()
     many = bool(scenario.estimators)
     if many and scenario.estimator is not None:

@@ -93,9 +93,7 @@ class TimeAverage(GenericMetric):
             if mc.burn_in:
                 raise ConfigError.at("montecarlo.burn_in", f"must be 0 with analysis.at = {self.at} (the statistic "
                                                            f"is of P at that one step), got {mc.burn_in}")
-        if mc.burn_in >= mc.horizon:
-            raise ConfigError.at("montecarlo.burn_in", f"must be < montecarlo.horizon = {mc.horizon} (the average is "
-                                                       f"over k in (burn_in, horizon]), got {mc.burn_in}")
+        # burn_in < horizon: checked for every scenario (config.compat.check_scenario)
         for e in scenario.estimator_list():
             for q in self.quantity_list():
                 if q in getattr(e, "quantities", ("filtered",)) and e.first_step(q) > (self.at or mc.horizon):

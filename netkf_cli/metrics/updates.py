@@ -79,10 +79,7 @@ class Updates(GenericMetric):
                 raise ConfigError.at(f"{'estimators[%d]' % i if many else 'estimator'}.kind",
                                      f"{e.kind} does not report how many filter recursions it runs per step "
                                      "(no updates() hook); the updates metric needs one (e.g. buffered)")
-        mc = scenario.montecarlo
-        if mc.burn_in >= mc.horizon:
-            raise ConfigError.at("montecarlo.burn_in", f"must be < montecarlo.horizon = {mc.horizon} (the average is "
-                                                       f"over k in (burn_in, horizon]), got {mc.burn_in}")
+        # burn_in < horizon: checked for every scenario (config.compat.check_scenario)
 
     def needs_per_run_covariance(self) -> bool:
         return False

@@ -164,6 +164,15 @@ def test_an_override_is_named_for_a_model_level_check_on_its_field(tmp_path):
     assert "burstiness.yaml" not in r.output and not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("config", ["smoothing/table1.yaml", "updates_vs_buffer.yaml", "fusion/fig1.yaml"])
+def test_a_problem_is_reported_once(tmp_path, config):
+    """burn_in ≥ horizon is one problem: the scenario check and the metric's own check said it twice, in two
+    wordings, for every time-averaging metric."""
+    r = invoke("validate", CONFIGS / config, "montecarlo.horizon=1")
+    assert r.exit_code == 1, r.output
+    assert r.output.count("montecarlo.burn_in:") == 1, r.output
+
+
 def test_corpus_is_large_enough():
     files = {"file-level": len(FILE_CASES)}
     assert len(CASES) + len(FILE_CASES) >= 60, files
