@@ -691,6 +691,8 @@ def attribute(problems: list[Problem], overrides) -> list[Problem]:
             d = o.dotted
             if p.path == d or p.path.startswith((d + ".", d + "[")):
                 hit = o
+            elif d.startswith(p.path + ".") and p.message.startswith(d[len(p.path) + 1:] + ":"):
+                hit = o  # a check of the enclosing block that names the field first (a sweep axis: "channel.buffer: …")
         out.append(replace(p, file=hit.where(), line=None) if hit is not None else p)
     return out
 

@@ -17,7 +17,7 @@ from typing import Any, Literal
 
 import numpy as np
 from netkf_cli.core.lazy import pandas as pd
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationError, model_validator
 
 from netkf_cli.core.errors import ConfigError, Problem
 from netkf_cli.runtime.plotting import MIN_FONT_PT, footnote, new_figure
@@ -39,6 +39,9 @@ class SweepRange(StrictModel):
         if not (np.isfinite(self.from_) and np.isfinite(self.to)):
             raise ValueError("from and to must be finite numbers")
         n = int(np.floor((self.to - self.from_) / self.step + 1e-9)) + 1
+        if n < 1:
+            raise ValueError(f"{{from: {self.from_:g}, to: {self.to:g}}} is empty: from must be ≤ to (the values go "
+                             f"up by step = {self.step:g})")
         if n > MAX_POINTS:
             raise ValueError(f"{{from: {self.from_:g}, to: {self.to:g}, step: {self.step:g}}} has {n:,} values; "
                              f"a sweep may have at most {MAX_POINTS:,} points")
@@ -51,6 +54,14 @@ class SweepPlot(StrictModel):
     series: str | None = Field(None, description="which `series` of the table to draw (default: the first)")
     where: dict[str, Any] = Field(default_factory=dict, description="column == value filters (e.g. {M: 50})")
     logy: bool = Field(False, description="logarithmic y axis")
+
+
+def _range_problem(err: dict) -> str:
+    """One pydantic error of a ``{from, to, step}`` range, in the loader's words."""
+    where = ".".join(str(x) for x in err["loc"])
+    what = {"missing": "required field is missing",
+            "extra_forbidden": "unknown key (a range has from, to and step)"}.get(err["type"], err["msg"])
+    return f"{where}: {what}" if where else what
 
 
 class SweepSpec(StrictModel):
@@ -74,7 +85,12 @@ class SweepSpec(StrictModel):
                 continue
             val = data.pop(key)
             if isinstance(val, dict):
-                val = SweepRange.model_validate(val).values()
+                try:
+                    val = SweepRange.model_validate(val).values()
+                except ValidationError as exc:  # what is wrong with the range's keys, under the swept path
+                    raise ValueError(f"{key}: " + "; ".join(_range_problem(e) for e in exc.errors())) from None
+                except ValueError as exc:  # or with its values
+                    raise ValueError(f"{key}: {exc}") from None
             if not isinstance(val, list) or not val:
                 raise ValueError(f"{key}: expected a non-empty list or {{from, to, step}}")
             axes[key] = val

@@ -64,3 +64,19 @@ def test_unknown_path_and_zip_length(tmp_path):
     cfg.write_text(BASE.format(means="[3, 4]", extra="mode: zip"))
     r = runner.invoke(app, ["validate", str(cfg)])
     assert r.exit_code == 1 and "zip needs lists of equal length" in r.output
+
+
+def test_a_bad_range_says_what_is_wrong_with_it(tmp_path):
+    """{from: 3, to: 1} is empty (it said only "expected a non-empty list or {from, to, step}"); a missing or
+    unknown key of a range is named under its axis; a range given on the command line is named as the source."""
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(BASE.format(means="[3]", extra=""))
+    cases = {"{from: 3, to: 1}": "channel.buffer: {from: 3, to: 1} is empty: from must be ≤ to",
+             "{from: 1}": "channel.buffer: to: required field is missing",
+             "{from: 1, to: 3, stp: 1}": "channel.buffer: stp: unknown key",
+             "{from: 1, to: 3, step: 0}": "channel.buffer: step must be a finite number > 0"}
+    for rng, needle in cases.items():
+        r = runner.invoke(app, ["validate", str(cfg), f"sweep.channel.buffer={rng}"])
+        out = " ".join(r.output.split())
+        assert r.exit_code == 1 and needle in out, out
+        assert f"command line (sweep.channel.buffer={rng}) sweep:" in out, out
