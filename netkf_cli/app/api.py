@@ -101,7 +101,7 @@ def _check_int(arg: str, v: Any, low: int = 1) -> int:
     if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
         raise _bad(arg, f"must be an integer ≥ {low}, got {_got(v)}")
     if isinstance(v, (float, np.floating)) and (not math.isfinite(v) or not float(v).is_integer()):
-        raise _bad(arg, f"must be an integer ≥ {low}, got {v!r}")
+        raise _bad(arg, f"must be an integer ≥ {low}, got {float(v)!r}")
     if int(v) < low:
         raise _bad(arg, f"must be an integer ≥ {low}, got {int(v)}")
     return int(v)
@@ -129,7 +129,7 @@ def recorded_channel(data: Any, horizon: int, *, arg: str = "arrivals", values: 
     a = arr.astype(float)
     if not np.isfinite(a).all():
         i = np.argwhere(~np.isfinite(a))[0]
-        raise _bad(arg, f"must hold finite numbers, got {a[tuple(i)]!r} at index {tuple(int(x) for x in i)}")
+        raise _bad(arg, f"must hold finite numbers, got {float(a[tuple(i)])!r} at index {tuple(int(x) for x in i)}")
     if values == "arrival":
         bad = (a != 0) & (a != 1)
         want = "0 (lost) or 1 (arrived)"
@@ -138,7 +138,7 @@ def recorded_channel(data: Any, horizon: int, *, arg: str = "arrivals", values: 
         want = "a delay in steps (an integer ≥ 0) or -1 (lost)"
     if bad.any():
         i = tuple(int(x) for x in np.argwhere(bad)[0])
-        raise _bad(arg, f"values must be {want}, got {a[i]!r} at index {i}")
+        raise _bad(arg, f"values must be {want}, got {float(a[i]):g} at index {i}")
     if values == "delay" and (a > np.iinfo(np.int32).max).any():
         raise _bad(arg, f"delays must be below {np.iinfo(np.int32).max} steps, got {a.max():.3g}")
     rows = a.T if a.ndim == 2 else a  # (streams, horizon) or (horizon,)

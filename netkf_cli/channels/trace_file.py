@@ -176,7 +176,7 @@ class TraceChannel(ChannelModel):
             want = f"integer delays 0…{MAX_DELAY} (or -1 for lost)"
         if bad.any():
             i = tuple(int(x) for x in np.argwhere(bad)[0])
-            raise ConfigError.at("channel", f"a recording of {values}s holds {want}, got {a[i]!r} at index {i}")
+            raise ConfigError.at("channel", f"a recording of {values}s holds {want}, got {float(a[i]):g} at index {i}")
         arr = arr[None] if arr.ndim == 1 else arr
         ch = cls(kind="trace", file="<array>", values=values, **kw)
         ch._data = arr.astype(bool) if values == "arrival" else np.where(arr < 0, LOST, arr).astype(np.int32)

@@ -187,3 +187,21 @@ def test_citation_file_lists_the_five_papers():
     if papers.exists():  # the shared list of the papers netkf reproduces names the same five
         text = papers.read_text(encoding="utf-8").lower()
         assert all(t.split(":")[0][:30] in text for t in titles)
+
+
+def test_api_messages_print_numbers_not_numpy_reprs():
+    """A value from a numpy array is printed as a number ("got 2"), not as numpy 2's repr ("got np.float64(2.0)")."""
+    import numpy as np
+
+    import netkf_cli
+    from netkf_cli.core.errors import ConfigError
+
+    sc = netkf_cli.load({"name": "m", "system": {"A": 1.2, "C": 1, "Q": 1, "R": 1},
+                         "channel": {"kind": "bernoulli", "arrival": 0.8}, "estimator": {"kind": "kf"},
+                         "analysis": {"kind": "mean_vs_time"}, "montecarlo": {"runs": 20, "horizon": 5}})
+    for kw, needle in [({"arrivals": np.array([1, 2, 1, 1, 1])}, "got 2 at index (1,)"),
+                       ({"arrivals": np.array([1.0, np.nan, 1, 1, 1])}, "got nan at index (1,)"),
+                       ({"runs": np.float64(2.5)}, "got 2.5")]:
+        with pytest.raises(ConfigError) as exc:
+            netkf_cli.run(sc, **kw)
+        assert needle in str(exc.value) and "np." not in str(exc.value), str(exc.value)
