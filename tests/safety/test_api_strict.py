@@ -34,7 +34,7 @@ def _refused(fn, *needles):
 # ---- arrivals / delays ------------------------------------------------------------------------
 
 @pytest.mark.parametrize("arrivals,needles", [
-    (np.array([1, 2] * 10), ("arrivals", "0 (lost) or 1", "2.0", "index (1,)")),
+    (np.array([1, 2] * 10), ("arrivals", "0 (lost) or 1", "got 2 at", "index (1,)")),
     (np.array([1.0, np.nan] * 10), ("arrivals", "finite", "nan")),
     (np.array([1, 0] * 5), ("arrivals", "shape", "(10,)", "horizon = 20")),
     (np.ones((2, 20)), ("arrivals", "shape (2, 20)", "arrivals.T")),
@@ -58,7 +58,7 @@ def test_good_arrivals_and_delays_are_replayed(sc):
     buf = load({**SC, "estimator": {"kind": "buffered"}})
     ok = run(buf, delays=np.array([0, 1, -1, 2] * 5), buffer=3, runs=1)
     assert len(ok.table) == 4
-    _refused(lambda: run(buf, delays=np.array([0, -3] * 10), runs=1), "delays", "-1 (lost)", "-3.0")
+    _refused(lambda: run(buf, delays=np.array([0, -3] * 10), runs=1), "delays", "-1 (lost)", "got -3 at")
     _refused(lambda: run(buf, delays=np.array([0, 0.5] * 10), runs=1), "delays", "0.5")
     _refused(lambda: run(buf, delays=np.array([0, 1e300] * 10), runs=1), "delays")
     _refused(lambda: run(buf, arrivals=np.ones(20), delays=np.zeros(20)), "either")
