@@ -182,8 +182,11 @@ class Execution:
             except ImportError:
                 raise NetkfError("--executor dask needs dask.distributed: pip install 'netkf[dask]'") from None
             if self.scheduler in (None, "local"):
+                # no dashboard; the scheduler's HTTP server (health routes) on a free local port, not on 8787
+                # (taken by another cluster: a warning) nor on every interface
                 self._cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
-                                             dashboard_address=None)
+                                             dashboard_address=None,
+                                             scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
                 self._client = Client(self._cluster)
                 from netkf_cli.runtime.dask_plugin import DieWithParentPlugin  # optional: subclasses distributed's WorkerPlugin
 

@@ -46,7 +46,8 @@ def test_dask_runs_fusion_and_markov_kernels(tmp_path):
              {"montecarlo": {"horizon": 30, "burn_in": 10, "chunk": 30}, "analysis": {"over": {"channel.loss": [0.4]}}})]
     serial = [run_scenario_file(c, out_dir=tmp_path / "serial" / c.stem, runs=90, overrides=o, executor="serial")
               for c, o in runs]
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cl:
         dask = [run_scenario_file(c, out_dir=tmp_path / "dask" / c.stem, runs=90, overrides=o, executor="dask",
                                   jobs=2, scheduler=cl.scheduler_address) for c, o in runs]
     for a, b in zip(serial, dask):
