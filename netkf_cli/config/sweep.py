@@ -249,10 +249,11 @@ def plot(tables, scenario):
         bad = _unreliable(g)  # heavy-tailed / rare-event dominated / not reliable: hollow, off the line
         flagged_total += int(bad.sum())
         y = g["value"].where(~bad)
+        shown = label if np.isfinite(y.to_numpy(dtype=float)).any() else "_nolegend_"  # every mean flagged: no entry
         if "stderr" in g.columns and g["stderr"].notna().any():
-            h = ax.errorbar(g[x], y, yerr=g["stderr"].where(~bad), marker="o", ms=3, capsize=2, label=label)
+            h = ax.errorbar(g[x], y, yerr=g["stderr"].where(~bad), marker="o", ms=3, capsize=2, label=shown)
         else:
-            (h,) = ax.plot(g[x], y, marker="o", ms=3, label=label)
+            (h,) = ax.plot(g[x], y, marker="o", ms=3, label=shown)
         if bad.any():
             colour = h[0].get_color() if isinstance(h, tuple) or hasattr(h, "lines") else h.get_color()
             ax.plot(g[x][bad], g["value"][bad], ls="none", marker="o", ms=6, mfc="none", color=colour,

@@ -308,7 +308,8 @@ class TimeAverage(GenericMetric):
             y = np.where(bad, np.nan, g.value.to_numpy(dtype=float))
             ax.errorbar(xs, y, yerr=1.96 * np.where(bad, np.nan, g.stderr.to_numpy(dtype=float)),
                         marker=MARKERS[i % len(MARKERS)], ms=4, capsize=2, color=colour, lw=1.2,
-                        ls="-" if x is not None else "none", label=f"{name} (Monte Carlo)")
+                        ls="-" if x is not None else "none",
+                        label=f"{name} (Monte Carlo)" if np.isfinite(y).any() else "_nolegend_")  # none drawn: no entry
             if bad.any() and np.isfinite(g.value.to_numpy()[bad]).any():
                 ax.plot(xs[bad], g.value.to_numpy()[bad], ls="none", marker="o", ms=7, mfc="none", color=colour,
                         label=f"{name}: unreliable (flagged in the CSV)")

@@ -717,6 +717,22 @@ def _series(ax) -> tuple[list[str], int]:
     return labels, unlabelled
 
 
+def _shows_nothing(handle) -> bool:
+    """Whether a legend handle's artist has points but none finite (a series whose every value is NaN: its legend
+    entry would name a line that is not there). A handle with no points at all is a legend proxy (a key to the
+    colours or line styles, drawn with ``plot([], [])``): deliberate."""
+    line = handle[0] if isinstance(handle, tuple) or type(handle).__name__ == "ErrorbarContainer" else handle
+    if line is None:
+        return False
+    if hasattr(line, "get_xydata"):
+        xy = np.asarray(line.get_xydata(), dtype=float)
+    elif hasattr(line, "get_offsets"):
+        xy = np.asarray(line.get_offsets(), dtype=float)
+    else:
+        return False  # patches, bars, images: drawn as they are
+    return xy.size > 0 and not np.isfinite(xy).all(axis=-1).any()
+
+
 def lint(fig: Figure) -> list[str]:
     """What a referee would object to, as readable lines (empty = clean). Call after layout."""
     problems: list[str] = []
@@ -745,6 +761,9 @@ def lint(fig: Figure) -> list[str]:
         for lab in legend_labels:
             if lab not in labels:
                 problems.append(f"{name}: legend entry {lab!r} has no drawn series")
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            if lab in legend_labels and _shows_nothing(h):
+                problems.append(f"{name}: legend entry {lab!r} names a series with no finite point")
         for lab in labels:
             if lab not in legend_labels and lab not in fig_legend_labels:
                 problems.append(f"{name}: series {lab!r} has no legend entry")

@@ -68,3 +68,17 @@ def test_a_means_only_estimator_is_refused_where_each_runs_covariance_is_needed(
         else:
             raise AssertionError(f"{analysis['kind']} accepted a means-only estimator")
     load({**base, "analysis": {"kind": "mean_vs_time"}})  # means: fine
+
+
+def test_a_legend_names_only_what_is_drawn_when_every_mean_is_flagged():
+    """Every mean of a time average flagged (kf, A = 1.2, λ ≤ 0.5: tail exponent φ ≥ −2, E[(tr P)²] = ∞) is drawn
+    hollow, off the line: the legend then has the hollow entry only, not a "(Monte Carlo)" line with nothing on it
+    (smoothing/table1's top panel listed five such entries)."""
+    sc = load({"name": "flagged", "system": {"A": 1.2, "C": 1, "Q": 1, "R": 1},
+               "channel": {"kind": "bernoulli", "arrival": 0.5}, "estimator": {"kind": "kf"},
+               "analysis": {"kind": "time_average", "over": {"channel.arrival": [0.45, 0.5]}},
+               "montecarlo": {"runs": 200, "horizon": 40, "burn_in": 10, "seed": 1}})
+    res = run(sc)
+    assert res.table.query("source == 'monte_carlo'").heavy_tail.all()
+    labels = [t.get_text() for ax in res.figure.axes if ax.get_legend() for t in ax.get_legend().get_texts()]
+    assert any("unreliable" in s for s in labels) and not any("(Monte Carlo)" in s for s in labels), labels

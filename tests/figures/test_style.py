@@ -205,3 +205,19 @@ def test_a_log_axis_with_nothing_positive_is_drawn_and_says_so(tmp_path):
     ax.set_ylim(1e-3, 1)
     P.save(fig, tmp_path / "kept.png")
     assert ax.get_ylim() == (1e-3, 1) and not ax.texts
+
+
+def test_lint_sees_a_legend_entry_whose_series_is_all_nan():
+    """A series whose every value is NaN (every mean flagged and drawn elsewhere) has nothing on the axes: its legend
+    entry is a problem; a legend proxy drawn with no points at all (a key to colours) is not."""
+    fig, ax = P.new_figure()
+    ax.errorbar([1, 2], [np.nan, np.nan], yerr=[1, 1], label="flagged means (Monte Carlo)")
+    ax.plot([1, 2], [1, 2], label="drawn")
+    ax.plot([], [], color="k", label="proxy: black = exact")
+    ax.set_xlabel("x (1)")
+    ax.set_ylabel("y (1)")
+    ax.set_title("t")
+    P.legend_outside(ax)
+    P._layout(fig)
+    problems = P.lint(fig)
+    assert problems == ["axes 0 ('t'): legend entry 'flagged means (Monte Carlo)' names a series with no finite point"]
