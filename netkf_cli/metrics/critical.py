@@ -523,6 +523,13 @@ class CriticalAnalysis(AnalysisModel):
             else:
                 bx.set_xlim(0, 1.02)
             bx.set_ylim(0, 1.02)
+            curves = [ge.q_necessary, ge.q_sufficient, ge.q_exact if "q_exact" in ge else ge.q_necessary, qb[keep]]
+            top = max((float(np.nanmax(c)) for c in curves if np.isfinite(c).any()), default=np.nan)
+            if top < 0.03:  # every curve flat on the p-axis (ρ(A) ≈ 1): say what the empty-looking panel means
+                rho = 1.0 / math.sqrt(max(1.0 - float(np.nanmax(ge.q_necessary)), 1e-300))
+                bx.text(0.64, 0.84, f"every curve lies at q ≤ {top:.2g}\n(ρ(A) = {rho:.4g}): stable for\n(almost) "
+                                  f"every recovery rate q > 0", ha="center", va="center", fontsize=9, color="0.3",
+                        transform=bx.transAxes)
             bx.set_xlabel(r"failure rate $p$ = P(loss | arrival)" + (" (log scale)" if bx.get_xscale() == "log" else ""))
             bx.set_ylabel(r"recovery rate $q$ = P(arrival | loss)")
             bx.set_title("Gilbert–Elliott: stable above the curve", fontsize=10)

@@ -154,3 +154,14 @@ def test_gilbert_elliott_verdict_for_the_degenerate_parity_system(tmp_path):
     cfg.write_text(cfg.read_text().replace("p_gb: 0.03", "p_gb: 0.1"))  # p ≥ 1/16: alternating patterns starve a parity
     ch = json.loads(runner.invoke(app, ["critical", "--config", str(cfg), "--json"]).stdout)["channel"]
     assert ch["bounded"] is False and "no recovery rate suffices" in ch["verdict"] and ch["q"] > ch["q_necessary"]
+
+
+@pytest.mark.parametrize("config, flat", [("vehicle.yaml", True), ("scalar_a2.yaml", False)])
+def test_a_flat_gilbert_elliott_panel_says_what_it_means(root, config, flat):
+    """ρ(A) = 1 (the vehicle): every Gilbert–Elliott curve lies on the p-axis, an empty-looking panel; it says so
+    (stable for almost every recovery rate), and a panel with visible curves has no such note."""
+    import netkf_cli
+
+    res = netkf_cli.run(netkf_cli.load(root / "configs" / "critical" / config), runs=200)
+    notes = [t.get_text() for ax in res.figure.axes for t in ax.texts if "every curve lies" in t.get_text()]
+    assert bool(notes) == flat, notes
