@@ -336,23 +336,28 @@ def _open_cache(cache: Path, h: str, resume: bool, scenario) -> dict:
     never mixed in: they are discarded and the run says so."""
     note = None
     stamp = cache / CACHE_STAMP
+    code = io.code_digest()
     if cache.exists():
         try:
             old = json.loads(stamp.read_text(encoding="utf-8"))
         except (OSError, ValueError):
             old = {}
+        n_old = sum(1 for _ in cache.rglob(f"*{montecarlo.CHUNK_SUFFIX}")) if resume else 0
+        held = f"--resume: the cache {cache}/ held {n_old} chunk{'s' if n_old != 1 else ''}"
         if resume and old.get("scenario_hash") != h:
-            n_old = sum(1 for _ in cache.rglob(f"*{montecarlo.CHUNK_SUFFIX}"))
-            note = (f"--resume: the cache {cache}/ held {n_old} chunk{'s' if n_old != 1 else ''} of a different "
-                    f"scenario (hash {old.get('scenario_hash', 'unknown')}, this one is {h}); none reused, the run "
-                    f"starts from the beginning")
+            note = (f"{held} of a different scenario (hash {old.get('scenario_hash', 'unknown')}, this one is {h}); "
+                    f"none reused, the run starts from the beginning")
+        elif resume and old.get("code") != code:
+            note = (f"{held} computed by another netkf build (code {old.get('code', 'unknown')}, this one is {code}: "
+                    f"their statistics may differ); none reused, the run starts from the beginning")
         if not resume or note:
             io._rmtree(cache)
     elif resume:
         note = f"--resume: no cache of an interrupted run in {cache}/; the run starts from the beginning"
     cache.mkdir(parents=True, exist_ok=True)
     if not stamp.exists():
-        stamp.write_text(json.dumps({"scenario_hash": h, "name": scenario.name}) + "\n", encoding="utf-8")
+        stamp.write_text(json.dumps({"scenario_hash": h, "code": code, "name": scenario.name}) + "\n",
+                         encoding="utf-8")
     return {"requested": resume, "chunks_reused": 0, **({"note": note} if note else {})}
 
 

@@ -7,6 +7,7 @@ or the complete new one.
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import os
 import platform
@@ -56,6 +57,22 @@ def _versions() -> tuple[tuple[str, str], ...]:
         except metadata.PackageNotFoundError:
             out[d] = "not installed"
     return tuple(out.items())
+
+
+_CODE_DIGEST: list[str] = []
+
+
+def code_digest() -> str:
+    """sha256 (16 hex digits) of netkf's own source (every .py file of the package, by relative path): what made a
+    resume store's chunks. Chunks of another build are never mixed into a run (their statistics may have other
+    keys or other numbers), installed or editable, with or without git. Computed once per process."""
+    if not _CODE_DIGEST:
+        pkg = Path(__file__).resolve().parents[1]
+        h = hashlib.sha256()
+        for f in sorted(pkg.rglob("*.py")):
+            h.update(f.relative_to(pkg).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+        _CODE_DIGEST.append(h.hexdigest()[:16])
+    return _CODE_DIGEST[0]
 
 
 def git_commit(where: Path | None = None) -> str | None:

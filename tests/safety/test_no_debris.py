@@ -233,6 +233,27 @@ def _interrupt_after(monkeypatch, n_ok: int) -> None:
     monkeypatch.setattr(montecarlo, "run_chunk", dying)
 
 
+def test_resume_reuses_no_chunk_of_another_netkf_build(tmp_path, cfg, monkeypatch):
+    """Chunks kept by an interrupted run are not mixed into a run of changed code (an upgrade between the two:
+    its statistics may carry other keys, or other numbers): --resume says so and starts over, and the result
+    equals an uninterrupted run."""
+    from netkf_cli.runtime import io
+
+    assert invoke("run", cfg, "--out", tmp_path / "full", "-j", 1, "-q").exit_code == 0
+    _interrupt_after(monkeypatch, 2)
+    assert invoke("run", cfg, "--out", tmp_path / "o", "-j", 1, "-q").exit_code == 130
+    monkeypatch.setattr(montecarlo, "run_chunk", _real_run_chunk)
+    monkeypatch.setattr(io, "code_digest", lambda: "0123456789abcdef")  # the code changed since
+    r = invoke("run", cfg, "--out", tmp_path / "o", "-j", 1, "-q", "--resume")
+    assert r.exit_code == 0, r.output
+    out = " ".join(r.output.split())
+    assert "another netkf build" in out and "none reused" in out and "0 chunks reused" in out, out
+    man = json.loads((tmp_path / "o" / "manifest.json").read_text())
+    assert man["execution"]["resumed"]["chunks_reused"] == 0 and "another netkf build" in man["execution"]["resumed"]["note"]
+    name = man["name"]
+    assert (tmp_path / "o" / f"{name}.csv").read_bytes() == (tmp_path / "full" / f"{name}.csv").read_bytes()
+
+
 def test_resume_reuses_only_the_identical_scenario(tmp_path, cfg, monkeypatch):
     assert invoke("run", cfg, "--out", tmp_path / "full", "-j", 1, "-q").exit_code == 0
     res = tmp_path / "res"
