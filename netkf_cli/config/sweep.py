@@ -267,7 +267,7 @@ def plot(tables, scenario):
     if line:
         ax.legend(fontsize=MIN_FONT_PT, ncol=2)
     footnote(fig, f"sweep ({spec.mode}) over {', '.join(axes)}; {len(spec.points())} points"
-             + (f"; {flagged_total} unreliable points drawn hollow, off the line" if flagged_total else ""))
+             + (f"; {flagged_total} unreliable point{'s' if flagged_total != 1 else ''} drawn hollow, off the line" if flagged_total else ""))
     return fig
 
 

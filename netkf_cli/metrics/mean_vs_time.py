@@ -154,7 +154,7 @@ class MeanVsTime(GenericMetric):
                    f"{conventions_note(grid_conventions(t))}"
                    if lab0 is not None and "P0" in t else "")
         footnote(fig, ("one run: the covariance sequence itself" if one else f"n = {n:,} runs per step")
-                 + (f"; {left_out} unreliable step means not drawn (heavy-tailed or rare-event dominated: CSV columns "
+                 + (f"; {left_out} unreliable step mean{'s' if left_out != 1 else ''} not drawn (heavy-tailed or rare-event dominated: CSV columns "
                     f"heavy_tail, rare_event)" if left_out else "") + (f"\n{labels_}" if labels_ else ""))
         return fig
 

@@ -263,7 +263,7 @@ class TimeAverage(GenericMetric):
                    f"each averaged over k in (burn-in {scenario.montecarlo.burn_in}, horizon {scenario.montecarlo.horizon}]")
         footnote(fig, f"Monte Carlo: n = {n:,} runs, {per_run}; error bars ±1.96 s.e."
                  + ("; ‖E P‖₂ = λ_max of the mean matrix, s.e. by the delta method" if main == NORM else "")
-                 + (f"; {flagged} unreliable means drawn hollow, off the line (CSV heavy_tail / rare_event / flag_reason)" if flagged else "")
+                 + (f"; {flagged} unreliable mean{'s' if flagged != 1 else ''} drawn hollow, off the line (CSV heavy_tail / rare_event / flag_reason)" if flagged else "")
                  + (f"; dashed, hollow markers on top: closed form ({', '.join(self.references)})" if self.references else "")
                  + (f"; not drawn (≤ 0 on the log axis): {'; '.join(undrawn)}" if undrawn else "")
                  + (f"\n{math_text(mcr.P0.iloc[0])}; {conventions_note(note)}" if len(mcr) else ""))

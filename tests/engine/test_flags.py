@@ -82,3 +82,7 @@ def test_a_legend_names_only_what_is_drawn_when_every_mean_is_flagged():
     assert res.table.query("source == 'monte_carlo'").heavy_tail.all()
     labels = [t.get_text() for ax in res.figure.axes if ax.get_legend() for t in ax.get_legend().get_texts()]
     assert any("unreliable" in s for s in labels) and not any("(Monte Carlo)" in s for s in labels), labels
+    notes = " ".join(t.get_text() for t in res.figure._netkf_footnotes)
+    assert "; 2 unreliable means drawn hollow" in notes, notes
+    one = run(sc, overrides={"analysis.over": {"channel.arrival": [0.5]}})  # one flagged mean: singular
+    assert "; 1 unreliable mean drawn hollow" in " ".join(t.get_text() for t in one.figure._netkf_footnotes)
