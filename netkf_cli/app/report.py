@@ -177,7 +177,13 @@ def _render(outcomes, published, path: Path, *, root: Path, quick: bool) -> str:
         for o in outs:
             a = o.artefact
             rel_cfg = os.path.relpath(a.config, root).replace(os.sep, "/")
-            lines += [f"### {a.name}", "", f"`netkf run {rel_cfg}` — {o.wall_time:.1f} s", ""]
+            if o.error and o.error.startswith("not run yet"):
+                took = "not run yet"
+            elif o.previous is not None:
+                took = f"not run by this command (its result of {o.previous}: compute {o.wall_time:.1f} s)"
+            else:
+                took = f"{o.wall_time:.1f} s"
+            lines += [f"### {a.name}", "", f"`netkf run {rel_cfg}` — {took}", ""]
             if o.error and o.error.startswith("not run yet"):
                 lines += [f"*Not run yet: `netkf reproduce {a.topic}`.*", ""]
                 continue

@@ -234,6 +234,7 @@ class ArtefactOutcome:
     claims: list[ClaimResult] = field(default_factory=list)
     golden: list[str] = field(default_factory=list)  # golden mismatches
     golden_checked: bool = False
+    previous: str | None = None  # not run by this command: when its result was made (its manifest's `created`)
 
     @property
     def failed(self) -> bool:
@@ -583,8 +584,8 @@ def reproduce(topics: list[str], *, quick: bool, out_root: Path | None, check: b
         if not (folder / "manifest.json").exists():
             report_outcomes.append(ArtefactOutcome(a, None, 0.0, "not run yet: netkf reproduce " + a.topic))
             continue
-        wall = json.loads((folder / "manifest.json").read_text()).get("wall_time_s", 0.0)
-        o = ArtefactOutcome(a, folder, wall)
+        man = json.loads((folder / "manifest.json").read_text())
+        o = ArtefactOutcome(a, folder, man.get("wall_time_s", 0.0), previous=str(man.get("created", "earlier")))
         judge(o, folder)
         report_outcomes.append(o)
     if write_report:

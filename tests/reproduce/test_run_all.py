@@ -132,3 +132,26 @@ def test_what_survives_an_artefact_is_frozen_its_garbage_collected(monkeypatch, 
     finally:
         R._SCENARIOS.clear()
         gc.unfreeze()
+
+
+def test_a_partial_reproduction_reports_what_it_did_not_run_as_such(tmp_path):
+    """`netkf reproduce <topic>` writes a report of every artefact: those it ran with their time, one already in the
+    folder as "not run by this command" with when its result was made, one never run as "not run yet" (both said
+    "— 0.0 s" before, as if they had run)."""
+    import json
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from netkf_cli.app.cli import app
+
+    root = Path(__file__).resolve().parents[2]
+    shutil.copytree(root / "results" / "fading_fig3", tmp_path / "fading_fig3")
+    created = json.loads((tmp_path / "fading_fig3" / "manifest.json").read_text())["created"]
+    r = CliRunner().invoke(app, ["reproduce", "--quick", "shi2009", "--out", str(tmp_path), "--jobs", "1"])
+    assert r.exit_code == 0, r.output
+    rep = (tmp_path / "REPORT.md").read_text(encoding="utf-8")
+    assert "`netkf run configs/fading/fig3.yaml` — not run by this command (its result of " + created in rep
+    assert "`netkf run configs/fading/fig4.yaml` — not run yet" in rep
+    line = next(s for s in rep.splitlines() if s.startswith("`netkf run configs/fig5.yaml` — "))
+    assert line.endswith(" s") and "not run" not in line
