@@ -46,6 +46,16 @@ DEFAULT_SYSTEM = dict(A=1.4, C=1.0, Q=0.2, R=0.5)
 DEFAULT_LABEL = "Example 3.10 of Shi, Xie & Murray 2009: A = 1.4, C = 1, Q = 0.2, R = 0.5 (the `netkf mind` default)"
 
 
+def _below_note(t, lmin: float) -> str:
+    """The footnote's word on the asked arrival rates at or below λ_min, which the figure cannot show: no lower bound
+    S̄ exists there and E[P_k] is unbounded (for some P0), so no Monte Carlo mean is drawn either."""
+    below = sorted(float(x) for x in t.lam.unique() if float(x) <= lmin)
+    if not below:
+        return ""
+    return (f" Not drawn: λ = {', '.join(f'{x:g}' for x in below)} ≤ λ_min = {lmin:.4g}, where E[P_k] is unbounded "
+            f"(no S̄, no Monte Carlo mean).")
+
+
 class RateGrid(StrictModel):
     """Evenly spaced arrival rates."""
 
@@ -545,5 +555,6 @@ class CriticalAnalysis(AnalysisModel):
         footnote(fig, f"{PAPER}, Thms 3–5: " + r"$\lambda_{min} \leq \lambda_c \leq \lambda_{max}$; "
                       r"tr $\bar{S}$ ≤ lim tr E[$P_{k \mid k-1}$] ≤ tr $\bar{V}$. $\lambda_c$: " + f"{decided}. "
                       f"Monte Carlo: {int(n.iloc[0]) if len(n) else 0} runs per λ (time average after burn-in). "
-                      f"Markov LMI: constant-gain predictor, mean-square stable under the Gilbert chain.")
+                      f"Markov LMI: constant-gain predictor, mean-square stable under the Gilbert chain."
+                      + _below_note(t, lmin))
         return fig

@@ -165,3 +165,19 @@ def test_a_flat_gilbert_elliott_panel_says_what_it_means(root, config, flat):
     res = netkf_cli.run(netkf_cli.load(root / "configs" / "critical" / config), runs=200)
     notes = [t.get_text() for ax in res.figure.axes for t in ax.texts if "every curve lies" in t.get_text()]
     assert bool(notes) == flat, notes
+
+
+def test_rates_at_or_below_lambda_min_are_named_not_silently_dropped():
+    """Asked rates λ ≤ λ_min have no S̄ and no Monte Carlo mean (E[P_k] unbounded): the figure cannot show them and
+    its footnote says which (they were left out without a word); a run with none has no such sentence."""
+    import netkf_cli
+
+    def notes(lambdas):
+        sc = netkf_cli.load({"name": "crit", "system": {"A": 2, "C": 1, "Q": 1, "R": 1},
+                             "channel": {"kind": "bernoulli", "arrival": 0.9},
+                             "analysis": {"kind": "critical", "lambdas": lambdas},
+                             "montecarlo": {"runs": 100, "horizon": 40, "burn_in": 20, "seed": 1}})
+        return " ".join(t.get_text() for t in netkf_cli.run(sc).figure._netkf_footnotes)
+
+    assert "Not drawn: λ = 0.5, 0.75 ≤ λ_min = 0.75, where E[P_k] is unbounded" in notes([0.5, 0.75, 0.9])
+    assert "Not drawn" not in notes([0.8, 0.9])
