@@ -92,6 +92,9 @@ class FadingNoiseCurves(AnalysisModel):
     threshold: Snr = Field(description="Υ_T of the step approximation eq. (5) in Fig. 3(b)")
     N_p_curve: PositiveInt = Field(10, description="bits per packet of the smooth packet-error curve 1 − (1 − Ω(√Υ))^N_p")
 
+    def check(self, scenario) -> None:
+        _ber_params(_fading(scenario))
+
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         ch = _fading(scenario)
         a, d = _ber_params(ch)
@@ -148,6 +151,9 @@ class FadingAverages(AnalysisModel):
     kind: Literal["fading_averages"]
     thresholds: Grid = Field(description="the drop thresholds Υ_T (eq. 5) with their unit")
 
+    def check(self, scenario) -> None:
+        _ber_params(_fading(scenario, iid_only=True))
+
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         ch = _fading(scenario, iid_only=True)
         a, d = _ber_params(ch)
@@ -198,12 +204,17 @@ class FadingScenario2Steady(AnalysisModel):
     snr_avgs: Grid = Field(description="the average SNRs Υ_ave of the curves")
     num_thresholds: PositiveInt = Field(200, description="points per curve on [0, stability limit)")
 
-    def compute(self, scenario, ctx: RunContext) -> Artefact:
-        ch = _fading(scenario, iid_only=True)
-        a, d = _ber_params(ch)
+    def check(self, scenario) -> None:
+        _ber_params(_fading(scenario, iid_only=True))
         s = scenario.linear_system()
         if s.m != s.n or abs(np.linalg.det(s.C)) < 1e-12:
             raise ConfigError.at("system.C", "eq. (20) needs an invertible (square) C; for a general C simulate the receivers (configs/fading/sec42.yaml: time_average)")
+
+    def compute(self, scenario, ctx: RunContext) -> Artefact:
+        self.check(scenario)
+        ch = _fading(scenario, iid_only=True)
+        a, d = _ber_params(ch)
+        s = scenario.linear_system()
         rho = fa.rho_max(s.A)
         assum = fa.theorem1_assumptions(s.A, s.C, s.Q)
         varsigma, q = float(s.C[0, 0]), float(s.Q[0, 0])

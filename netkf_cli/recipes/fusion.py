@@ -20,7 +20,7 @@ from netkf_cli.core.lazy import pandas as pd
 from pydantic import Field
 
 from netkf_cli.analysis import fusion_bounds as fb
-from netkf_cli.core.errors import ConfigError
+from netkf_cli.core.errors import ConfigError, Problem
 from netkf_cli.runtime.plotting import footnote, legend_outside, new_figure, paper_title, series_style
 from netkf_cli.recipes.base import Artefact, RunContext
 from netkf_cli.core.spec import AnalysisModel, NonNegInt, PositiveFloat, PositiveInt
@@ -56,11 +56,16 @@ class FusionBoundingFunctions(AnalysisModel):
     points: PositiveInt = Field(241, ge=3, description="grid points in P")
     P_max_factor: PositiveFloat = Field(1.15, description="the P axis runs from 0 to P_max_factor · P_M")
 
+    def check(self, scenario) -> None:
+        """ℓ received packets out of N = sensors: reported by ``netkf validate``, before any work."""
+        problems = [Problem(f"analysis.ell[{i}]", f"must be ≤ sensors = {self.sensors}, got {l}")
+                    for i, l in enumerate(self.ell) if l > self.sensors]
+        if problems:
+            raise ConfigError(problems)
+
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         s = scenario.linear_system()
-        for i, l in enumerate(self.ell):
-            if l > self.sensors:
-                raise ConfigError.at(f"analysis.ell[{i}]", f"must be ≤ sensors = {self.sensors}, got {l}")
+        self.check(scenario)
         model = fb.ScalarFusionModel.from_matrices(s.A, s.C, s.Q, s.R, self.sensors)
         pm, pM = model.pm, model.pM
         P = np.linspace(0.0, self.P_max_factor * pM, self.points)

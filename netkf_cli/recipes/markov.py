@@ -51,7 +51,12 @@ class MarkovExactAnalysis(AnalysisModel):
     xs0: list[float] | None = Field(None, description="the paper's initial estimate x_s(0) (default x0): the claim "
                                                       "that the filter forgets it is decided from here")
 
-    def _setup(self, scenario):
+    def check(self, scenario) -> None:
+        """What ``netkf validate`` reports before any work: the estimator kind, x0 / xs0 sizes, the estimator's own
+        checks (burn_in < horizon is the scenario's check)."""
+        self._checked(scenario)
+
+    def _checked(self, scenario):
         sysm = scenario.linear_system()
         ch = scenario.require_channel("markov_modes")
         est = scenario.estimator or MarkovLMIEstimator(kind="markov_lmi")
@@ -69,16 +74,17 @@ class MarkovExactAnalysis(AnalysisModel):
 
         x0 = vec(self.x0, "x0")
         xs0 = x0 if self.xs0 is None else vec(self.xs0, "xs0")
-        mc = scenario.montecarlo
-        if mc.burn_in >= mc.horizon:
-            problems.append(Problem("montecarlo.burn_in", f"must be < horizon = {mc.horizon} (the MSE is averaged over "
-                                                          f"k = burn_in … horizon−1), got {mc.burn_in}"))
         try:
             est.check(sysm, ch)
         except ConfigError as e:
             problems.extend(e.problems)
         if problems:
             raise ConfigError(problems)
+        return sysm, ch, est, x0, xs0
+
+    def _setup(self, scenario):
+        sysm, ch, est, x0, xs0 = self._checked(scenario)
+        n = sysm.n
         model = est._model(sysm)[0]
         rho = ch.rho if est.rho == "stationary" else np.asarray(est.rho, float)
         P0 = sysm.P0 if sysm.P0 is not None else np.zeros((n, n))

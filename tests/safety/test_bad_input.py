@@ -173,6 +173,25 @@ def test_a_problem_is_reported_once(tmp_path, config):
     assert r.output.count("montecarlo.burn_in:") == 1, r.output
 
 
+@pytest.mark.parametrize("config, override, needle", [
+    ("fading/fig3.yaml", "channel.noise={model: inverse_snr, beta: 0.1}", "needs the noise model `ber`"),
+    ("fading/fig4.yaml", "channel.correlation={model: jakes, carrier_hz: 9e8, speed: {value: 10, unit: m/s}, "
+                         "interval_s: 0.01}", "needs an i.i.d. channel"),
+    ("fading/fig5.yaml", "system.C=[[1,0,0],[0,1,0],[0,0,0]]", "needs an invertible (square) C"),
+    ("markov/example1_exact.yaml", "estimator={kind: kf}", "needs an estimator of kind markov_lmi"),
+    ("markov/example1_exact.yaml", "analysis.x0=[1,2,3]", "must have 2 entries"),
+    ("fusion/fig2.yaml", "analysis.ell=[7]", "must be ≤ sensors = 6, got 7"),
+])
+def test_validate_reports_what_the_recipe_would_refuse(tmp_path, config, override, needle):
+    """A paper recipe's own requirements are checked by `netkf validate` (they were found only by `netkf run`, when
+    the work began, and named the file's line instead of the override that broke them)."""
+    r = invoke("validate", CONFIGS / config, override)
+    out = " ".join(r.output.split())
+    assert r.exit_code == 1 and needle in out and f"command line ({override})" in out, out
+    r = invoke("run", CONFIGS / config, override, "--out", tmp_path / "o", "-q")
+    assert r.exit_code == 1 and needle in " ".join(r.output.split()) and not (tmp_path / "o").exists()
+
+
 def test_corpus_is_large_enough():
     files = {"file-level": len(FILE_CASES)}
     assert len(CASES) + len(FILE_CASES) >= 60, files
