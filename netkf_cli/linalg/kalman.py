@@ -136,6 +136,23 @@ def _inv(X: np.ndarray) -> np.ndarray:
     return np.linalg.inv(X)
 
 
+def _prior_inv(X: np.ndarray) -> np.ndarray:
+    """:func:`_inv` of a batch of finite priors (k, n, n), where a prior singular to rounding (a flagged prior so
+    large in one direction that another's variance is lost beside it: an undetectable mode's growth) gets the
+    pseudo-inverse: information 0 in the lost direction, the rescue's policy for a direction it cannot know. An
+    invertible batch is inverted as before, bit for bit (one LAPACK call per matrix either way)."""
+    try:
+        return _inv(X)
+    except np.linalg.LinAlgError:
+        out = np.empty_like(X)
+        for i in range(X.shape[0]):
+            try:
+                out[i] = _inv(X[i:i + 1])[0]
+            except np.linalg.LinAlgError:
+                out[i] = np.linalg.pinv(X[i], hermitian=True)
+        return out
+
+
 def _full_rank(M: np.ndarray) -> np.ndarray:
     """``np.linalg.matrix_rank(M) == n`` per matrix of a batch (k, n, n); for 1×1 matrices without a NaN,
     finite and non-zero — svd's |m| > |m|·ε, the same decision (a test) without a batched svd."""
@@ -155,7 +172,7 @@ def prior_information(X: np.ndarray) -> np.ndarray:
     Y = np.zeros_like(X)
     finite = np.isfinite(X).all(axis=(1, 2))
     if finite.any():
-        Y[finite] = _inv(X[finite])
+        Y[finite] = _prior_inv(X[finite])
     rest = np.flatnonzero(~finite)
     if rest.size:
         Xr = X[rest]
@@ -169,7 +186,7 @@ def prior_information(X: np.ndarray) -> np.ndarray:
             sel = clean & (codes == code)
             blk = Xr[sel][:, f][:, :, f]
             Yr = np.zeros((int(sel.sum()), n, n))
-            Yr[np.ix_(np.arange(Yr.shape[0]), f, f)] = np.linalg.inv(blk)
+            Yr[np.ix_(np.arange(Yr.shape[0]), f, f)] = _prior_inv(blk)
             Y[rest[sel]] = Yr
     return Y
 
