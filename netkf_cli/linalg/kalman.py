@@ -137,9 +137,10 @@ def _inv(X: np.ndarray) -> np.ndarray:
 
 
 def _prior_inv(X: np.ndarray) -> np.ndarray:
-    """:func:`_inv` of a batch of finite priors (k, n, n), where a prior singular to rounding (a flagged prior so
-    large in one direction that another's variance is lost beside it: an undetectable mode's growth) gets the
-    pseudo-inverse: information 0 in the lost direction, the rescue's policy for a direction it cannot know. An
+    """:func:`_inv` of a batch of finite priors (k, n, n); a prior singular to working precision (LAPACK finds a
+    zero pivot: a flagged prior so large along one direction that the others are lost beside it, as an
+    undetectable mode's growth makes it) gets NaN: its run is beyond what the information form resolves and
+    :func:`information_update` returns it as ∞, diverged, as the compiled kernels do (their pivot 1/0). An
     invertible batch is inverted as before, bit for bit (one LAPACK call per matrix either way)."""
     try:
         return _inv(X)
@@ -149,7 +150,7 @@ def _prior_inv(X: np.ndarray) -> np.ndarray:
             try:
                 out[i] = _inv(X[i:i + 1])[0]
             except np.linalg.LinAlgError:
-                out[i] = np.linalg.pinv(X[i], hermitian=True)
+                out[i] = np.nan
         return out
 
 
@@ -195,12 +196,14 @@ def information_update(Pm: np.ndarray, info: np.ndarray) -> np.ndarray:
     """(P⁻⁻¹ + I)⁻¹ per run, ``info`` (n, n) or (n, n, runs) the measurement information C̃ᵀR̃⁻¹C̃
     (the information form of the update; an unknown direction of P⁻, variance ∞, has information 0:
     :func:`prior_information`). A run whose posterior information is singular (a direction neither the
-    prior nor the measurement knows) is ∞."""
+    prior nor the measurement knows), or whose finite prior is singular to working precision, is ∞."""
     X = np.moveaxis(Pm, -1, 0)
     info_r = np.moveaxis(info, -1, 0) if info.ndim == 3 else np.broadcast_to(info, X.shape)
     M = prior_information(X) + info_r
     n = M.shape[-1]
-    ok = _full_rank(M) if M.size else np.zeros(0, dtype=bool)
+    ok = np.isfinite(M).all(axis=(1, 2))  # a prior singular to working precision: NaN information (_prior_inv)
+    if ok.any():
+        ok[ok] = _full_rank(M[ok])
     out = np.full_like(M, np.inf)
     if np.any(ok):
         out[ok] = _inv(M[ok])
