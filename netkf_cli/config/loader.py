@@ -761,20 +761,12 @@ def locate_index(exc: ConfigError, index: dict, path: str | None) -> ConfigError
             line = index.get(("sweep", p.path.removeprefix("sweep.")))
         elif p.path.startswith("analysis.over."):  # so are an over grid's keys
             line = index.get(("analysis", "over", p.path.removeprefix("analysis.over.")))
-        elif "(over point " in p.message:
-            m = re.search(r"\(over point (.*)\)", p.message)
-            keys_ = [kv.split("=", 1)[0].strip() for kv in m[1].split(", ")] if m else []
-            line = next((index[("analysis", "over", k)] for k in keys_ if ("analysis", "over", k) in index), None)
-        elif "(sweep point " in p.message:  # a bad value at a sweep point: the sweep entry's line
-            line = next((index[("sweep", k)] for k in _sweep_keys(p.message) if ("sweep", k) in index), None)
+        else:  # a bad value at sweep / over points: the entry's line
+            kind, swept = sweep.point_keys(p.message)
+            block = ("sweep",) if kind == "sweep" else ("analysis", "over")
+            line = next((index[(*block, k)] for k in swept if (*block, k) in index), None) if kind else None
         probs.append(Problem(p.path, p.message, p.file or str(path), line or line_of(index, keys)))
     return type(exc)(probs)
-
-
-def _sweep_keys(message: str) -> list[str]:
-    """The swept field paths named in a ``(sweep point a.b=1, c=2)`` message."""
-    m = re.search(r"\(sweep point (.*)\)", message)
-    return [kv.split("=", 1)[0].strip() for kv in m[1].split(", ")] if m else []
 
 
 def deep_merge(base: dict, over: dict) -> dict:

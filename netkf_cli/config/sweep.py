@@ -13,6 +13,7 @@ the artefact's tables get one column per swept field (named by its dotted path).
 from __future__ import annotations
 
 import itertools
+import re
 from typing import Any, Literal
 
 import numpy as np
@@ -157,6 +158,7 @@ def expand_over(scenario, file: str | None, validate) -> list[tuple[dict, Any]]:
 
 def _expand(base: dict, points: list[dict], prefix: str, file: str | None, validate) -> list[tuple[dict, Any]]:
     out, problems = [], []
+    at: dict[tuple[str, str], list[str]] = {}  # (path, message) → the points it fails at
     what = "sweep point" if prefix == "sweep" else "over point"
     for coords in points:
         data = _deep_copy(base)
@@ -174,7 +176,14 @@ def _expand(base: dict, points: list[dict], prefix: str, file: str | None, valid
             out.append((coords, validate(data, file)))
         except ConfigError as exc:
             for p in exc.problems:
-                problems.append(Problem(p.path, f"{p.message} ({what} {where})", file))
+                at.setdefault((p.path, p.message), []).append(where)
+    keys = ", ".join(points[0]) if points else ""
+    for (path, message), wheres in at.items():  # one line per problem, naming the points it fails at
+        if len(wheres) == len(points) > 1:
+            message = f"{message} (at every {what}: {keys}; {len(points)} points)"
+        else:
+            message = f"{message} ({what}{'s' if len(wheres) > 1 else ''} {'; '.join(wheres)})"
+        problems.append(Problem(path, message, file))
     if problems:
         # de-duplicate (a bad path repeats at every point)
         seen, uniq = set(), []
@@ -184,6 +193,22 @@ def _expand(base: dict, points: list[dict], prefix: str, file: str | None, valid
                 uniq.append(p)
         raise ConfigError(uniq)
     return out
+
+
+_EVERY_POINT = re.compile(r"\(at every (sweep|over) point: (.*); \d+ points\)$")
+_SOME_POINTS = re.compile(r"\((sweep|over) points? (.*)\)$")
+
+
+def point_keys(message: str) -> tuple[str | None, list[str]]:
+    """("sweep" | "over", the swept paths) named at the end of a message of :func:`_expand` ("… (sweep point
+    a=1, b=2)", "… (over points a=1; a=3)", "… (at every over point: a; 5 points)"); (None, []) otherwise."""
+    m = _EVERY_POINT.search(message)
+    if m:
+        return m[1], [k.strip() for k in m[2].split(", ")]
+    m = _SOME_POINTS.search(message)
+    if m:
+        return m[1], [kv.split("=", 1)[0].strip() for kv in m[2].split("; ")[0].split(", ")]
+    return None, []
 
 
 def _deep_copy(x):

@@ -303,6 +303,10 @@ class GenericMetric(AnalysisModel):
                 if k < first:
                     raise ConfigError.at("analysis.at", f"{e.kind} defines {self.quantity} from step {first} on "
                                                         f"({kalman.SYMBOL[self.quantity]}), got k = {k}")
+        if self.references and not getattr(self, "over", None):  # an over grid checks each of its points
+            # the closed forms' own conditions (a lag they enumerate, 0 < λ < 1 …), before any Monte Carlo: they
+            # were found only after it, when the rows were drawn (1 s for every point of the reproduction)
+            self.reference_rows(scenario, labels(ests))
 
     def needs_per_run_covariance(self) -> bool:
         """Whether this metric takes per-run functionals of P (Pr[P_k ≤ M]), not only means."""

@@ -52,7 +52,10 @@ def test_bad_point_rejected_before_running(tmp_path):
     cfg.write_text(BASE.format(means="[3, -1]", extra=""))
     r = runner.invoke(app, ["run", str(cfg), "--out", str(tmp_path / "o")])
     assert r.exit_code == 1
-    assert "channel.delay.mean" in r.output and "sweep point channel.delay.mean=-1" in r.output
+    out = " ".join(r.output.split())
+    # one line for the bad value, naming the three points (of six) it fails at, on the sweep entry's line
+    assert out.count("•") == 1 and "s.yaml:6 channel.delay.mean" in out, out
+    assert "(sweep points channel.delay.mean=-1, analysis.D_max=2; channel.delay.mean=-1, analysis.D_max=3; " in out
     assert not (tmp_path / "o").exists()
 
 

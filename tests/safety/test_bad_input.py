@@ -192,6 +192,23 @@ def test_validate_reports_what_the_recipe_would_refuse(tmp_path, config, overrid
     assert r.exit_code == 1 and needle in " ".join(r.output.split()) and not (tmp_path / "o").exists()
 
 
+def test_validate_reports_a_closed_form_that_cannot_be_drawn(tmp_path):
+    """A reference's own conditions (Leong's enumeration: lag ≤ 8; 0 < λ < 1) are checked by `netkf validate`, once
+    per problem with the over points it fails at, and by `netkf run` before any Monte Carlo (they were found after
+    it, when the rows were drawn)."""
+    r = invoke("validate", CONFIGS / "smoothing" / "retransmission.yaml", "estimator.lag=20")
+    out = " ".join(r.output.split())
+    assert r.exit_code == 1 and out.count("•") == 1, out
+    assert "smoother lags up to 8, got 20" in out and "(at every over point: channel.p; 5 points)" in out, out
+    text = (CONFIGS / "smoothing" / "table1_predictor.yaml").read_text(encoding="utf-8")
+    bad = tmp_path / "t.yaml"
+    bad.write_text(text.replace("0.3481636551311609", "0.0", 1), encoding="utf-8")
+    r = invoke("validate", bad)
+    out = " ".join(r.output.split())
+    assert r.exit_code == 1 and "needs both arrivals and losses" in out and "(over point channel.arrival=0.0)" in out
+    assert f"t.yaml:{_line_of(text, 'channel.arrival: [')} channel:" in out, out
+
+
 def test_corpus_is_large_enough():
     files = {"file-level": len(FILE_CASES)}
     assert len(CASES) + len(FILE_CASES) >= 60, files
