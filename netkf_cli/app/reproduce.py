@@ -63,6 +63,7 @@ from netkf_cli.config.compat import safe_load
 from netkf_cli.config.loader import line_index, load_scenario, validation_problems
 from netkf_cli.app.report import write_report as _write
 from netkf_cli.app.runner import run_scenario
+from netkf_cli.metrics.common import deferred_reference_checks
 from netkf_cli.core.spec import StrictModel
 from netkf_cli.runtime.workers import pool_kwargs  # pool workers ignore Ctrl-C and die with this process
 from netkf_cli.core.tolerances import MC_SIGMAS
@@ -256,7 +257,8 @@ def discover(root: Path, topics: list[str]) -> tuple[list[Artefact], dict[str, P
     problems: list[Problem] = []
     for cfg in sorted(configs_root.rglob("*.yaml")):
         try:
-            sc = load_scenario(cfg)
+            with deferred_reference_checks():  # each artefact's run checks them before its Monte Carlo
+                sc = load_scenario(cfg)
         except ConfigError as exc:
             problems.extend(exc.problems)
             continue

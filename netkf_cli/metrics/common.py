@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from contextlib import contextmanager
 from typing import Any, Literal
 
 import numpy as np
@@ -303,9 +304,9 @@ class GenericMetric(AnalysisModel):
                 if k < first:
                     raise ConfigError.at("analysis.at", f"{e.kind} defines {self.quantity} from step {first} on "
                                                         f"({kalman.SYMBOL[self.quantity]}), got k = {k}")
-        if self.references and not getattr(self, "over", None):  # an over grid checks each of its points
+        if self.references and not getattr(self, "over", None) and not _DEFER_REFERENCES:
             # the closed forms' own conditions (a lag they enumerate, 0 < λ < 1 …), before any Monte Carlo: they
-            # were found only after it, when the rows were drawn (1 s for every point of the reproduction)
+            # were found only after it, when the rows were drawn (an over grid checks each of its points)
             self.reference_rows(scenario, labels(ests))
 
     def needs_per_run_covariance(self) -> bool:
@@ -326,7 +327,10 @@ class GenericMetric(AnalysisModel):
         return s, ests, st
 
     def reference_rows(self, scenario, labs: list[str]) -> list[dict]:
-        """The closed-form rows of ``references`` at this scenario (source = closed_form, no standard error)."""
+        """The closed-form rows of ``references`` at this scenario (source = closed_form, no standard error).
+
+        Evaluated once per point: the scenario's check (:meth:`check`, before any work) and the metric's
+        compute ask for the same rows, which are kept by what they are computed from (_REFERENCE_ROWS)."""
         if not self.references:
             return []
         ests = scenario.estimator_list()
@@ -335,11 +339,40 @@ class GenericMetric(AnalysisModel):
                                  estimators=[e.model_dump() for e in ests], labels=list(labs),
                                  quantities=self.quantity_list(), metric=self.model_dump(), coords={},
                                  montecarlo=scenario.montecarlo.model_dump())
-        rows = []
-        for name in self.references:
-            for r in references.evaluate(name, point):
-                rows.append(dict(r, reference=name))
-        return rows
+        s = point.system
+        key = repr((self.references, [np.asarray(x).tolist() if x is not None else None
+                                      for x in (s.A, s.C, s.Q, s.R, s.P0)], s.sensors, point.channel,
+                    point.estimators, point.labels, point.quantities, point.metric, point.montecarlo))
+        rows = _REFERENCE_ROWS.get(key)
+        if rows is None:
+            rows = []
+            for name in self.references:
+                for r in references.evaluate(name, point):
+                    rows.append(dict(r, reference=name))
+            if len(_REFERENCE_ROWS) >= 512:  # a bound: one entry per point of the runs of this process
+                _REFERENCE_ROWS.clear()
+            _REFERENCE_ROWS[key] = rows
+        return [dict(r) for r in rows]
+
+
+_DEFER_REFERENCES: list[bool] = []
+"""Non-empty within :func:`deferred_reference_checks`."""
+
+
+@contextmanager
+def deferred_reference_checks():
+    """Within the block, a scenario's check does not evaluate its closed-form references (``netkf reproduce``'s
+    discovery of every config: serial, and each artefact's run checks its points, references included, before
+    its Monte Carlo). Elsewhere (``netkf validate``, ``netkf run``, the API) they are checked with the scenario."""
+    _DEFER_REFERENCES.append(True)
+    try:
+        yield
+    finally:
+        _DEFER_REFERENCES.pop()
+
+
+_REFERENCE_ROWS: dict[str, list[dict]] = {}
+"""The closed-form rows of a point, by everything they are computed from (:meth:`GenericMetric.reference_rows`)."""
 
 
 KF_FORWARD = ("kf", "smoother")

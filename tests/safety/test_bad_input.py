@@ -209,6 +209,20 @@ def test_validate_reports_a_closed_form_that_cannot_be_drawn(tmp_path):
     assert f"t.yaml:{_line_of(text, 'channel.arrival: [')} channel:" in out, out
 
 
+def test_reference_checks_are_deferred_only_where_asked():
+    """netkf reproduce's discovery loads every config without evaluating its references (serial work its
+    artefacts' runs do anyway, before their Monte Carlo); a load anywhere else evaluates them."""
+    from netkf_cli.config.loader import load_scenario
+    from netkf_cli.core.errors import ConfigError
+    from netkf_cli.metrics.common import deferred_reference_checks
+
+    cfg = CONFIGS / "smoothing" / "retransmission.yaml"
+    with deferred_reference_checks():
+        assert load_scenario(cfg, overrides=["estimator.lag=20"]).estimator.lag == 20
+    with pytest.raises(ConfigError, match="smoother lags up to 8, got 20"):
+        load_scenario(cfg, overrides=["estimator.lag=20"])
+
+
 def test_corpus_is_large_enough():
     files = {"file-level": len(FILE_CASES)}
     assert len(CASES) + len(FILE_CASES) >= 60, files
