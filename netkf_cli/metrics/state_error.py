@@ -84,6 +84,14 @@ class StateError(GenericMetric):
         if self.S is not None and np.asarray(self.S, float).shape != (s.n, s.m):
             raise ConfigError.at("analysis.S", f"must be {s.n}×{s.m} (rows = states, columns = outputs), "
                                                f"got {np.asarray(self.S, float).shape}")
+        if self.S is not None:  # the simulated noise [w; v] is drawn from it: it must be a covariance
+            Sigma = state.noise_covariance(s, np.asarray(self.S, float))
+            low = float(np.linalg.eigvalsh(0.5 * (Sigma + Sigma.T)).min())
+            try:
+                state.psd_factor(Sigma)
+            except ValueError:
+                raise ConfigError.at("analysis.S", f"the joint noise covariance [[Q, S], [Sᵀ, R]] must be positive "
+                                                   f"semi-definite; its smallest eigenvalue is {low:.3g}") from None
         H = scenario.montecarlo.horizon
         if self._window_from(scenario) >= H:
             raise ConfigError.at("analysis.window_from", f"must be < montecarlo.horizon = {H}")

@@ -181,6 +181,8 @@ def test_a_problem_is_reported_once(tmp_path, config):
     ("markov/example1_exact.yaml", "estimator={kind: kf}", "needs an estimator of kind markov_lmi"),
     ("markov/example1_exact.yaml", "analysis.x0=[1,2,3]", "must have 2 entries"),
     ("fusion/fig2.yaml", "analysis.ell=[7]", "must be ≤ sensors = 6, got 7"),
+    ("markov/example1.yaml", "analysis.S=[[2.0],[0.0]]", "the joint noise covariance [[Q, S], [Sᵀ, R]] must be positive "
+                                                         "semi-definite"),
 ])
 def test_validate_reports_what_the_recipe_would_refuse(tmp_path, config, override, needle):
     """A paper recipe's own requirements are checked by `netkf validate` (they were found only by `netkf run`, when
