@@ -106,7 +106,7 @@ def p_m(A, C, Q, R, N: int) -> np.ndarray:
     """
     A, C, Q, R = map(_as2d, (A, C, Q, R))
     try:
-        P = scipy.linalg.solve_discrete_are(A.T, C.T, Q, R / N)
+        P = kalman.dare(A, C, Q, R / N)
     except (np.linalg.LinAlgError, ValueError) as exc:
         raise ConfigError.at(
             "system", f"P_m = Φ(P_m, N) has no stabilizing solution ({exc}); (A, C) must be detectable"

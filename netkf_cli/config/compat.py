@@ -20,6 +20,7 @@ from netkf_cli.core.errors import ConfigError, Problem
 from netkf_cli.config.kinds import GENERIC_METRICS
 from netkf_cli.config.scenario import SystemSpec, kinds
 from netkf_cli.core.spec import ChannelModel, EstimatorModel
+from netkf_cli.linalg import riccati
 
 
 def compatible_channels(estimator_cls) -> list[str]:
@@ -96,6 +97,8 @@ def check_scenario(scenario) -> None:
     check = getattr(scenario.analysis, "check", None)
     if callable(check):
         collect(check, scenario)
+    if ests and system is not None and system.P0 is None and not any(p.path == "system" for p in problems):
+        collect(riccati.initial_covariance, system)  # every estimator starts from P_{0|0}: unset P0 is P̄ (core/spec)
     if problems:
         raise ConfigError(problems)
 

@@ -86,7 +86,7 @@ class LinearSystem:
             problems.append(Problem(f"{prefix}.A", f"must be square (n×n), got shape {A.shape[0]}×{A.shape[1]}"))
             n = A.shape[0]
         if C.shape[1] != A.shape[1]:
-            problems.append(Problem(f"{prefix}.C", f"must have {A.shape[1]} columns (the state dimension of A), got shape {C.shape[0]}×{C.shape[1]}"))
+            problems.append(Problem(f"{prefix}.C", f"must have {A.shape[1]} column{'s' if A.shape[1] != 1 else ''} (the state dimension of A), got shape {C.shape[0]}×{C.shape[1]}"))
         m = C.shape[0]
         if Q.shape != (n, n):
             problems.append(Problem(f"{prefix}.Q", f"must be {n}×{n} like A, got {Q.shape[0]}×{Q.shape[1]}"))

@@ -34,7 +34,7 @@ import scipy.linalg
 from netkf_cli.linalg import batched
 from netkf_cli.linalg import kalman_codegen as kc
 from netkf_cli.core.errors import ConfigError
-from netkf_cli.core.tolerances import RESCUE_RATIO
+from netkf_cli.core.tolerances import PSD_TOL, RESCUE_RATIO
 
 QUANTITIES = ("filtered", "predicted", "smoothed")
 """The named covariances an estimator can report at step k."""
@@ -355,13 +355,36 @@ def row_mask(gamma_t: np.ndarray, groups: tuple[tuple[int, ...], ...], m: int) -
     return out
 
 
+def dare(A, C, Q, R) -> np.ndarray:
+    """P* = A P* Aᵀ + Q − A P* Cᵀ (C P* Cᵀ + R)⁻¹ C P* Aᵀ, the steady-state prediction covariance (the filtering
+    DARE), by ``scipy.linalg.solve_discrete_are`` on the dual problem; LinAlgError where it has no finite PSD
+    solution with a (marginally) stable closed loop A − K C, K = A P* Cᵀ (C P* Cᵀ + R)⁻¹.
+
+    scipy raises for most undetectable systems, but not for all: with an undetected unstable complex pair
+    (A with eigenvalues 1.47 ± 0.32i, C = 0) it returned an indefinite matrix of size 1e16, the solution of the
+    Lyapunov equation P = A P Aᵀ + Q, which no covariance satisfies. Checked here, so every caller refuses it."""
+    A, C, Q, R = (np.atleast_2d(np.asarray(X, dtype=float)) for X in (A, C, Q, R))
+    X = scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)
+    if not np.all(np.isfinite(X)):
+        raise np.linalg.LinAlgError("the solution is not finite")
+    X = (X + X.T) / 2
+    eig = np.linalg.eigvalsh(X)
+    if eig[0] < -PSD_TOL * max(1.0, float(np.max(np.abs(eig)))):
+        raise np.linalg.LinAlgError(f"the solution is not positive semi-definite (smallest eigenvalue {eig[0]:.3g})")
+    K = np.linalg.solve(C @ X @ C.T + R, C @ X @ A.T).T
+    rho = float(np.max(np.abs(np.linalg.eigvals(A - K @ C))))
+    if rho > 1.0 + 1e-8:
+        raise np.linalg.LinAlgError(f"the solution is not stabilizing (spectral radius of A − K C is {rho:.6g})")
+    return X
+
+
 def pbar_trace(A, C, Q, R) -> float | None:
     """tr P̄ (P̄ = g̃(P*), the filtered steady state with every packet) when C is rank-deficient and the
     DARE has a stabilizing solution; None otherwise (full-rank C needs no floor)."""
     if np.linalg.matrix_rank(C) == A.shape[0]:
         return None
     try:
-        X = scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)
+        X = dare(A, C, Q, R)
     except (np.linalg.LinAlgError, ValueError):
         return None
     return float(np.trace(one(update, X, C, R)))

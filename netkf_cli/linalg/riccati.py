@@ -14,7 +14,6 @@ from __future__ import annotations
 import weakref
 
 import numpy as np
-import scipy.linalg
 
 from netkf_cli.linalg import kalman
 from netkf_cli.core.errors import ConfigError
@@ -47,7 +46,7 @@ _PSTAR: "weakref.WeakKeyDictionary[LinearSystem, np.ndarray]" = weakref.WeakKeyD
 def pstar(s: LinearSystem) -> np.ndarray:
     """P*, the unique PSD solution of g(X) = X (steady-state prediction covariance, Sec. 3.1).
 
-    Solved with ``scipy.linalg.solve_discrete_are`` on the dual (filtering) problem; memoized
+    Solved by :func:`netkf_cli.linalg.kalman.dare` (scipy on the dual problem, its answer checked); memoized
     per (frozen) system, since the bounds ask for it at every grid point.
     """
     cached = _PSTAR.get(s)
@@ -60,7 +59,7 @@ def pstar(s: LinearSystem) -> np.ndarray:
 
 def _pstar(s: LinearSystem) -> np.ndarray:
     try:
-        P = scipy.linalg.solve_discrete_are(s.A.T, s.C.T, s.Q, s.R)
+        P = kalman.dare(s.A, s.C, s.Q, s.R)
     except (np.linalg.LinAlgError, ValueError) as exc:
         raise ConfigError.at(
             "system",
@@ -73,7 +72,14 @@ def _pstar(s: LinearSystem) -> np.ndarray:
 def initial_covariance(s: LinearSystem) -> np.ndarray:
     """P_{0|0}: ``system.P0``, or P̄ (the steady-state filtered covariance with every packet received)
     when it is unset/steady — the one meaning of P0 in netkf, for every estimator."""
-    return pbar(s) if s.P0 is None else np.asarray(s.P0, dtype=float)
+    if s.P0 is not None:
+        return np.asarray(s.P0, dtype=float)
+    try:
+        return pbar(s)
+    except ConfigError as exc:
+        raise ConfigError.at("system.P0", "unset (or steady), P0 is P̄, the steady-state filtered covariance, which "
+                                          f"does not exist here: {exc.problems[0].message}; give P0 as a matrix"
+                             ) from None
 
 
 def pbar(s: LinearSystem) -> np.ndarray:

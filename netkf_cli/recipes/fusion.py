@@ -60,6 +60,12 @@ class FusionBoundingFunctions(AnalysisModel):
         """ℓ received packets out of N = sensors: reported by ``netkf validate``, before any work."""
         problems = [Problem(f"analysis.ell[{i}]", f"must be ≤ sensors = {self.sensors}, got {l}")
                     for i, l in enumerate(self.ell) if l > self.sensors]
+        s = scenario.linear_system()
+        try:  # P_m and P_M exist (a detectable, stable scalar system)
+            model = fb.ScalarFusionModel.from_matrices(s.A, s.C, s.Q, s.R, self.sensors)
+            model.pm, model.pM
+        except ConfigError as exc:
+            problems += exc.problems
         if problems:
             raise ConfigError(problems)
 

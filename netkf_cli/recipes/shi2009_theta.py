@@ -16,6 +16,7 @@ from netkf_cli.analysis import delay_bounds as db
 from netkf_cli.channels.delay import CONVENTION_HELP, delay_label  # noqa: F401 - delay_label re-exported
 from netkf_cli.runtime.plotting import PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.recipes.base import Artefact, RunContext
+from netkf_cli.core.errors import ConfigError
 from netkf_cli.core.spec import AnalysisModel, PositiveFloat, PositiveInt
 
 
@@ -25,6 +26,20 @@ class ThetaVsBuffer(AnalysisModel):
     kind: Literal["theta_vs_buffer"] = Field(description="θ(k_i(M), D) against the buffer length D (Shi 2009, Fig. 3)")
     M: list[PositiveFloat] = Field(min_length=1, description="error bounds M (scalar M means M·I)")
     D_max: PositiveInt = Field(15, le=10_000, description="largest buffer length on the x-axis (≤ 10 000: one θ per D and M)")
+
+    def check(self, scenario) -> None:
+        """k₁ and k₂ exist at every M (M̄ and P̄ exist, M ≥ M̄ and M ≥ P̄: Thms 3.8 and 4.1), reported by
+        ``netkf validate`` before any work."""
+        s = scenario.linear_system()
+        paths = [f"analysis.M[{i}]" for i in range(len(self.M))]
+        problems = []
+        for k_each in (db.k1_each, db.k2_each):
+            try:
+                k_each(self.M, s, paths)
+            except ConfigError as exc:
+                problems += [p for p in exc.problems if p not in problems]
+        if problems:
+            raise ConfigError(problems)
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         s = scenario.linear_system()

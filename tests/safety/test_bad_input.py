@@ -181,6 +181,7 @@ def test_a_problem_is_reported_once(tmp_path, config):
     ("markov/example1_exact.yaml", "estimator={kind: kf}", "needs an estimator of kind markov_lmi"),
     ("markov/example1_exact.yaml", "analysis.x0=[1,2,3]", "must have 2 entries"),
     ("fusion/fig2.yaml", "analysis.ell=[7]", "must be ≤ sensors = 6, got 7"),
+    ("fig3.yaml", "analysis.M=[0.1, 3]", "analysis.M[0]: must satisfy M ≥ M̄ = 0.5 (Thm 3.8 needs M ≥ M̄), got M = 0.1"),
     ("markov/example1.yaml", "analysis.S=[[2.0],[0.0]]", "the joint noise covariance [[Q, S], [Sᵀ, R]] must be positive "
                                                          "semi-definite"),
 ])
@@ -191,6 +192,22 @@ def test_validate_reports_what_the_recipe_would_refuse(tmp_path, config, overrid
     out = " ".join(r.output.split())
     assert r.exit_code == 1 and needle in out and f"command line ({override})" in out, out
     r = invoke("run", CONFIGS / config, override, "--out", tmp_path / "o", "-q")
+    assert r.exit_code == 1 and needle in " ".join(r.output.split()) and not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("config, overrides, needle", [
+    ("fig5.yaml", ["system.C=0"], "system.P0: unset (or steady), P0 is P̄"),
+    ("critical/tail_scalar.yaml", ["system.C=0"], "system.P0: unset (or steady), P0 is P̄"),
+    ("smoothing/table1.yaml", ["system.C=[[0]]"], "system.P0: unset (or steady), P0 is P̄"),
+    ("fusion/fig2.yaml", ["system.A=1.5", "system.C=0"], "P_m = Φ(P_m, N) has no stabilizing solution"),
+])
+def test_validate_reports_a_start_or_bound_that_does_not_exist(tmp_path, config, overrides, needle):
+    """An undetectable system: P0 unset means P̄ for every estimator (core/spec), and P̄ does not exist; fusion's
+    P_m neither. `netkf validate` says so (it said ✓, and `netkf run` refused at the first chunk)."""
+    r = invoke("validate", CONFIGS / config, *overrides)
+    out = " ".join(r.output.split())
+    assert r.exit_code == 1 and needle in out and "detectable" in out and out.count("•") == 1, out
+    r = invoke("run", CONFIGS / config, *overrides, "--out", tmp_path / "o", "-q")
     assert r.exit_code == 1 and needle in " ".join(r.output.split()) and not (tmp_path / "o").exists()
 
 

@@ -5,7 +5,7 @@ import pytest
 import scipy.linalg
 from hypothesis import given, settings, strategies as st
 
-from netkf_cli.linalg import riccati
+from netkf_cli.linalg import kalman, riccati
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.core.system import LinearSystem
 
@@ -134,3 +134,41 @@ def test_psd_leq_counts_overflow_as_exceeding():
     M = np.eye(2)
     X = np.stack([np.eye(2) * 0.5, np.full((2, 2), np.inf), np.eye(2) * 2])
     assert riccati.psd_leq(X, M).tolist() == [True, False, False]
+
+
+def test_an_undetectable_system_has_no_pstar_even_where_scipy_returns_one():
+    """scipy's solve_discrete_are raises for most undetectable systems, but for an undetected unstable complex pair
+    (C = 0) it returned the indefinite solution of P = A P Aᵀ + Q (entries ~1e16): every caller refuses it now
+    (it was an internal error, 'not positive semi-definite', in the first Monte Carlo chunk)."""
+    A = np.array([[2.9303233728272104, -1.3237446883746125], [1.6997235341225119, 0.0]])
+    C, Q, R = np.zeros((1, 2)), np.diag([1.0, 0.0]), np.array([[0.04]])
+    garbage = scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)  # what scipy answers (documents the need)
+    assert np.linalg.eigvalsh((garbage + garbage.T) / 2).min() < 0
+    s = LinearSystem.create(A, C, Q, R)
+    with pytest.raises(ConfigError, match="no stabilizing solution.*not positive semi-definite"):
+        riccati.pstar(s)
+    with pytest.raises(ConfigError, match="system.P0.*P̄"):
+        riccati.initial_covariance(s)
+    assert kalman.pbar_trace(A, C, Q, R) is None
+    np.testing.assert_array_equal(riccati.initial_covariance(LinearSystem.create(A, C, Q, R, P0=np.eye(2))), np.eye(2))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 4), st.integers(1, 3), st.booleans(), st.integers(0, 3))
+def test_dare_returns_a_psd_stabilizing_fixed_point_or_refuses(seed, n, m, unstable, zero_rows):
+    """kalman.dare on random systems, some made undetectable (rows of C zeroed): its answer is a PSD fixed point of
+    g with a (marginally) stable closed loop, and scipy's whenever scipy's is one; otherwise LinAlgError."""
+    s = random_system(seed, n, m, unstable)
+    C = s.C.copy()
+    C[: min(zero_rows, m)] = 0.0
+    try:
+        P = kalman.dare(s.A, C, s.Q, s.R)
+    except (np.linalg.LinAlgError, ValueError):
+        return
+    s2 = LinearSystem.create(s.A, C, s.Q, s.R)
+    assert np.linalg.eigvalsh(P).min() >= -1e-9 * max(1.0, np.abs(P).max())
+    np.testing.assert_allclose(riccati.g(P, s2), P, rtol=1e-6, atol=1e-8 * max(1.0, np.abs(P).max()))
+    K = s.A @ P @ C.T @ np.linalg.inv(C @ P @ C.T + s.R)
+    A_KC = s.A - K @ C
+    assert max(abs(np.linalg.eigvals(A_KC))) <= 1 + 1e-8
+    np.testing.assert_array_equal(P, (lambda X: (X + X.T) / 2)(scipy.linalg.solve_discrete_are(s.A.T, C.T, s.Q, s.R)))
