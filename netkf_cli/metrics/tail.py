@@ -412,6 +412,9 @@ class TailMetric(AnalysisModel):
             se0 = np.sqrt(p0 * (1 - p0) / max(n0, 1))
             if K > 1:
                 p, se = importance_estimate(st, j)
+                # the unbiased estimate is not bounded by 1 (weights up to K: an undetectable system, every run
+                # above M, gave 1.08); projected onto [0, 1], which can only bring it closer to the probability
+                p = np.minimum(p, 1.0)
             else:
                 p, se = p0, se0
             cnt = st[f"cnt_{j}"]
@@ -422,7 +425,7 @@ class TailMetric(AnalysisModel):
             for i, m in enumerate(M):
                 rows.append(dict(M=m, estimator=lab, series="importance" if K > 1 else "monte_carlo", value=p[i],
                                  stderr=se[i], n=int(st["n_c"].sum()), lo=max(p[i] - 1.96 * se[i], 0.0),
-                                 hi=p[i] + 1.96 * se[i], count=cnt[i], reliable=float(good[i])))
+                                 hi=min(p[i] + 1.96 * se[i], 1.0), count=cnt[i], reliable=float(good[i])))
                 if K > 1:
                     rows.append(dict(M=m, estimator=lab, series="plain", value=p0[i], stderr=se0[i], n=n0,
                                      lo=lo0[i], hi=hi0[i], count=cnt0[i], reliable=float(cnt0[i] >= MIN_CONTRIBUTORS)))

@@ -181,3 +181,14 @@ def test_rates_at_or_below_lambda_min_are_named_not_silently_dropped():
 
     assert "Not drawn: λ = 0.5, 0.75 ≤ λ_min = 0.75, where E[P_k] is unbounded" in notes([0.5, 0.75, 0.9])
     assert "Not drawn" not in notes([0.8, 0.9])
+
+
+def test_tail_probabilities_and_their_intervals_stay_within_one(root):
+    """Every run above every M (an undetectable system, C = 0): the importance-sampled estimate is unbiased but
+    not bounded by 1 (weights up to K), and p̂ + 1.96 s.e. went to 1.107 here. Both are kept in [0, 1]."""
+    sc = load_scenario(root / "configs/critical/tail_scalar.yaml", overrides=["system.C=0", "system.P0=1"])
+    t = sc.analysis.compute(sc, RunContext(runs=300)).table
+    est = t[t.series == "importance"]
+    assert len(est) and (est["count"] == 300).all()  # every run above every M
+    assert (t.value.dropna() <= 1).all() and (t.hi.dropna() <= 1).all() and (t.lo.dropna() >= 0).all()
+    assert (est.hi == 1).all() and (est.value > 0.8).all()
