@@ -30,7 +30,9 @@ RESCUE_RATIO = 1e8
 """The information-form rescue (kalman.Rescue): a run whose prior covariance has
 tr P⁻ > RESCUE_RATIO · scale is updated in information form (P⁻⁻¹ + CᵀR⁻¹C)⁻¹. The standard form
 P − P Cᵀ S⁻¹ C P cancels every digit once ‖P‖/‖R‖ ≳ 1/ε ≈ 4.5e15; 1e8 leaves a margin of 1e7 and
-is far above any covariance a stable or moderately unstable filter reaches."""
+is far above any covariance a stable or moderately unstable filter reaches. That holds for one row at a time (S a
+number: the error is ε·‖P‖/‖P⁺‖); with several rows at once it grows like ‖P‖², and kalman.burst_limit lowers the
+limit per system to where the error is still ε·RESCUE_RATIO."""
 
 HEAVY_TAIL_RSE = 0.5
 """A Monte Carlo mean is flagged heavy-tailed when the relative standard error of its sample

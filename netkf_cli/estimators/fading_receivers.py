@@ -314,7 +314,7 @@ class ReceiverModel:
         is a DARE (Sec. 4.2's C = [1 2 3]: 96 chunks × 2 receivers solved it 192 times)."""
         key = tuple((x.shape, x.tobytes()) for x in (self.A, self.C, self.Q, self.R))
         if key not in _RESCUES:
-            _RESCUES[key] = kalman.Rescue.of(self.C, self.R, kalman.pbar_trace(self.A, self.C, self.Q, self.R))
+            _RESCUES[key] = kalman.Rescue.for_system(self.A, self.C, self.Q, self.R, self.C.shape[0])  # one packet: y_k
         return _RESCUES[key]
 
     @cached_property

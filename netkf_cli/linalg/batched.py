@@ -114,15 +114,31 @@ def inv_small(S: np.ndarray) -> np.ndarray:
         return out
     Sm = np.moveaxis(S, -1, 0)
     eye = np.broadcast_to(np.eye(m), Sm.shape)
-    return np.moveaxis(np.linalg.solve(Sm, eye), 0, -1)
+    return np.moveaxis(_solve_runs(Sm, eye), 0, -1)
 
 
 def solve_small(S: np.ndarray, B: np.ndarray) -> np.ndarray:
     """S⁻¹ B per run for S (m, m, runs) and B (m, k, runs)."""
     if S.shape[0] <= 2:
         return matmul(inv_small(S), B)
-    X = np.linalg.solve(np.moveaxis(S, -1, 0), np.moveaxis(B, -1, 0))
+    X = _solve_runs(np.moveaxis(S, -1, 0), np.moveaxis(B, -1, 0))
     return np.moveaxis(X, 0, -1)
+
+
+def _solve_runs(Sm: np.ndarray, Bm: np.ndarray) -> np.ndarray:
+    """``np.linalg.solve`` over the leading (run) axis, a run whose S is singular to working precision (or not
+    finite) giving NaN like the closed forms' division by zero, instead of LinAlgError for the whole batch (a
+    run's prior overflowed along one direction makes its S = C P Cᵀ + R singular in double: 3 rows, a long burst).
+    Such runs are found by LAPACK's own LU (``det`` and ``solve`` share getrf: a zero pivot in one is in the other)."""
+    try:
+        return np.linalg.solve(Sm, Bm)
+    except np.linalg.LinAlgError:
+        with np.errstate(invalid="ignore", over="ignore"):
+            bad = ~(np.linalg.det(np.where(np.isfinite(Sm), Sm, 0.0)) != 0) | ~np.isfinite(Sm).all(axis=(-1, -2))
+        Sm = np.where(bad[:, None, None], np.eye(Sm.shape[-1]), Sm)
+        X = np.linalg.solve(Sm, Bm)
+        X[bad] = np.nan
+        return X
 
 
 def psd_leq(P: np.ndarray, M: np.ndarray | float, tol: float = PSD_TOL) -> np.ndarray:
