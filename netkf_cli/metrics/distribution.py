@@ -78,6 +78,7 @@ class ClosedForms:
     def __init__(self, s, channel, est, at_stationary: bool, exact: bool, exact_tol: float, quantity: str = "filtered"):
         self.s, self.ch, self.est, self.exact, self.tol = s, channel, est, exact, exact_tol
         self.available, self.why, self.jumps = False, "", []
+        self.uncertified: dict[float, tuple[float, float]] = {}  # M → (lower, upper) of a bracket wider than tol
         if quantity != "filtered":
             self.why = f"the closed forms (Shi 2009 Thm 3.8/4.1) are for the filtered P_{{k|k}}, not {quantity}"
             return
@@ -128,8 +129,20 @@ class ClosedForms:
             try:
                 ex = dx.exact_probability(self.s, ch, self.span, M[ok], tol=self.tol)
                 v, e = np.full(len(M), np.nan), np.full(len(M), np.nan)
-                v[ok], e[ok] = ex.value, ex.err
+                certified = ex.err <= self.tol  # else a bracket only (lost precision or node budget): not drawn
+                # and inside Thm 3.8's bounds (closed forms, independent of the word tree): a word whose composed map
+                # lost its precision without becoming singular can decide a node wrongly (a coupled system with an
+                # eigenvalue −0.3 of A: the bracket left the bounds by 8e-6)
+                for name, side in (("lower_bound", 1.0), ("upper_bound", -1.0)):
+                    b = out.get(name, np.full(len(M), np.nan))[ok]
+                    inside = (ex.upper >= b - self.tol) if side > 0 else (ex.lower <= b + self.tol)
+                    certified &= np.isnan(b) | inside
+                v[ok] = np.where(certified, ex.value, np.nan)
+                e[ok] = ex.err
                 out["exact"], out["exact_err"] = v, e
+                for m, lo, hi, c in zip(M[ok], ex.lower, ex.upper, certified):
+                    if not c:
+                        self.uncertified.setdefault(float(m), (float(lo), float(hi)))
             except ConfigError as exc:
                 self.why = f"exact probability unavailable: {exc.problems[0].message}"
         return out
@@ -213,6 +226,14 @@ class Distribution(GenericMetric):
                     continue
                 curves += [dict(M=g, estimator=lab, series=name, value=x) for g, x in zip(grid, v) if np.isfinite(x)]
             meta["closed_forms"][lab] = {"attached": True, "floor_M": cf.floor(), "note": cf.why or None}
+            if cf.uncertified:
+                pts = sorted(m for m in cf.uncertified if m in set(M.tolist())) or sorted(cf.uncertified)
+                lo, hi = cf.uncertified[pts[0]]
+                meta["warnings"].append(
+                    f"{lab}: the exact probability is not certified to exact_tol = {self.exact_tol:g} at "
+                    f"{len(pts)} M (not drawn; e.g. M = {pts[0]:g}: between {lo:.6g} and {hi:.6g}): "
+                    "a long loss word's composed map lost double precision (or left Thm 3.8's bounds), or the node "
+                    "budget ran out")
         for w in meta["warnings"]:  # one line on the terminal, and in the manifest
             warnings.warn(w, stacklevel=2)
         table = pd.DataFrame(rows, columns=COLUMNS)
