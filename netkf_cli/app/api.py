@@ -171,7 +171,8 @@ def run(scenario, *, runs: int | None = None, arrivals: np.ndarray | None = None
     """Run a scenario (from :func:`load`); write the result folder only if ``out`` is given.
 
     ``arrivals`` / ``delays`` replay a recording instead of the scenario's channel (see the module
-    docstring; ``buffer`` is the receive buffer for ``delays``); ``overrides`` change fields first.
+    docstring; ``buffer`` is the receive buffer for ``delays``, by default the scenario channel's, whose keep rule
+    ``convention`` applies too); ``overrides`` change fields first.
     """
     if isinstance(scenario, (str, Path, dict)) and not isinstance(scenario, bool):
         scenario = load(scenario)
@@ -195,7 +196,15 @@ def run(scenario, *, runs: int | None = None, arrivals: np.ndarray | None = None
     rec = arrivals if arrivals is not None else delays
     if rec is not None:
         arg = "arrivals" if arrivals is not None else "delays"
-        kw = {} if buffer is None else {"buffer": _check_int("buffer", buffer)}
+        kw = {}
+        if delays is not None:  # the scenario channel's receive buffer and keep rule, unless buffer= is given
+            old = scenario.channel
+            if buffer is not None:
+                kw["buffer"] = _check_int("buffer", buffer)
+            elif getattr(old, "buffer", None) is not None:
+                kw["buffer"] = int(old.buffer)
+            if getattr(old, "convention", None) is not None:
+                kw["convention"] = old.convention
         ch = recorded_channel(rec, scenario.montecarlo.horizon, arg=arg,
                               values="arrival" if arrivals is not None else "delay", **kw)
         scenario = scenario.model_copy(update={"channel": ch})

@@ -339,6 +339,8 @@ def delay_label(channel, math: bool = False) -> str:
     if channel.kind == "bernoulli":
         return "Bernoulli " + eq(r"\gamma" if math else "γ", f"{channel.arrival:g}")
     dist = getattr(channel, "delay", None)
+    if channel.kind == "trace":
+        return f"recorded {getattr(channel, 'values', 'arrival')}s ({channel.file})"
     if dist is None:
         return f"{channel.kind} channel"
     if dist.kind == "poisson":

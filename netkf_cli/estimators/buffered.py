@@ -201,9 +201,10 @@ def packet_span(s: LinearSystem, packet: PacketKind = "auto", path: str = "estim
 def delay_conventions(channel, packet: str) -> dict[str, str]:
     """The labels of a delay-buffer estimator's numbers: D, keep rule, packet content, delay law."""
     out = {}
-    if channel is not None and channel.kind == "delay":
+    recorded = channel is not None and channel.kind == "trace" and getattr(channel, "values", "") == "delay"
+    if channel is not None and (channel.kind == "delay" or recorded):
         conv = getattr(channel, "convention", DEFAULT_CONVENTION)
-        out["buffer"] = f"D = {channel.D}"
+        out["buffer"] = f"D = {channel.D if channel.kind == 'delay' else channel.buffer}"
         out["convention"] = f"{conv} (d {'≤' if conv == 'delay_le_D' else '<'} D kept)"
     elif channel is not None and channel.kind == "bernoulli":
         out["buffer"] = "none (pure loss: delay 0)"

@@ -163,3 +163,26 @@ def test_every_bad_file_is_refused_by_the_api(tmp_path, cid, data, needle):
     cfg = tmp_path / "bad.yaml"
     cfg.write_bytes(data)
     _refused(lambda: load(cfg), needle)
+
+
+def test_replayed_delays_keep_the_scenarios_buffer_and_keep_rule():
+    """run(sc, delays=…) replays the recording through the scenario's own receive buffer and convention (it used
+    buffer 1 and delay_le_D whatever the scenario said, and the CSV said only 'delay law: trace channel')."""
+    base = {"name": "t", "system": {"A": 1.3, "C": 1, "Q": 1, "R": 1, "P0": 1},
+            "estimator": {"kind": "buffered", "packet": "measurement"}, "analysis": {"kind": "mean_vs_time", "every": 1},
+            "montecarlo": {"runs": 1, "horizon": 8, "seed": 1}}
+    dly = np.array([3, 3, 0, -1, 2, 3, 1, 0])
+
+    def with_channel(D, conv):
+        return load({**base, "channel": {"kind": "delay", "delay": {"kind": "poisson", "mean": 1}, "buffer": D,
+                                         "convention": conv}})
+
+    lt3 = run(with_channel(3, "delay_lt_D"), delays=dly, runs=1).table
+    le2 = run(with_channel(2, "delay_le_D"), delays=dly, runs=1).table
+    le3 = run(with_channel(3, "delay_le_D"), delays=dly, runs=1).table
+    np.testing.assert_array_equal(lt3.value, le2.value)  # d < 3 kept = d ≤ 2 kept
+    assert not np.array_equal(le3.value, le2.value)  # the buffer matters on this recording
+    np.testing.assert_array_equal(run(with_channel(2, "delay_le_D"), delays=dly, buffer=3, runs=1).table.value,
+                                  le3.value)  # buffer= still overrides
+    conv = lt3.conventions.iloc[0]
+    assert "D = 3" in conv and "delay_lt_D" in conv and "recorded delays (<delays array sha256:" in conv, conv
