@@ -464,6 +464,7 @@ def validate_data(data: Any, file: str | None = None, index: dict | None = None,
                                      for p in exc.problems], overrides)) from None
     if scenario.sweep is not None or getattr(scenario.analysis, "over", None):  # every point gets these same
         try:  # checks, now (as `netkf validate` promises)
+            sweep.check_axes(scenario)
             if scenario.sweep is not None:
                 sweep.expand(scenario, file, validate_data)
             else:

@@ -234,9 +234,38 @@ def check_plot(spec: "SweepSpec", table: pd.DataFrame) -> None:
         raise ConfigError(problems)
 
 
+TABLE_COLUMNS = ("estimator",)
+"""Result-table columns a sweep or over path could be named like (a path is its table column): the whole
+``estimator`` block is compared with ``estimators:``, not swept."""
+
+
+def check_axes(scenario) -> None:
+    """The sweep and ``analysis.over`` paths can be table columns: not both the same path (or one inside the
+    other: the over value would silently replace the swept one), and not a name the table has already."""
+    swept = list(scenario.sweep.axes) if scenario.sweep is not None else []
+    over = list(getattr(scenario.analysis, "over", None) or {})
+    problems = []
+    for block, paths in (("sweep", swept), ("analysis.over", over)):
+        for a in paths:
+            if a in TABLE_COLUMNS:
+                problems.append(Problem(f"{block}.{a}" if block == "sweep" else "analysis.over",
+                                        f"{a!r} is a column of the result table already: sweep a field inside it "
+                                        f"(e.g. {a}.lag), or list several estimators under `estimators:`"))
+    for a in swept:
+        for o in over:
+            if a == o or a.startswith(o + ".") or o.startswith(a + "."):
+                problems.append(Problem(f"sweep.{a}", f"is also set by analysis.over ({o}): the over value would "
+                                                      "replace the swept one; give the path in one of the two"))
+    if problems:
+        raise ConfigError(problems)
+
+
 def add_coords(df: pd.DataFrame, coords: dict) -> pd.DataFrame:
     df = df.copy()
     for i, (k, v) in enumerate(coords.items()):
+        if k in df.columns:  # check_axes refuses the known cases before any work; a metric's own column else
+            raise ConfigError.at(k, f"the swept path {k!r} is also a column of this analysis's table "
+                                    f"({', '.join(map(str, df.columns))}): sweep another path")
         df.insert(i, k, v)
     return df
 

@@ -83,3 +83,32 @@ def test_a_bad_range_says_what_is_wrong_with_it(tmp_path):
         out = " ".join(r.output.split())
         assert r.exit_code == 1 and needle in out, out
         assert f"command line (sweep.channel.buffer={rng}) sweep:" in out, out
+
+
+import pytest  # noqa: E402
+
+_BASE = """\
+name: clash
+system: {A: 1.2, C: 1, Q: 1, R: 1}
+channel: {kind: bernoulli, arrival: 0.8}
+estimator: {kind: kf}
+montecarlo: {runs: 100, horizon: 20, seed: 1}
+"""
+
+
+@pytest.mark.parametrize("extra, needle", [
+    ("analysis: {kind: mean_vs_time, over: {channel.arrival: [0.5, 0.9]}}\nsweep: {channel.arrival: [0.6, 0.7]}\n",
+     "sweep.channel.arrival: is also set by analysis.over (channel.arrival)"),
+    ("analysis: {kind: mean_vs_time}\nsweep: {estimator: [{kind: kf}, {kind: smoother, lag: 1}]}\n",
+     "sweep.estimator: 'estimator' is a column of the result table already"),
+    ("analysis: {kind: time_average, over: {estimator: [{kind: kf}, {kind: smoother, lag: 1}]}}\n",
+     "analysis.over: 'estimator' is a column of the result table already"),
+])
+def test_a_path_swept_twice_or_named_like_a_column_is_refused_before_any_work(tmp_path, extra, needle):
+    """These were internal errors (pandas: 'cannot insert …, already exists') after the whole Monte Carlo."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(_BASE + extra, encoding="utf-8")
+    for cmd in (["validate", str(cfg)], ["run", str(cfg), "--out", str(tmp_path / "o"), "-q"]):
+        r = runner.invoke(app, cmd)
+        assert r.exit_code == 1 and needle in " ".join(r.output.split()), r.output
+    assert not (tmp_path / "o").exists()
