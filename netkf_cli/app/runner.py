@@ -304,6 +304,8 @@ def check_run_count(scenario, runs: int | None = None, *, quick: bool = False, y
     n = max(counts)
     size = work_size(scenario, runs, quick)
     eta = size / (RUN_STEPS_PER_S * max(1, jobs))
+    chunk = min(mc.chunk, n)
+    montecarlo.check_chunk_memory(chunk, mc.horizon, min(max(1, jobs), -(-n // chunk)))
     if n > mc.max_runs and not yes:
         path = runs_option if runs else ("sweep.montecarlo.runs" if n != mc.runs else "montecarlo.runs")
         raise ConfigError([Problem(path, f"{n:.3g} runs is above the limit montecarlo.max_runs = {mc.max_runs:.3g} "

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from netkf_cli.core.stats import mean_se, proportion_stderr, wilson_interval  # noqa: F401 (re-exported: one statistics module)
-from netkf_cli.core.errors import NetkfError
+from netkf_cli.core.errors import ConfigError, NetkfError
 from netkf_cli.runtime.workers import pool_kwargs  # pool workers ignore Ctrl-C and die with this process
 from netkf_cli.runtime.workers import limit_blas, release_free_memory
 
@@ -252,6 +252,45 @@ def execution(executor: str = "serial", jobs: int = 1, scheduler: str | None = N
         ex.close()
         for cache in _RUN_CACHES:
             cache.clear()
+
+
+def available_memory() -> float | None:
+    """Bytes of memory available to new allocations (Linux: /proc/meminfo's MemAvailable; else the free physical
+    pages where the system tells); None where unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    try:
+        return float(os.sysconf("SC_AVPHYS_PAGES")) * float(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+TRACE_BYTES_PER_RUN_STEP = 8.0
+"""What a chunk holds per run and step: its runs' sampled traces (the channel's uniforms, one float64 each),
+measured 7.2 (bernoulli + kf) and 9.2 (delay + buffered) bytes per run-step above the process's base on 2e4 × 5e3
+chunks; the pre-flight check (:func:`check_chunk_memory`) refuses a chunk plan far above what the machine has."""
+
+
+def check_chunk_memory(chunk_runs: int, horizon: int, processes: int) -> None:
+    """Refuse (montecarlo.chunk) a plan whose chunks cannot fit in the available memory: each of ``processes``
+    holds a chunk's traces, about TRACE_BYTES_PER_RUN_STEP per run-step. Memory is bounded by the chunk size
+    *and* the horizon; a run that would be killed by the system's out-of-memory killer is refused before it starts."""
+    avail = available_memory()
+    need = TRACE_BYTES_PER_RUN_STEP * float(chunk_runs) * float(horizon) * max(1, processes)
+    if avail is None or need <= 0.8 * avail:
+        return
+    fit = int(0.8 * avail / (TRACE_BYTES_PER_RUN_STEP * float(horizon) * max(1, processes)))
+    hint = (f"lower montecarlo.chunk (chunks of {fit} runs would fit; the chunk is part of the random stream layout, "
+            "so the numbers change), the horizon or --jobs" if fit >= 1 else "lower the horizon")
+    raise ConfigError.at("montecarlo.chunk" if fit >= 1 else "montecarlo.horizon", f"a chunk holds its runs' whole traces: {chunk_runs} runs × {horizon} steps "
+                                             f"is about {need / 1e9:.3g} GB in {max(1, processes)} process"
+                                             f"{'es' if processes > 1 else ''}, above the {avail / 1e9:.3g} GB this "
+                                             f"machine has available; {hint}")
 
 
 def usable_cores() -> int:

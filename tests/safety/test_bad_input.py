@@ -391,3 +391,20 @@ def test_non_finite_option_values_of_any_command(args):
     r = invoke(*args)
     assert r.exit_code == 1, r.output
     assert "must be a finite number" in r.output and "Traceback" not in r.output
+
+
+def test_a_chunk_plan_above_the_available_memory_is_refused_before_it_starts(tmp_path, monkeypatch):
+    """Memory is bounded by the chunk size and the horizon (a chunk holds its runs' traces, ~8 B per run-step): a
+    horizon of 1e12 grew to 24 GB and was killed by the system's OOM killer (the UX fuzz). Refused, naming the
+    field, with a chunk size that would fit; nothing is written."""
+    from netkf_cli.runtime import montecarlo
+
+    monkeypatch.setattr(montecarlo, "available_memory", lambda: 2e9)
+    cfg = CONFIGS / "fig5.yaml"
+    r = invoke("run", cfg, "montecarlo.horizon=50000", "--jobs", "1", "--out", tmp_path / "o", "-q")
+    out = " ".join(r.output.split())
+    assert r.exit_code == 1 and "montecarlo.chunk: a chunk holds its runs' whole traces: 20000 runs × 50000 steps is about 8 GB in 1 process" in out
+    assert "chunks of 4000 runs would fit" in out and not (tmp_path / "o").exists(), out
+    r = invoke("run", cfg, "montecarlo.horizon=1e12", "--runs", "2", "--out", tmp_path / "o", "-q")
+    assert r.exit_code == 1 and "montecarlo.horizon: a chunk holds" in " ".join(r.output.split()), r.output
+    assert invoke("run", cfg, "--runs", "100", "--out", tmp_path / "o", "-q").exit_code == 0  # 8 MB: fine
