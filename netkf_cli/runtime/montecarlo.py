@@ -258,10 +258,9 @@ def available_memory() -> float | None:
     """Bytes of memory available to new allocations (Linux: /proc/meminfo's MemAvailable; else the free physical
     pages where the system tells); None where unknown."""
     try:
-        with open("/proc/meminfo", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024.0
+        for line in Path("/proc/meminfo").read_text(encoding="ascii").splitlines():
+            if line.startswith("MemAvailable:"):
+                return float(line.split()[1]) * 1024.0
     except OSError:
         pass
     try:
