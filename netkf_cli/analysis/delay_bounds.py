@@ -213,7 +213,8 @@ def min_buffer(k: float, eps: float, cdf: Cdf, convention: Convention, D_max: in
     """min{D ≥ 1 : θ(k, D) ≤ ε} by binary search (Remark 3.9); ``None`` when no D achieves it.
 
     θ(k, ·) is non-increasing and constant beyond :func:`saturation_D`, so the search runs
-    over [1, saturation_D(k)]. With ``D_max`` the answer is also ``None`` if it exceeds D_max.
+    over [1, saturation_D(k)]. With ``D_max`` the answer is also ``None`` if it exceeds D_max
+    (:func:`size_buffer` keeps both answers apart: :attr:`BufferSizing.reason`).
     """
     hi = saturation_D(k, convention)
     if theta(k, hi, cdf, convention) > eps:
@@ -247,29 +248,54 @@ class BufferSizing:
     D_s: int | None
     D_n: int | None
     D_star: int | None
+    D_max: int | None = None
+    """The cap (``--D-max``): D_s, D_n, D* are ``None`` above it; the ``*_uncapped`` fields are not."""
+    D_s_uncapped: int | None = None
+    D_n_uncapped: int | None = None
+    D_star_uncapped: int | None = None
 
     @property
     def feasible(self) -> bool:
+        """Some D ≤ D_max meets the requirement (D_s for raw measurements, D* for a smart sensor)."""
         return (self.D_star if self.sensor == "smart" else self.D_s) is not None
+
+    @property
+    def feasible_uncapped(self) -> bool:
+        """Some finite D meets it: θ(k, D → ∞) ≤ ε, k = k₁ (raw, Thm 3.8) or k₂ (smart, Thm 4.1)."""
+        return (self.D_star_uncapped if self.sensor == "smart" else self.D_s_uncapped) is not None
+
+    @property
+    def reason(self) -> str | None:
+        """Why :attr:`feasible` is false: ``"above_D_max"`` (a finite D does it, only longer than D_max)
+        or ``"theta_floor"`` (θ(k, D → ∞) > ε: no finite D); ``None`` when feasible."""
+        if self.feasible:
+            return None
+        return "above_D_max" if self.feasible_uncapped else "theta_floor"
+
+
+def _capped(D: int | None, D_max: int | None) -> int | None:
+    return None if D is None or (D_max is not None and D > D_max) else D
 
 
 def size_buffer(M, eps: float, s: LinearSystem, cdf: Cdf, convention: Convention, sensor: str = "raw",
                 D_max: int | None = None, path: str = "M") -> BufferSizing:
-    """Minimum buffer lengths for Pr[P_k ≤ M] ≥ 1 − ε: D_s, D_n (raw, Sec. 3.4) or D* (smart, Sec. 4)."""
+    """Minimum buffer lengths for Pr[P_k ≤ M] ≥ 1 − ε: D_s, D_n (raw, Sec. 3.4) or D* (smart, Sec. 4),
+    each both as found and capped at ``D_max`` (``None`` above it)."""
     Pb = riccati.pbar(s)
     if sensor == "raw":
         Mb = riccati.mbar(s)
         kk1 = k1(M, s, path)  # checks M ≥ M̄ first: the condition Thm 3.8 states
         kk2 = k2(M, s, path)
-        D_s = min_buffer(kk1, eps, cdf, convention, D_max)
-        D_n = min_buffer(kk2, eps, cdf, convention, D_max)
+        D_s = min_buffer(kk1, eps, cdf, convention)
+        D_n = min_buffer(kk2, eps, cdf, convention)
         return BufferSizing(M, eps, sensor, convention, Mb, Pb, kk1, kk2, theta_floor(kk1, cdf, convention),
-                            theta_floor(kk2, cdf, convention), D_s, D_n, None)
+                            theta_floor(kk2, cdf, convention), _capped(D_s, D_max), _capped(D_n, D_max), None,
+                            D_max, D_s, D_n, None)
     kk2 = k2(M, s, path)
-    D_star = min_buffer(kk2, eps, cdf, convention, D_max)
+    D_star = min_buffer(kk2, eps, cdf, convention)
     Mb = riccati.mbar(s) if _has_mbar(s) else np.full_like(Pb, np.nan)
     return BufferSizing(M, eps, sensor, convention, Mb, Pb, None, kk2, None, theta_floor(kk2, cdf, convention),
-                        None, None, D_star)
+                        None, None, _capped(D_star, D_max), D_max, None, None, D_star)
 
 
 def _has_mbar(s: LinearSystem) -> bool:

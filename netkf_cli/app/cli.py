@@ -493,7 +493,7 @@ def mind(
     d: Annotated[Optional[float], typer.Option("--d", help="Poisson mean delay d ≥ 0 (default 5, the mean Example 3.10's printed θ values imply).")] = None,
     sensor: Annotated[str, typer.Option("--sensor", help="raw: the sensor sends y_k (Sec. 3, D_s and D_n); smart: it sends its estimate (Sec. 4, D*).")] = "raw",
     convention: Annotated[Optional[str], typer.Option("--convention", help="delay_le_D (default; kept iff delay ≤ D, as the paper's printed numbers) or delay_lt_D (kept iff delay < D, eq. 4).")] = None,
-    D_max: Annotated[Optional[int], typer.Option("--D-max", help="Largest buffer you can afford; longer answers count as infeasible.", min=1)] = None,
+    D_max: Annotated[Optional[int], typer.Option("--D-max", help="Largest buffer you can afford; a longer minimum is not offered (feasible: false), but reported as above the cap with its value (reason: above_D_max).", min=1)] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ):
     """Minimum receive-buffer length D so that Pr[P_k ≤ M] ≥ 1 − ε (Shi, Xie & Murray 2009, Sec. 3.4 and 4).

@@ -3,7 +3,8 @@
 Raw measurements (Sec. 3.4): D_s = min{D : θ(k₁, D) ≤ ε} is sufficient, D_n = min{D : θ(k₂, D) ≤ ε}
 is necessary (Thm 3.8). Smart sensor (Sec. 4): D* = min{D : θ(k₂, D) ≤ ε} is necessary and
 sufficient (Thm 4.1). θ(k, D) stops decreasing at D = k − 1 (``delay_le_D``) or k (``delay_lt_D``):
-if its floor exceeds ε no buffer can do it.
+if its floor exceeds ε no buffer can do it. A ``--D-max`` cap is another matter: a minimum above it is
+reported as such, with its value (``reason``: ``above_D_max``, not ``theta_floor``).
 """
 
 from __future__ import annotations
@@ -54,8 +55,13 @@ def _k(k) -> str:
     return "∞" if k is None or math.isinf(k) else str(int(k))
 
 
-def _D(D) -> str:
-    return "none (no finite D)" if D is None else str(D)
+def _D(D, uncapped, D_max) -> str:
+    """A minimum buffer as the report prints it: above ``--D-max`` is not the same as no finite D (θ's floor > ε)."""
+    if D is not None:
+        return str(D)
+    if uncapped is not None:
+        return f"none up to D_max = {D_max} ({uncapped} without the cap)"
+    return "none (no finite D)"
 
 
 @dataclass
@@ -73,28 +79,55 @@ class MindReport:
             "mbar": _mat(s.mbar), "pbar": _mat(s.pbar),
             "k1": _num(s.k1), "k2": _num(s.k2),
             "theta_floor_1": s.theta_floor_1, "theta_floor_2": s.theta_floor_2,
-            "D_s": s.D_s, "D_n": s.D_n, "D_star": s.D_star,
-            "feasible": s.feasible, "verdict": self.verdict(),
+            "D_s": s.D_s, "D_n": s.D_n, "D_star": s.D_star, "D_max": s.D_max,
+            "D_s_uncapped": s.D_s_uncapped, "D_n_uncapped": s.D_n_uncapped, "D_star_uncapped": s.D_star_uncapped,
+            "feasible": s.feasible, "feasible_uncapped": s.feasible_uncapped, "reason": s.reason,
+            "verdict": self.verdict(),
         }
 
     def verdict(self) -> str:
+        """One paragraph: D_s / D_n (Thm 3.8) or D* (Thm 4.1) within ``--D-max``, else why not: the shortest
+        buffer is longer than D_max, or θ(k, D → ∞) > ε leaves no finite D."""
         s = self.sizing
+        req = f"Pr[P_k ≤ {s.M:g}] ≥ {one_minus(s.eps)}"
         if s.sensor == "smart":
             if s.D_star is not None:
-                return (f"A buffer of D* = {s.D_star} is necessary and sufficient for Pr[P_k ≤ {s.M:g}] ≥ {one_minus(s.eps)} "
+                return (f"A buffer of D* = {s.D_star} is necessary and sufficient for {req} "
                         f"with a smart sensor (Thm 4.1).")
+            if s.D_star_uncapped is not None:
+                return (f"No buffer up to --D-max {s.D_max} meets the requirement: the shortest buffer that meets it is "
+                        f"above the cap, D* = {s.D_star_uncapped} (necessary and sufficient for {req} with a smart "
+                        f"sensor, Thm 4.1); raise --D-max to {s.D_star_uncapped}.")
             return (f"No buffer length meets the requirement: even D → ∞ leaves Pr[P_k > {s.M:g}] = θ(k2) = "
                     f"{s.theta_floor_2:.4g} > ε = {s.eps:g}; the smallest ε any buffer achieves is {s.theta_floor_2:.4g}.")
+        between = ("Between the bounds, only the exact probability or a Monte Carlo (netkf run with a prob_vs_M "
+                   "analysis) can tell.")
         if s.D_s is not None:
-            return (f"A buffer of D = {s.D_s} guarantees Pr[P_k ≤ {s.M:g}] ≥ {one_minus(s.eps)} (sufficient, Thm 3.8); "
+            return (f"A buffer of D = {s.D_s} guarantees {req} (sufficient, Thm 3.8); "
                     f"no buffer shorter than D_n = {s.D_n} can achieve it (necessary)."
                     + ("" if s.D_s == s.D_n else f" The minimum lies in [{s.D_n}, {s.D_s}]."))
+        if s.D_s_uncapped is not None and s.D_n is not None:
+            return (f"No buffer up to --D-max {s.D_max} is guaranteed to suffice: the sufficient bound needs "
+                    f"D_s = {s.D_s_uncapped} (Thm 3.8; raise --D-max to {s.D_s_uncapped}). A buffer of at least "
+                    f"D_n = {s.D_n} is necessary, so the minimum lies in [{s.D_n}, {s.D_s_uncapped}]. " + between)
+        if s.D_s_uncapped is not None:
+            return (f"No buffer up to --D-max {s.D_max} meets the requirement: the shortest buffer that meets it is "
+                    f"above the cap. Without the cap, D = {s.D_s_uncapped} guarantees {req} (sufficient, Thm 3.8) "
+                    f"and no buffer shorter than D_n = {s.D_n_uncapped} can achieve it (necessary)"
+                    + ("" if s.D_s_uncapped == s.D_n_uncapped
+                       else f"; the minimum lies in [{s.D_n_uncapped}, {s.D_s_uncapped}]")
+                    + f". Raise --D-max to {s.D_s_uncapped}.")
+        if s.D_n_uncapped is not None and s.D_n is None:
+            return (f"No buffer length is guaranteed to suffice: even D → ∞ leaves the sufficient bound at θ(k1) = "
+                    f"{s.theta_floor_1:.4g} > ε = {s.eps:g}. A buffer of at least D_n = {s.D_n_uncapped} is necessary, "
+                    f"which is above --D-max {s.D_max}: no buffer up to the cap can achieve it. The smallest ε any "
+                    f"buffer is guaranteed to meet is {s.theta_floor_1:.4g} "
+                    f"(from D = {db.saturation_D(s.k1, s.convention)} on).")
         if s.D_n is not None:
             return (f"No buffer length is guaranteed to suffice: even D → ∞ leaves the sufficient bound at θ(k1) = "
                     f"{s.theta_floor_1:.4g} > ε = {s.eps:g}. A buffer of at least D_n = {s.D_n} is necessary; "
                     f"the smallest ε any buffer is guaranteed to meet is {s.theta_floor_1:.4g} "
-                    f"(from D = {db.saturation_D(s.k1, s.convention)} on). Between the bounds, only the exact "
-                    f"probability or a Monte Carlo (netkf run with a prob_vs_M analysis) can tell.")
+                    f"(from D = {db.saturation_D(s.k1, s.convention)} on). " + between)
         sat = db.saturation_D(s.k1, s.convention)
         if s.theta_floor_1 == s.theta_floor_2:
             best = (f"Here k1 = k2, so the bounds coincide: the smallest ε any buffer achieves is "
@@ -121,13 +154,14 @@ class MindReport:
             lines += [
                 f"  k1(M) = {_k(s.k1)}    k2(M) = {_k(s.k2)}",
                 f"  floor of θ as D → ∞:  θ(k1) = {s.theta_floor_1:.4g}   θ(k2) = {s.theta_floor_2:.4g}",
-                f"  D_s (sufficient) = {_D(s.D_s)}    D_n (necessary) = {_D(s.D_n)}",
+                f"  D_s (sufficient) = {_D(s.D_s, s.D_s_uncapped, s.D_max)}    "
+                f"D_n (necessary) = {_D(s.D_n, s.D_n_uncapped, s.D_max)}",
             ]
         else:
             lines += [
                 f"  k2(M) = {_k(s.k2)}",
                 f"  floor of θ as D → ∞:  θ(k2) = {s.theta_floor_2:.4g}",
-                f"  D* (necessary and sufficient) = {_D(s.D_star)}",
+                f"  D* (necessary and sufficient) = {_D(s.D_star, s.D_star_uncapped, s.D_max)}",
             ]
         lines += ["", "Verdict: " + self.verdict()]
         return "\n".join(lines)

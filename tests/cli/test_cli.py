@@ -199,4 +199,63 @@ def test_mind_from_config_and_d_max(tmp_path):
     assert j["D_s"] == 6
     j = json.loads(invoke("mind", "--M", 50, "--eps", 0.05, "--d", 5, "--D-max", 5, "--json").output)
     assert j["D_s"] is None and j["feasible"] is False
+    assert j["D_s_uncapped"] == 6 and j["reason"] == "above_D_max"
     assert invoke("mind", "--M", 50, "--config", cfg, "--d", 3).exit_code == 2
+
+
+def test_mind_d_max_below_the_minimum_is_not_infeasibility():
+    """--D-max 5 where D = 6 does it: 'above the cap', never 'D → ∞ … 0.03133 > ε = 0.05' (the fuzz)."""
+    r = invoke("mind", "--M", 50, "--D-max", 5)
+    assert r.exit_code == 0, r.output
+    out = " ".join(r.output.split())
+    assert "D_s (sufficient) = none up to D_max = 5 (6 without the cap)" in out
+    assert "D_n (necessary) = none up to D_max = 5 (6 without the cap)" in out
+    verdict = out.split("Verdict:")[1]
+    assert "No buffer up to --D-max 5 meets the requirement" in verdict and "Raise --D-max to 6" in verdict
+    assert "no finite D" not in out and "D → ∞" not in verdict and "> ε" not in verdict
+    j = json.loads(invoke("mind", "--M", 50, "--D-max", 5, "--json").output)
+    assert (j["D_s"], j["D_n"], j["D_max"], j["D_s_uncapped"], j["D_n_uncapped"]) == (None, None, 5, 6, 6)
+    assert j["feasible"] is False and j["feasible_uncapped"] is True and j["reason"] == "above_D_max"
+    assert "D → ∞" not in j["verdict"]
+    j = json.loads(invoke("mind", "--M", 50, "--D-max", 6, "--json").output)  # the cap reached: as without it
+    assert j["D_s"] == 6 and j["feasible"] is True and j["reason"] is None
+
+
+def test_mind_d_max_between_the_bounds():
+    """D_n ≤ D_max < D_s: D_n is given, D_s is above the cap; θ(k1)'s floor (0.004179) is below ε."""
+    r = invoke("mind", "--M", 150, "--eps", 0.005, "--D-max", 6)
+    out = " ".join(r.output.split())
+    assert "D_s (sufficient) = none up to D_max = 6 (7 without the cap)" in out and "D_n (necessary) = 6" in out
+    assert "the sufficient bound needs D_s = 7" in out and "[6, 7]" in out and "D → ∞" not in out.split("Verdict:")[1]
+    # θ(k1)'s floor above ε (no finite D_s), D_n = 7 above the cap: both said, each for what it is
+    r = invoke("mind", "--M", 150, "--eps", 0.001, "--D-max", 5)
+    out = " ".join(r.output.split())
+    assert "D_s (sufficient) = none (no finite D)" in out and "D_n (necessary) = none up to D_max = 5 (7 without the cap)" in out
+    assert "θ(k1) = 0.004179 > ε = 0.001" in out and "D_n = 7 is necessary, which is above --D-max 5" in out
+    j = json.loads(invoke("mind", "--M", 150, "--eps", 0.001, "--D-max", 5, "--json").output)
+    assert j["D_s_uncapped"] is None and j["D_n_uncapped"] == 7 and j["reason"] == "theta_floor"
+
+
+def test_mind_truly_infeasible_says_theta_floor():
+    """ε = 0.03 below θ(k2, ∞) = 0.03133: no finite D, with or without a cap."""
+    for cap in ((), ("--D-max", 3)):
+        j = json.loads(invoke("mind", "--M", 50, "--eps", 0.03, "--json", *cap).output)
+        assert j["D_s"] is None and j["D_s_uncapped"] is None and j["D_n_uncapped"] is None
+        assert j["feasible"] is False and j["feasible_uncapped"] is False and j["reason"] == "theta_floor"
+        assert "0.03133 > ε = 0.03" in j["verdict"]
+    r = invoke("mind", "--M", 50, "--eps", 0.03, "--D-max", 3)
+    assert "D_s (sufficient) = none (no finite D)" in r.output and "without the cap" not in r.output
+
+
+def test_mind_smart_sensor_d_max():
+    """Smart sensor (Thm 4.1): D* = 7 above --D-max 5 is not 'θ(k2) = 0.0002846 > ε = 0.001'."""
+    r = invoke("mind", "--M", 150, "--eps", 0.001, "--sensor", "smart", "--D-max", 5)
+    out = " ".join(r.output.split())
+    assert "D* (necessary and sufficient) = none up to D_max = 5 (7 without the cap)" in out
+    verdict = out.split("Verdict:")[1]
+    assert "D* = 7" in verdict and "raise --D-max to 7" in verdict and "D → ∞" not in verdict and "> ε" not in verdict
+    j = json.loads(invoke("mind", "--M", 150, "--eps", 0.001, "--sensor", "smart", "--D-max", 5, "--json").output)
+    assert j["D_star"] is None and j["D_star_uncapped"] == 7 and j["feasible"] is False and j["feasible_uncapped"] is True
+    assert j["reason"] == "above_D_max"
+    j = json.loads(invoke("mind", "--M", 50, "--eps", 0.03, "--sensor", "smart", "--D-max", 5, "--json").output)
+    assert j["D_star_uncapped"] is None and j["reason"] == "theta_floor" and "0.03133 > ε = 0.03" in j["verdict"]

@@ -66,6 +66,18 @@ def test_min_buffer_binary_search_equals_linear_scan():
                     assert db.min_buffer(k, eps, cdf, conv) == scan
 
 
+def test_size_buffer_keeps_a_cap_apart_from_the_theta_floor():
+    """A D_max below the minimum is not θ(k, ∞) > ε: the uncapped D_s, D_n, D* and ``reason`` say which."""
+    s = db.size_buffer(50, 0.05, EX, D5, "delay_le_D", D_max=5)
+    assert (s.D_s, s.D_n, s.D_s_uncapped, s.D_n_uncapped) == (None, None, 6, 6)
+    assert not s.feasible and s.feasible_uncapped and s.reason == "above_D_max"
+    assert db.size_buffer(50, 0.05, EX, D5, "delay_le_D", D_max=6).reason is None
+    s = db.size_buffer(50, 0.03, EX, D5, "delay_le_D", D_max=5)  # ε < θ(k2, ∞) = 0.03133
+    assert s.D_s_uncapped is None and not s.feasible_uncapped and s.reason == "theta_floor"
+    s = db.size_buffer(150, 0.001, EX, D5, "delay_le_D", sensor="smart", D_max=5)
+    assert (s.D_star, s.D_star_uncapped, s.reason) == (None, 7, "above_D_max")
+
+
 def test_M_below_mbar_is_refused_with_the_reason():
     with pytest.raises(TheoremConditionError, match=r"M ≥ M̄ = 0.5"):
         db.k1(0.1, EX)
