@@ -300,6 +300,13 @@ def check_run_count(scenario, runs: int | None = None, *, quick: bool = False, y
                     runs_option: str = "--runs") -> tuple[int, int, float]:
     """Refuse a run count above ``montecarlo.max_runs`` unless ``yes``; returns (runs, run-steps, ETA s)."""
     mc = scenario.montecarlo
+    if runs is not None:  # a run count given here would silently replace the counts the scenario varies
+        varied = [f"{block}.montecarlo.runs" for block, axes in
+                  (("sweep", scenario.sweep.axes if scenario.sweep is not None else {}),
+                   ("analysis.over", getattr(scenario.analysis, "over", None) or {})) if "montecarlo.runs" in axes]
+        if varied:
+            raise ConfigError.at(runs_option, f"the scenario varies the run count ({varied[0]}); {runs_option} would "
+                                              f"give every point {runs} runs: drop one of the two")
     counts = run_counts(scenario, runs, quick)
     n = max(counts)
     size = work_size(scenario, runs, quick)

@@ -112,3 +112,18 @@ def test_a_path_swept_twice_or_named_like_a_column_is_refused_before_any_work(tm
         r = runner.invoke(app, cmd)
         assert r.exit_code == 1 and needle in " ".join(r.output.split()), r.output
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("extra", ["analysis: {kind: mean_vs_time}\nsweep: {montecarlo.runs: [50, 100]}\n",
+                                   "analysis: {kind: mean_vs_time, over: {montecarlo.runs: [50, 100]}}\n"])
+def test_runs_option_does_not_silently_replace_a_varied_run_count(tmp_path, extra):
+    """--runs gave every point its count while the CSV's montecarlo.runs column still said 50 and 100 (the UX fuzz)."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(_BASE + extra, encoding="utf-8")
+    r = runner.invoke(app, ["run", str(cfg), "--runs", "200", "--out", str(tmp_path / "o"), "-q"])
+    assert r.exit_code == 1 and "--runs: the scenario varies the run count" in " ".join(r.output.split()), r.output
+    assert not (tmp_path / "o").exists()
+    r = runner.invoke(app, ["run", str(cfg), "--out", str(tmp_path / "o"), "-q"])
+    assert r.exit_code == 0, r.output
+    t = pd.read_csv(tmp_path / "o" / "clash.csv")
+    assert sorted(set(t.n)) == [50, 100]
