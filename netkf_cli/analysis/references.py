@@ -60,6 +60,13 @@ def resolve(name: str):
     return getattr(importlib.import_module(mod), fn)
 
 
+def applies_to(name: str) -> str:
+    """What the closed form ``name`` is for: the first sentence of its provider's docstring (where it gives no rows,
+    the scenario is not one of those)."""
+    first = (resolve(name).__doc__ or "").strip().split("\n")[0].strip().rstrip(".")
+    return f"it gives {first}" if first else "it does not apply here"
+
+
 def evaluate(name: str, point: Point) -> list[dict]:
     """The provider's rows, checked: a dict with a finite-or-inf numeric ``value`` and a ``series`` each."""
     rows = list(resolve(name)(point))

@@ -23,6 +23,7 @@ from pydantic import Field, ValidationError, model_validator
 from netkf_cli.core.errors import ConfigError, Problem
 from netkf_cli.runtime.plotting import MIN_FONT_PT, footnote, new_figure
 from netkf_cli.core.spec import StrictModel
+from netkf_cli.metrics.common import at_points
 
 
 MAX_POINTS = 10_000
@@ -173,7 +174,8 @@ def _expand(base: dict, points: list[dict], prefix: str, file: str | None, valid
         if bad:
             continue
         try:  # the same checks as a scenario file (schema, system, channel × estimator × analysis)
-            out.append((coords, validate(data, file)))
+            with at_points():
+                out.append((coords, validate(data, file)))
         except ConfigError as exc:
             for p in exc.problems:
                 at.setdefault((p.path, p.message), []).append(where)

@@ -74,6 +74,8 @@ def norm_and_se(sumX: np.ndarray, sumXX: np.ndarray, N: int) -> tuple[float, flo
 class BurstMean(GenericMetric):
     """``kind: burst_mean`` — E P_k at k = horizon (‖·‖₂ and trace) by sequential Monte Carlo of the drop bursts."""
 
+    draws_references: ClassVar[bool] = True
+
     works_with: ClassVar[str] = ("a channel with drop_law (drops threshold a Gaussian gain: fading) and one estimator "
                                  "with renewal_coefficients (receiver scenario 2, invertible C)")
 
@@ -116,6 +118,14 @@ class BurstMean(GenericMetric):
             raise ConfigError.at("estimator.threshold", "give the drop threshold Υ_T (here or as the channel's `threshold`)")
         if any(L < 0 for L in self.burst_lags):
             raise ConfigError.at("analysis.burst_lags", f"burst lengths are ≥ 0, got {self.burst_lags}")
+
+    def reference_scenarios(self, scenario) -> list:
+        """The scenario and, with ``baseline: independent``, its independent channel's (the references are drawn for
+        each: an i.i.d.-only closed form gives rows for the baseline)."""
+        ch = scenario.channel
+        if self.baseline == "independent" and callable(getattr(ch, "independent", None)):
+            return [scenario, scenario.model_copy(update={"channel": ch.independent()})]
+        return [scenario]
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         s, ch, (e,) = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 from contextlib import contextmanager
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -13,7 +13,7 @@ from netkf_cli import engine
 from netkf_cli.linalg import kalman
 from netkf_cli.analysis import critical as cr
 from netkf_cli.analysis import references
-from netkf_cli.core.errors import ConfigError
+from netkf_cli.core.errors import ConfigError, Problem
 from netkf_cli.core.spec import AnalysisModel, PositiveFloat, PositiveInt, StrictModel
 
 Quantity = Literal["filtered", "predicted", "smoothed"]
@@ -273,7 +273,14 @@ class GenericMetric(AnalysisModel):
         qs = getattr(self, "quantities", None)
         return list(qs) if qs else [self.quantity]
 
+    draws_references: ClassVar[bool] = False
+    """Whether this metric draws ``references`` (closed-form rows); the others refuse the field (it was silently
+    ignored while the manifest listed it)."""
+
     def check(self, scenario) -> None:
+        if self.references and not self.draws_references:
+            raise ConfigError.at("analysis.references", f"{self.kind} draws no closed-form references (mean_vs_time, "
+                                                        "time_average, updates and burst_mean do); remove the field")
         needs(scenario, "channel")
         ests = needs(scenario, "estimators")
         many = bool(scenario.estimators)
@@ -307,7 +314,17 @@ class GenericMetric(AnalysisModel):
         if self.references and not getattr(self, "over", None) and not _DEFER_REFERENCES:
             # the closed forms' own conditions (a lag they enumerate, 0 < λ < 1 …), before any Monte Carlo: they
             # were found only after it, when the rows were drawn (an over grid checks each of its points)
-            self.reference_rows(scenario, labels(ests))
+            got = {r["reference"] for sc in self.reference_scenarios(scenario)
+                   for r in self.reference_rows(sc, labels(sc.estimator_list()))}
+            problems = [Problem(f"analysis.references[{i}]", f"{name} gives nothing for this scenario: "
+                                                             f"{references.applies_to(name)}")
+                        for i, name in enumerate(self.references) if name not in got and not _AT_POINTS]
+            if problems:
+                raise ConfigError(problems)
+
+    def reference_scenarios(self, scenario) -> list:
+        """The scenarios this metric draws references at (itself; burst_mean adds its independent baseline)."""
+        return [scenario]
 
     def needs_per_run_covariance(self) -> bool:
         """Whether this metric takes per-run functionals of P (Pr[P_k ≤ M]), not only means."""
@@ -353,6 +370,29 @@ class GenericMetric(AnalysisModel):
                 _REFERENCE_ROWS.clear()
             _REFERENCE_ROWS[key] = rows
         return [dict(r) for r in rows]
+
+
+def drawn_refs(table) -> list[str]:
+    """The references a result table holds rows of (a figure names these, not the ones asked for: a closed form
+    gives no rows where it does not apply, as at some points of an over grid)."""
+    if "reference" not in table.columns or "source" not in table.columns:
+        return []
+    return [str(r) for r in dict.fromkeys(table[table.source == "closed_form"].reference) if isinstance(r, str) and r]
+
+
+_AT_POINTS: list[bool] = []
+"""Non-empty within :func:`at_points`: a reference may give nothing at some points of a sweep or over grid."""
+
+
+@contextmanager
+def at_points():
+    """Within the block, scenarios are points of a sweep or an ``over`` grid: a closed form that gives no rows at one
+    of them is not refused (it may give rows at the others; the figure names the ones drawn: :func:`drawn_refs`)."""
+    _AT_POINTS.append(True)
+    try:
+        yield
+    finally:
+        _AT_POINTS.pop()
 
 
 _DEFER_REFERENCES: list[bool] = []

@@ -12,7 +12,7 @@ from which P0, under which conventions.
 from __future__ import annotations
 
 import warnings
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from netkf_cli.core.lazy import pandas as pd
@@ -35,6 +35,8 @@ WHAT = {"trace": r"$\mathrm{E}[\mathrm{tr}\,P_k]$", "lambda_max": r"$\mathrm{E}[
 
 class MeanVsTime(GenericMetric):
     """``kind: mean_vs_time`` — E[P_k] against k with standard errors and heavy-tail flags."""
+
+    draws_references: ClassVar[bool] = True
 
     kind: Literal["mean_vs_time"]
     of: Literal["trace", "lambda_max", "entries"] = Field("trace", description="tr P_k, λ_max(P_k), or every entry P_k[i, j]")

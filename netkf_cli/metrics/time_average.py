@@ -21,7 +21,7 @@ quantity (rows marked ``statistic: norm_of_mean``), else the config is refused.
 from __future__ import annotations
 
 import re
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from netkf_cli.core.lazy import pandas as pd
@@ -33,7 +33,7 @@ from netkf_cli.core.artefact import Artefact, RunContext
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.metrics import derived
 from netkf_cli.metrics import norm_of_mean as nm
-from netkf_cli.metrics.common import (LABEL_COLUMNS, backends, conventions_note, grid_conventions, describe, GenericMetric,
+from netkf_cli.metrics.common import (drawn_refs, LABEL_COLUMNS, backends, conventions_note, grid_conventions, describe, GenericMetric,
                                       kf_tail_exponent, labels, math_text, PaperRef, Quantity)
 from netkf_cli.core.spec import PositiveInt
 from netkf_cli.runtime.plotting import LINESTYLES, MARKERS, MIN_FONT_PT, PALETTE, footnote, legend_outside, new_figure, paper_title
@@ -52,6 +52,8 @@ COLUMNS = ["estimator", "quantity", "series", "M", "value", "stderr", "n", "nonf
 
 class TimeAverage(GenericMetric):
     """``kind: time_average`` — time-averaged E[tr P_k] (and Pr[P_k ≤ M]) after a burn-in, per estimator and quantity."""
+
+    draws_references: ClassVar[bool] = True
 
     kind: Literal["time_average"]
     quantities: list[Quantity] | None = Field(None, description="several quantities in one pass (default: `quantity`); "
@@ -264,7 +266,7 @@ class TimeAverage(GenericMetric):
         footnote(fig, f"Monte Carlo: n = {n:,} runs, {per_run}; error bars ±1.96 s.e."
                  + ("; ‖E P‖₂ = λ_max of the mean matrix, s.e. by the delta method" if main == NORM else "")
                  + (f"; {flagged} unreliable mean{'s' if flagged != 1 else ''} drawn hollow, off the line (CSV heavy_tail / rare_event / flag_reason)" if flagged else "")
-                 + (f"; dashed, hollow markers on top: closed form ({', '.join(self.references)})" if self.references else "")
+                 + (f"; dashed, hollow markers on top: closed form ({', '.join(drawn_refs(t))})" if drawn_refs(t) else "")
                  + (f"; not drawn (≤ 0 on the log axis): {'; '.join(undrawn)}" if undrawn else "")
                  + (f"\n{math_text(mcr.P0.iloc[0])}; {conventions_note(note)}" if len(mcr) else ""))
         return fig

@@ -16,7 +16,7 @@ writes the derived tables ``pairs`` and ``trend`` (:mod:`netkf_cli.metrics.deriv
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from netkf_cli.core.lazy import pandas as pd
@@ -25,7 +25,7 @@ from pydantic import Field
 from netkf_cli.core.artefact import Artefact, RunContext
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.metrics import derived
-from netkf_cli.metrics.common import GenericMetric, conventions_label, labels, math_text, needs, p0_label, PaperRef
+from netkf_cli.metrics.common import drawn_refs, GenericMetric, conventions_label, labels, math_text, needs, p0_label, PaperRef
 from netkf_cli.runtime.montecarlo import run_chunked
 from netkf_cli.runtime.plotting import MARKERS, PALETTE, footnote, legend_outside, new_figure, paper_title
 from netkf_cli.core.spec import PositiveFloat
@@ -61,6 +61,8 @@ class CountKernel:
 
 class Updates(GenericMetric):
     """``kind: updates`` — expected filter recursions per step (time average after a burn-in), per estimator."""
+
+    draws_references: ClassVar[bool] = True
 
     kind: Literal["updates"]
     M: list[PositiveFloat] | None = Field(None, description="error bounds M for the references that give Pr[P_k ≤ M] "
@@ -193,7 +195,7 @@ class Updates(GenericMetric):
         n = int(mcr.n.max()) if len(mcr) else 0
         footnote(fig, f"Monte Carlo: n = {n:,} runs per point, each averaged over k in (burn-in "
                       f"{scenario.montecarlo.burn_in}, horizon {scenario.montecarlo.horizon}]"
-                 + (f"; dashed / lines: closed form ({', '.join(self.references)})" if self.references else "")
+                 + (f"; dashed / lines: closed form ({', '.join(drawn_refs(t))})" if drawn_refs(t) else "")
                  + (f"\n{math_text(mcr.P0.iloc[0])}; {_shared(mcr.conventions)}" if len(mcr) else ""))
         return fig
 
