@@ -77,6 +77,8 @@ def check_scenario(scenario) -> None:
     if many and scenario.estimator is not None:
         problems.append(Problem("estimators", "give either `estimator:` (one) or `estimators:` (a list), not both"))
     system = None
+    if scenario.system is None and ests:
+        collect(scenario.linear_system)  # every estimator runs on (A, C, Q, R): the words `netkf run` refuses with
     if scenario.system is not None:
         try:
             system = scenario.system.build()
