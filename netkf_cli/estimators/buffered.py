@@ -121,9 +121,18 @@ class BufferedEstimator(EstimatorModel):
 
         The hook of the ``updates`` metric (:mod:`netkf_cli.metrics.updates`): an estimator that reports
         how many filter recursions it runs per step defines ``updates(system, trace, steps)``."""
-        if packet_span(system, self.packet) != 1:
-            raise ConfigError.at("estimator.packet", "update counts are defined for measurement packets (span 1) only")
+        self.check_updates(system)
         yield from mkf_runs(trace, steps)
+
+    def check_updates(self, system: LinearSystem, path: str = "estimator") -> None:
+        """Refuse what :meth:`updates` cannot count (the ``updates`` metric's check, at validate): pair packets,
+        asked for or chosen by ``auto``."""
+        if packet_span(system, self.packet) == 1:
+            return
+        why = ("packet: auto chose pair packets (y_k, y_k-1), as C is not invertible but [C; CA] is"
+               if self.packet == "auto" else "got packet: pair")
+        raise ConfigError.at(f"{path}.packet", f"update counts are defined for measurement packets (span 1) only "
+                                               f"({why}); set packet: measurement to count them")
 
 
 MKF_DELAY_LOOP_MAX = 64

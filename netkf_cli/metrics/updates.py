@@ -81,6 +81,11 @@ class Updates(GenericMetric):
                 raise ConfigError.at(f"{'estimators[%d]' % i if many else 'estimator'}.kind",
                                      f"{e.kind} does not report how many filter recursions it runs per step "
                                      "(no updates() hook); the updates metric needs one (e.g. buffered)")
+        system = _system_or_none(scenario)
+        for i, e in enumerate(ests):  # what the hook refuses on this system (buffered: pair packets)
+            hook = getattr(e, "check_updates", None)
+            if system is not None and callable(hook):
+                hook(system, f"estimators[{i}]" if many else "estimator")
         # burn_in < horizon: checked for every scenario (config.compat.check_scenario)
 
     def needs_per_run_covariance(self) -> bool:
@@ -198,6 +203,14 @@ class Updates(GenericMetric):
                  + (f"; dashed / lines: closed form ({', '.join(drawn_refs(t))})" if drawn_refs(t) else "")
                  + (f"\n{math_text(mcr.P0.iloc[0])}; {_shared(mcr.conventions)}" if len(mcr) else ""))
         return fig
+
+
+def _system_or_none(scenario):
+    """The scenario's system, or None where it has none or a bad one (reported by the scenario's own checks)."""
+    try:
+        return scenario.linear_system()
+    except ConfigError:
+        return None
 
 
 def _shared(conventions: pd.Series) -> str:

@@ -24,6 +24,23 @@ estimator: {kind: kf}
 analysis: {kind: mean_vs_time}
 montecarlo: {runs: 20, horizon: 10}
 """, ["system: this analysis needs a `system:` block (A, C, Q, R)"]),
+    "updates_auto_pair_packets": ("""
+name: updates_auto_pair_packets
+system: {A: [[1.1, 0.2], [0, 0.9]], C: [[1, 0]], Q: [[1, 0], [0, 1]], R: 1}
+channel: {kind: delay, delay: {kind: poisson, mean: 2}, buffer: 3}
+estimator: {kind: buffered}
+analysis: {kind: updates}
+montecarlo: {runs: 200, horizon: 25, burn_in: 5, seed: 1}
+""", ["estimator.packet: update counts are defined for measurement packets (span 1) only",
+      "auto chose pair packets", "set packet: measurement"]),
+    "updates_pair_packets_in_a_list": ("""
+name: updates_pair_packets_in_a_list
+system: {A: [[1.1, 0.2], [0, 0.9]], C: [[1, 0]], Q: [[1, 0], [0, 1]], R: 1}
+channel: {kind: delay, delay: {kind: poisson, mean: 2}, buffer: 3}
+estimators: [{kind: buffered, packet: measurement}, {kind: buffered, packet: pair}]
+analysis: {kind: updates}
+montecarlo: {runs: 200, horizon: 25, burn_in: 5, seed: 1}
+""", ["estimators[1].packet: update counts are defined for measurement packets (span 1) only (got packet: pair)"]),
 }
 
 
