@@ -196,11 +196,22 @@ class TraceChannel(ChannelModel):
         start = self.offset + self.stride * np.arange(runs)
         idx = start[None, :] + np.arange(horizon)[:, None]
         if self.mode == "once":
-            if self.offset + horizon + self.stride * (runs - 1) > L:
-                raise ConfigError.at("channel.file", f"mode once needs {self.offset + horizon} rows "
-                                     f"(offset + horizon), the recording has {L}; use mode: cycle or a shorter horizon")
+            self._check_length(runs, horizon)
             return idx
         return idx % L
+
+    def _check_length(self, runs: int, horizon: int) -> None:
+        """Mode once: the recording holds every run's rows."""
+        L = self.recording().shape[1]
+        need = self.offset + horizon + self.stride * (runs - 1)
+        if self.mode == "once" and need > L:
+            what = "offset + horizon" + (" + stride·(runs − 1)" if self.stride and runs > 1 else "")
+            raise ConfigError.at("channel.file", f"mode once needs {need} rows ({what}), the recording has {L}; "
+                                                 "use mode: cycle or a shorter horizon")
+
+    def check_montecarlo(self, montecarlo) -> None:
+        """The scenario's check (`netkf validate`): the rows ``montecarlo`` replays exist (mode once)."""
+        self._check_length(int(montecarlo.runs), int(montecarlo.horizon))
 
     def loss_rate(self) -> float:
         rec = self.recording()

@@ -73,6 +73,8 @@ def check_scenario(scenario) -> None:
         problems.append(Problem("montecarlo.burn_in", f"must be < horizon = {mc.horizon} (time averages are over k in "
                                                       f"(burn_in, horizon]), got {mc.burn_in}"))
     ch, ests = scenario.channel, scenario.estimator_list()
+    if callable(getattr(ch, "check_montecarlo", None)):  # a channel's own limits on runs × horizon (a recording's rows)
+        collect(ch.check_montecarlo, mc)
     many = bool(scenario.estimators)
     if many and scenario.estimator is not None:
         problems.append(Problem("estimators", "give either `estimator:` (one) or `estimators:` (a list), not both"))

@@ -380,7 +380,9 @@ class TailMetric(AnalysisModel):
                                      "estimator.variance_reduction",
                                      f"{e.kind} yields per-run estimates of E[P_k], not each run's covariance: the tail "
                                      f"Pr[tr P_k > M] needs the latter; set variance_reduction: none")
-        self._step(scenario.montecarlo.horizon)
+        step = self._step(scenario.montecarlo.horizon)
+        if self.windows is not None and self.importance and _law(scenario.channel) is not None:
+            self._windows(None, step, 0.0)  # given windows are only compared with the step (compute's own check)
 
     def compute(self, scenario, ctx: RunContext) -> Artefact:
         s, ch, ests = needs(scenario, "system"), needs(scenario, "channel"), needs(scenario, "estimators")

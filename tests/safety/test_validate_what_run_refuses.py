@@ -41,6 +41,30 @@ estimators: [{kind: buffered, packet: measurement}, {kind: buffered, packet: pai
 analysis: {kind: updates}
 montecarlo: {runs: 200, horizon: 25, burn_in: 5, seed: 1}
 """, ["estimators[1].packet: update counts are defined for measurement packets (span 1) only (got packet: pair)"]),
+    "trace_once_too_short": ("""
+name: trace_once_too_short
+system: {A: 1.2, C: 1, Q: 1, R: 1}
+channel: {kind: trace, file: short.csv, mode: once}
+estimator: {kind: kf}
+analysis: {kind: mean_vs_time}
+montecarlo: {runs: 5, horizon: 20}
+""", ["channel.file: mode once needs 20 rows (offset + horizon), the recording has 3"]),
+    "trace_once_strides_past_the_end": ("""
+name: trace_once_strides_past_the_end
+system: {A: 1.2, C: 1, Q: 1, R: 1}
+channel: {kind: trace, file: short.csv, mode: once, stride: 1}
+estimator: {kind: kf}
+analysis: {kind: mean_vs_time}
+montecarlo: {runs: 5, horizon: 2}
+""", ["channel.file: mode once needs 6 rows (offset + horizon + stride·(runs − 1)), the recording has 3"]),
+    "tail_window_beyond_the_step": ("""
+name: tail_window_beyond_the_step
+system: {A: 1.2, C: 1, Q: 1, R: 1}
+channel: {kind: bernoulli, arrival: 0.8}
+estimator: {kind: kf}
+analysis: {kind: tail, M: [1, 10], windows: [1000]}
+montecarlo: {runs: 50, horizon: 30}
+""", ["analysis.windows: every window must be < the reported step k = 30, got [1000]"]),
 }
 
 
@@ -57,3 +81,19 @@ def test_validate_reports_what_run_would_refuse(tmp_path, case):
     out = " ".join(r.output.split())
     assert r.exit_code == 1 and all(n in out for n in needles), out
     assert not (tmp_path / "o").exists()
+
+
+def test_what_run_accepts_still_validates(tmp_path):
+    """The checks above refuse only what run refuses: a recording long enough, or cycled; a window before the step;
+    windows without importance sampling (unused); measurement packets counted."""
+    (tmp_path / "short.csv").write_text("a\n1\n0\n1\n", encoding="utf-8")
+    for case, overrides in [("trace_once_too_short", ["channel.mode=cycle"]),
+                            ("trace_once_too_short", ["montecarlo.horizon=3"]),
+                            ("trace_once_strides_past_the_end", ["montecarlo.runs=2"]),
+                            ("tail_window_beyond_the_step", ["analysis.windows=[29]"]),
+                            ("tail_window_beyond_the_step", ["analysis.importance=false"]),
+                            ("updates_auto_pair_packets", ["estimator.packet=measurement"])]:
+        f = tmp_path / f"{case}.yaml"
+        f.write_text(CASES[case][0].lstrip(), encoding="utf-8")
+        r = invoke("validate", f, *overrides)
+        assert r.exit_code == 0, (case, overrides, r.output)
