@@ -54,10 +54,17 @@ def test_bad_delay_trace_is_refused_naming_file_line_and_column(tmp_path, cell, 
 
 
 def test_good_delay_trace_with_lost_markers_runs(tmp_path):
+    """(A blank line is no row: the recording has 3 rows, so horizon 3 — with horizon 4 `netkf run` refused it
+    after `netkf validate` said ✓; validate now refuses that too.)"""
     (tmp_path / "rec.csv").write_text("sensor\n0\n\n-1\nlost\n")
     cfg = tmp_path / "s.yaml"
-    cfg.write_text(TRACE)
+    cfg.write_text(TRACE.replace("horizon: 4", "horizon: 3"))
     assert invoke("validate", cfg).exit_code == 0
+    r = invoke("run", cfg, "--out", tmp_path / "o", "-q")
+    assert r.exit_code == 0, r.output
+    cfg.write_text(TRACE)
+    r = invoke("validate", cfg)
+    assert r.exit_code == 1 and "mode once needs 4 rows (offset + horizon), the recording has 3" in r.output, r.output
 
 
 def test_bad_arrival_trace_names_file_and_line(tmp_path):
