@@ -35,7 +35,7 @@ from netkf_cli.app import runner  # (called as loader.x / runner.x: the tests' s
 from netkf_cli.analysis import references
 from netkf_cli.core._version import __version__
 from netkf_cli.core.errors import ConfigError, NetkfError, Problem
-from netkf_cli.config.compat import compatibility
+from netkf_cli.config.compat import compatibility, metric_compatibility
 from netkf_cli.config.kinds import describe
 from netkf_cli.config.loader import attribute, locate, parse_overrides
 from netkf_cli.metrics.critical import critical_answer
@@ -433,7 +433,7 @@ def list_kinds(
     as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False,
 ):
     """List the channel, estimator and analysis kinds, their fields and which combine."""
-    info = describe(compatibility())
+    info = describe(compatibility(), metric_compatibility())
     if kind == "references":
         info = {}
     elif kind is not None:
@@ -466,6 +466,13 @@ def list_kinds(
                               highlight=False, markup=False)
             elif e.get("generic"):
                 out.print(f"  {'':<22} generic metric: {e['works_with']}", highlight=False, markup=False)
+                if kind is not None or len(entries) == 1:
+                    for other, cond in e.get("conditions", {}).items():
+                        out.print(f"      {k} with {other}: {cond}", highlight=False, markup=False)
+                    for other, why in e.get("refused", {}).items():
+                        out.print(f"      {k} refuses {other}: {why}", highlight=False, markup=False)
+                    for other, why in e.get("unchecked", {}).items():
+                        out.print(f"      {k} with {other}: not checked ({why})", highlight=False, markup=False)
             if kind is not None or len(entries) == 1:
                 for f in e["fields"]:
                     out.print(f"      {f['name']:<14} {f['type']:<28} default {f['default']:<14} {f['description']}",

@@ -182,6 +182,16 @@ class TraceChannel(ChannelModel):
         ch._data = arr.astype(bool) if values == "arrival" else np.where(arr < 0, LOST, arr).astype(np.int32)
         return ch
 
+    def with_streams(self, streams: int) -> "TraceChannel":
+        """The same replay of a recording with ``streams`` columns, each the first column (`netkf list` checks
+        which estimators read a recording of as many columns as C has rows)."""
+        rec = self.recording()
+        data = np.repeat(rec[:1], int(streams), axis=0)
+        if self.values == "delay":
+            data = np.where(data == LOST, -1, data)
+        return TraceChannel.from_array(data, self.values, mode=self.mode, offset=self.offset, stride=self.stride,
+                                       buffer=self.buffer, convention=self.convention)
+
     def recording(self) -> np.ndarray:
         if self._data is None:
             self._data = read_recording(Path(self.file), self.values)

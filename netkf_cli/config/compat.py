@@ -18,8 +18,8 @@ from pydantic import ValidationError
 
 from netkf_cli.core.errors import ConfigError, Problem
 from netkf_cli.config.kinds import GENERIC_METRICS
-from netkf_cli.config.scenario import SystemSpec, kinds
-from netkf_cli.core.spec import ChannelModel, EstimatorModel
+from netkf_cli.config.scenario import SystemSpec, kinds, scenario_model
+from netkf_cli.core.spec import AnalysisModel, ChannelModel, EstimatorModel
 from netkf_cli.linalg import riccati
 
 
@@ -126,11 +126,26 @@ _STREAM_FIELDS = ("sensors", "streams")
 
 
 def _examples() -> tuple[dict, list]:
-    """One validated instance per channel kind and estimator kind, from the example scenarios
-    (configs/, experiments/), else from the defaults alone; and the systems to check them on,
-    as ``(label, system block, LinearSystem)``: the representative ones, then the examples'."""
-    fam = {"channel": kinds(ChannelModel), "estimator": kinds(EstimatorModel)}
-    found: dict[str, dict] = {"channel": {}, "estimator": {}}
+    """One validated instance per channel kind and estimator kind, and the systems to check them on,
+    as ``(label, system block, LinearSystem)``: the representative ones, then the examples'.
+
+    An estimator is its kind's defaults (``{kind: K}``, what a scenario that names only the kind runs)
+    wherever they validate: the table is a claim about the kind, so an example's own fields (a
+    cross-covariance S shaped for its 2-state system, a strategy list without the default olpef) must
+    not add or hide a condition. A kind with required fields, and every channel kind (a rate, a file),
+    is taken from the example scenarios (configs/, experiments/), else from its minimal fields."""
+    fam = {"channel": kinds(ChannelModel), "estimator": kinds(EstimatorModel), "analysis": kinds(AnalysisModel)}
+    found: dict[str, dict] = {"channel": {}, "estimator": {}, "analysis": {}}
+    for k, cls in fam["estimator"].items():
+        try:
+            found["estimator"][k] = cls.model_validate({"kind": k})
+        except (ValidationError, ConfigError, ValueError):
+            pass
+    for k, cls in fam["analysis"].items():
+        try:
+            found["analysis"][k] = cls.model_validate({"kind": k})
+        except (ValidationError, ConfigError, ValueError):
+            pass
     systems: list = []
     files = sorted(_ROOT.glob("configs/**/*.yaml")) + sorted(_ROOT.glob("experiments/*/*.yaml"))
     for f in files:
@@ -140,8 +155,8 @@ def _examples() -> tuple[dict, list]:
             continue
         if not isinstance(data, dict):
             continue
-        blocks = [("channel", data.get("channel"))] + [("estimator", e) for e in
-                                                       [data.get("estimator"), *(data.get("estimators") or [])]]
+        blocks = [("channel", data.get("channel")), ("analysis", data.get("analysis"))] + \
+            [("estimator", e) for e in [data.get("estimator"), *(data.get("estimators") or [])]]
         for family, block in blocks:
             if not isinstance(block, dict) or block.get("kind") not in fam[family] or block["kind"] in found[family]:
                 continue
@@ -220,6 +235,14 @@ def _streams(channel) -> int | None:
 def _variants(channel, m: int) -> list:
     """The example channel, and the same channel with its stream count set to the system's outputs."""
     out = [channel]
+    hook = getattr(channel, "with_streams", None)
+    if callable(hook):  # a channel whose stream count is not a field (a trace: its recording's columns)
+        try:
+            v = hook(m)
+            if v is not None and _streams(v) != _streams(channel):
+                out.append(v)
+        except (ValidationError, ConfigError, ValueError):
+            pass
     for f in _STREAM_FIELDS:
         if f in type(channel).model_fields and getattr(channel, f) != m:
             data = channel.model_dump(by_alias=True)
@@ -234,18 +257,26 @@ def _variants(channel, m: int) -> list:
     return out
 
 
+def _stable(system) -> bool:
+    return bool(np.max(np.abs(np.linalg.eigvals(system.A))) < 1)
+
+
 def _condition(trials: list[tuple]) -> str:
-    """Words for the rule that separates accepted from refused trials (streams S, outputs m)."""
-    ok = [t for t in trials if t[2]]
-    rules = [
+    """Words for the rule that separates accepted from refused trials (streams S, outputs m, the system)."""
+    streams = [
         ("one stream (a single link carrying all of y_k)", lambda S, m: S == 1),
         ("one stream per output row of C (streams = outputs)", lambda S, m: S == m),
         ("one stream, or one per output row of C", lambda S, m: S in (1, m)),
     ]
-    for words, rule in rules:
+    bad = next(t for t in trials if not t[2])
+    for words, rule in streams:
         if all((t[0] is not None and rule(t[0], t[1])) == t[2] for t in trials):
             return words
-    bad = next(t for t in trials if not t[2])
+    stable = "a stable A (spectral radius < 1)"
+    for words, rule in [(stable, lambda S, m: True)] + [(f"{w}, and {stable}", r) for w, r in streams]:
+        if all((t[0] is not None and rule(t[0], t[1]) and _stable(t[5])) == t[2] for t in trials):
+            unstable = next((t for t in trials if not t[2] and t[0] is not None and rule(t[0], t[1])), bad)
+            return f"{words}; refused otherwise (on {unstable[4]}: {unstable[3]})"
     return f"depends on the system (refused on {bad[4]}: {bad[3]})"
 
 
@@ -281,12 +312,13 @@ def _compat_cached(_cache: dict = {}) -> dict:  # noqa: B006 - a process-wide ca
                 for variant in _variants(ch, system.m):
                     try:
                         es.check(system, variant)
-                        trials.append((_streams(variant), system.m, True, "", label))
+                        trials.append((_streams(variant), system.m, True, "", label, system))
                     except ConfigError as exc:
                         trials.append((_streams(variant), system.m, False, "; ".join(p.message for p in exc.problems),
-                                       label))
+                                       label, system))
                     except Exception as exc:  # noqa: BLE001 - a check that crashes is not an acceptance
-                        trials.append((_streams(variant), system.m, False, f"{type(exc).__name__}: {exc}", label))
+                        trials.append((_streams(variant), system.m, False, f"{type(exc).__name__}: {exc}", label,
+                                       system))
             if all(t[2] for t in trials):
                 row[ek] = {"status": "yes"}
             elif not any(t[2] for t in trials):
@@ -300,3 +332,88 @@ def _compat_cached(_cache: dict = {}) -> dict:  # noqa: B006 - a process-wide ca
                 row[ek] = {"status": "conditional", "condition": _condition(trials)}
     _cache["v"] = table
     return table
+
+
+# ---- what each generic metric accepts of every estimator kind, computed the same way ---------------
+
+METRIC_MONTECARLO = {"runs": 10, "horizon": 5}
+"""The Monte Carlo block of the scenarios :func:`metric_compatibility` checks (a short horizon every example
+recording covers)."""
+
+
+def metric_scenario(system_block, channel, estimator, analysis):
+    """The scenario `netkf validate` would check for (system, channel, estimator, analysis), unvalidated
+    (its parts are validated instances)."""
+    from netkf_cli.config.scenario import MonteCarloSpec, OutputSpec
+
+    return scenario_model().model_construct(
+        name="compat", description="", system=SystemSpec.model_validate(system_block), channel=channel,
+        estimator=estimator, estimators=None, analysis=analysis, montecarlo=MonteCarloSpec(**METRIC_MONTECARLO),
+        output=OutputSpec(), sweep=None)
+
+
+def metric_compatibility() -> dict[str, dict[str, dict]]:
+    """``{generic metric kind: {estimator kind: {"status": yes | conditional | no, "condition"/"reason"}}}``
+    for every generic metric that does not state its own requirements (``works_with``): the scenario check
+    :func:`check_scenario` (what `netkf validate` runs) of the metric, with its defaults (or the example
+    scenarios' where it has required fields), on every (channel, system, stream count) on which the estimator
+    kind validates with mean_vs_time (the metric every pair is listed for), on the representative systems."""
+    return _metric_cached()
+
+
+def _metric_cached(_cache: dict = {}) -> dict:  # noqa: B006 - a process-wide cache
+    if "v" in _cache:
+        return _cache["v"]
+    found, every_system = _examples()
+    table = compatibility()
+    baseline = found["analysis"]["mean_vs_time"]
+    metrics = {k: a for k, a in found["analysis"].items()
+               if k in GENERIC_METRICS and not getattr(type(a), "works_with", None)}
+    out: dict[str, dict[str, dict]] = {k: {} for k in sorted(metrics)}
+    for ek, es in sorted(found["estimator"].items()):
+        # the representative systems; the examples' too for a kind that validates on none of them (receiver)
+        for systems in (every_system[:len(REPRESENTATIVE_SYSTEMS)], every_system[len(REPRESENTATIVE_SYSTEMS):]):
+            trials = _metric_trials(table, found["channel"], ek, es, systems, baseline, metrics)
+            if any(trials.values()):
+                break
+        for k in metrics:
+            t = trials[k]
+            if not t:
+                out[k][ek] = {"status": "unknown", "reason": f"no channel and system {ek} validates on as the "
+                                                            "examples set it, to check it on"}
+            elif all(x[2] for x in t):
+                out[k][ek] = {"status": "yes"}
+            elif not any(x[2] for x in t):
+                out[k][ek] = {"status": "no", "reason": t[0][3]}
+            else:
+                out[k][ek] = {"status": "conditional", "condition": _condition(t)}
+    _cache["v"] = out
+    return out
+
+
+def _metric_trials(table, channels, ek, es, systems, baseline, metrics) -> dict[str, list]:
+    """Per metric, the trials (streams, outputs, accepted, refusal, system label, system, channel kind) of estimator
+    ``es`` on every channel it combines with and every system and stream count it validates on with ``baseline``."""
+    trials: dict[str, list] = {k: [] for k in metrics}
+    for ck, ch in sorted(channels.items()):
+        if table.get(ck, {}).get(ek, {}).get("status") in (None, "no", "unknown"):
+            continue
+        for label, spec, system in systems:
+            for variant in _variants(ch, system.m):
+                if _refusal(metric_scenario(spec, variant, es, baseline)) is not None:
+                    continue  # the pair itself is refused here: not the metric's doing
+                for k, a in metrics.items():
+                    why = _refusal(metric_scenario(spec, variant, es, a))
+                    trials[k].append((_streams(variant), system.m, why is None, why or "", label, system, ck))
+    return trials
+
+
+def _refusal(scenario) -> str | None:
+    """None where :func:`check_scenario` accepts the scenario, else its problems in words."""
+    try:
+        check_scenario(scenario)
+        return None
+    except ConfigError as exc:
+        return "; ".join(f"{p.path}: {p.message}" if p.path else p.message for p in exc.problems)
+    except Exception as exc:  # noqa: BLE001 - a check that crashes is not an acceptance
+        return f"{type(exc).__name__}: {exc}"

@@ -44,12 +44,18 @@ def fields_of(cls) -> list[dict]:
     return out
 
 
-def describe(compat: dict | None = None) -> dict[str, dict[str, dict]]:
+ANY_ESTIMATOR = "any channel with any estimator it is compatible with (see the estimators)"
+
+
+def describe(compat: dict | None = None, metrics: dict | None = None) -> dict[str, dict[str, dict]]:
     """{family: {kind: {doc, fields, …compatibility}}} for channel, estimator and analysis.
 
-    ``compat`` is :func:`netkf_cli.config.compat.compatibility` (what `netkf validate` accepts, computed;
-    passed in because compat sits beside this module): without it no pair is listed."""
+    ``compat`` is :func:`netkf_cli.config.compat.compatibility` and ``metrics``
+    :func:`netkf_cli.config.compat.metric_compatibility` (what `netkf validate` accepts, computed; passed in
+    because compat sits beside this module): without them no pair is listed, and a generic metric without its
+    own ``works_with`` is listed as working with any estimator."""
     compat = compat or {}
+    metrics = metrics or {}
     out: dict[str, dict[str, dict]] = {}
     for family, base in (("channel", ChannelModel), ("estimator", EstimatorModel), ("analysis", AnalysisModel)):
         fam = {}
@@ -73,8 +79,25 @@ def describe(compat: dict | None = None) -> dict[str, dict[str, dict]]:
             else:
                 entry["generic"] = k in GENERIC_METRICS
                 if k in GENERIC_METRICS:
-                    entry["works_with"] = getattr(cls, "works_with", None) or \
-                        "any channel with any estimator it is compatible with (see the estimators)"
+                    entry["works_with"] = getattr(cls, "works_with", None) or ANY_ESTIMATOR
+                    if k in metrics:
+                        entry.update(_metric_entry(metrics[k]))
             fam[k] = entry
         out[family] = fam
     return out
+
+
+def _metric_entry(row: dict) -> dict:
+    """A generic metric's estimators (computed: :func:`netkf_cli.config.compat.metric_compatibility`) and the
+    words `netkf list` prints for them."""
+    ok = sorted(e for e, v in row.items() if v["status"] in ("yes", "conditional"))
+    refused = {e: v["reason"] for e, v in sorted(row.items()) if v["status"] == "no"}
+    unknown = sorted(e for e, v in row.items() if v["status"] == "unknown")
+    conditions = {e: v["condition"] for e, v in sorted(row.items()) if v["status"] == "conditional"}
+    if not refused and not conditions:
+        words = ANY_ESTIMATOR
+    else:
+        words = (f"estimators {', '.join(e + ('*' if e in conditions else '') for e in ok) or '—'}, each on a channel "
+                 f"it is compatible with" + (f"; refused: {', '.join(refused)}" if refused else ""))
+    return {"works_with": words, "estimators": ok, "conditions": conditions, "refused": refused,
+            "unchecked": {e: row[e]["reason"] for e in unknown}}
