@@ -150,7 +150,7 @@ class OutputSpec(StrictModel):
     """``output:`` where and how results are written."""
 
     dir: str = Field("results", description="parent folder of the result folder <dir>/<name>/")
-    dpi: Annotated[int, BeforeValidator(_integer_input), Field(gt=0, le=MAX_DPI)] = Field(
+    dpi: Annotated[int, Field(gt=0, le=MAX_DPI), BeforeValidator(_integer_input)] = Field(
         150, description=f"resolution of the PNG figure (dots per inch, at most {MAX_DPI})")
     formats: list[Literal["png", "pdf", "svg"]] = Field(
         default_factory=lambda: ["png"], min_length=1,

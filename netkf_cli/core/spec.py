@@ -135,7 +135,10 @@ def _to_matrix(value: Any) -> list[list[float]]:
     return rows
 
 
-Matrix = Annotated[list[list[float]], BeforeValidator(_to_matrix)]
+# json_schema_input_type: the schema states what a scenario may write (what _to_matrix accepts), not the
+# nested lists it becomes, so that an editor does not flag ``A: 1.4``.
+Matrix = Annotated[list[list[float]],
+                   BeforeValidator(_to_matrix, json_schema_input_type=float | list[float] | list[list[float]])]
 """A real matrix: a scalar (1×1), a flat list (one row) or nested lists of rows."""
 
 
@@ -158,8 +161,11 @@ def _integer_input(v: Any) -> Any:
 
 
 Probability = Annotated[float, Field(ge=0.0, le=1.0)]
-PositiveInt = Annotated[int, BeforeValidator(_integer_input), Field(gt=0)]
-NonNegInt = Annotated[int, BeforeValidator(_integer_input), Field(ge=0)]
+# The bound comes before the BeforeValidator: Annotated metadata applies left to right, and a constraint placed
+# after a validator is enforced by a separate check that the JSON schema shows as non-standard "gt"/"ge" keys
+# (editors then accept ``runs: 0``); placed first, it is the int schema's own bound (exclusiveMinimum/minimum).
+PositiveInt = Annotated[int, Field(gt=0), BeforeValidator(_integer_input)]
+NonNegInt = Annotated[int, Field(ge=0), BeforeValidator(_integer_input)]
 PositiveFloat = Annotated[float, Field(gt=0.0), AfterValidator(_finite)]
 NonNegFloat = Annotated[float, Field(ge=0.0), AfterValidator(_finite)]
 FiniteFloat = Annotated[float, AfterValidator(_finite)]
