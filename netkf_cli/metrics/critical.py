@@ -28,7 +28,7 @@ from typing import Literal
 
 import numpy as np
 from netkf_cli.core.lazy import pandas as pd
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from netkf_cli.analysis import critical as cr
 from netkf_cli.channels.bernoulli import BernoulliChannel
@@ -54,6 +54,13 @@ def _below_note(t, lmin: float) -> str:
         return ""
     return (f" Not drawn: λ = {', '.join(f'{x:g}' for x in below)} ≤ λ_min = {lmin:.4g}, where E[P_k] is unbounded "
             f"(no S̄, no Monte Carlo mean).")
+
+
+def _min_items_of_list(schema: dict, n: int) -> None:
+    """JSON schema of a ``list[…] | Model | None`` field: the list branch needs at least ``n`` items."""
+    for branch in schema.get("anyOf", []):
+        if branch.get("type") == "array":
+            branch["minItems"] = n
 
 
 class RateGrid(StrictModel):
@@ -295,7 +302,8 @@ class CriticalAnalysis(AnalysisModel):
 
     kind: Literal["critical"]
     lambdas: list[Probability] | RateGrid | None = Field(
-        None, description="arrival rates λ for S̄, V̄ and the Monte Carlo (default: 12 rates from λ_min to 1)")
+        None, description="arrival rates λ for S̄, V̄ and the Monte Carlo (default: 12 rates from λ_min to 1)",
+        json_schema_extra=lambda schema: _min_items_of_list(schema, 1))
     failure_rates: list[Probability] = Field(
         [0.02, 0.05, 0.1, 0.2, 0.4, 0.6, 0.8, 1.0],
         description="Gilbert–Elliott failure rates p = P(loss | arrival) of the critical curve (x-axis)")
@@ -303,6 +311,16 @@ class CriticalAnalysis(AnalysisModel):
     q_tol: PositiveFloat = Field(1e-3, description="bisection tolerance on the sufficient recovery rate q of the Markov LMI")
     monte_carlo: bool = Field(True, description="simulate E[tr P_{k|k−1}] with the generic engine at every λ above λ_min")
     title: str | None = Field(None, description="figure title (default: the system's name from the scenario)")
+
+    @field_validator("lambdas")
+    @classmethod
+    def _some_lambdas(cls, v):
+        # an empty list got through to the artefact, which has no row to draw (internal error out of `netkf run`);
+        # min_length on the list branch of the union would add a second, RateGrid, error beside this one
+        if isinstance(v, list) and not v:
+            raise ValueError("needs at least one arrival rate λ, got an empty list (leave `lambdas` out for the "
+                             "default: 12 rates from λ_min to 1)")
+        return v
 
     def _grid(self, lam_min: float, lam_hi: float) -> np.ndarray:
         if isinstance(self.lambdas, RateGrid):

@@ -101,6 +101,9 @@ CASES = [
     ("fusion-Q-1e-3-ok-but-R-zero", "fusion/fig3.yaml", "R: 1.0e-2}", "R: 0e-2}", "system.R", "positive definite", None, V),
     ("fusion-A-C-mismatch", "fusion/fig3.yaml", "A: 0.9,", "A: [[0.9, 0], [0, 0.5]],", "system.C", "", None, V),
     ("fusion-loss-grid-negative", "fusion/fig3.yaml", "channel.loss: [0.0, 0.1,", "channel.loss: [-0.1, 0.1,", "channel.loss", "over point channel.loss=-0.1", None, V),
+    # ---- critical: an empty rate list passed validate, then `netkf run` failed with an internal error ----------
+    ("critical-lambdas-empty", "critical/scalar_a2.yaml", "lambdas: [0.76, 0.78, 0.8, 0.82, 0.85, 0.88, 0.9, 0.93, 0.95, 0.97, 0.99]", "lambdas: []", "analysis.lambdas", "needs at least one arrival rate λ, got an empty list", None, V),
+    ("critical-lambdas-empty-run", "critical/scalar_a2.yaml", "lambdas: [0.76, 0.78, 0.8, 0.82, 0.85, 0.88, 0.9, 0.93, 0.95, 0.97, 0.99]", "lambdas: []", "analysis.lambdas", "needs at least one arrival rate λ", None, R),
     # ---- markov: Moayedi, Soh & Foo --------------------------------------------------------
     ("markov-transition-not-stochastic", "markov/example1.yaml", "- [0.8, 0.0, 0.10, 0.10]", "- [0.9, 0.0, 0.10, 0.10]", "channel.transition[0]", "must sum to 1", None, V),
     ("markov-transition-3-columns", "markov/example1.yaml", "- [0.8, 0.0, 0.10, 0.10]", "- [0.8, 0.0, 0.20]", "channel.transition", "not a matrix", "transition:", V),
