@@ -55,7 +55,7 @@ class Snr(StrictModel):
 class Speed(StrictModel):
     """A speed with its unit."""
 
-    value: NonNegFloat = Field(description="mobile speed s_mob (≥ 0)")
+    value: NonNegFloat = Field(description="mobile speed s_mob (≥ 0; 0 is a static channel: f_D = 0, the same gain at every step)")
     unit: Literal["m/s", "mph", "km/h"] = Field(description="unit of the speed")
 
     @property

@@ -86,8 +86,9 @@ class Autocorrelation(AnalysisModel):
         meta = {"runs": N, "horizon": mc.horizon, "averaged_over": f"t = {self.max_lag} … {mc.horizon - 1} per run"}
         corr = getattr(ch, "correlation", None)
         if getattr(corr, "model", "") == "jakes":
+            # speed 0 (f_D = 0): a static channel, J₀(0) = 1 at every lag, which never crosses zero (the manifest says "inf")
             meta.update(doppler_hz=corr.doppler, interval_s=corr.interval_s, nugget=corr.nugget,
-                        first_zero_of_J0_s=2.404825557695773 / (2 * np.pi * corr.doppler))
+                        first_zero_of_J0_s=2.404825557695773 / (2 * np.pi * corr.doppler) if corr.doppler > 0 else math.inf)
         return Artefact(pd.DataFrame(rows, columns=COLUMNS), meta=meta)
 
     def plot(self, tables, scenario):

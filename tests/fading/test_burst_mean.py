@@ -89,3 +89,42 @@ def test_autocorrelation_of_independent_gains(tmp_path):
     mc = t[t.source == "monte_carlo"]
     assert len(mc) == 18 and (np.abs(mc.z[mc.stderr > 0]) < 5).all()
     assert np.allclose(mc[(mc.series == "gain") & (mc.lag == 0)].value, 1.0, atol=5 * mc.stderr.max())
+
+
+JAKES0 = """\
+name: jakes0
+system: {A: 1.2, C: 1, Q: 1, R: 1}
+channel: {kind: fading, snr_avg: {value: 20, unit: dB}, noise: {model: ber, N_p: 10, Delta: 0.0390625},
+          correlation: {model: jakes, carrier_hz: 1.0e9, speed: {value: 0, unit: mph}, interval_s: 0.01}}
+analysis: {kind: autocorrelation, max_lag: 5}
+montecarlo: {runs: 200, horizon: 30, seed: 1}
+"""
+
+
+def test_autocorrelation_of_a_static_jakes_channel(tmp_path):
+    """speed 0 (f_D = 0) is a valid Jakes channel: the gain is the same at every step (up to the nugget), as the
+    receivers already used it. The autocorrelation metric divided by f_D for the first zero of J₀
+    (ZeroDivisionError out of `netkf run`): J₀(0) = 1 at every lag never crosses zero, the manifest says "inf"."""
+    import json
+
+    cfg = tmp_path / "jakes0.yaml"
+    cfg.write_text(JAKES0, encoding="utf-8")
+    res = run_scenario_file(cfg, out_dir=tmp_path / "a", force=True)
+    t = pd.read_csv(res / "jakes0.csv")
+    model = t[t.source == "closed_form"]
+    assert (model.value == 1.0).all()  # ρ_k = J₀(0) = 1, for the gain and the power
+    mc = t[(t.source == "monte_carlo") & (t.series == "gain")]
+    assert len(mc) == 6 and (np.abs(mc.z) < 5).all()
+    meta = json.loads((res / "manifest.json").read_text(encoding="utf-8"))["meta"]
+    assert meta["doppler_hz"] == 0.0 and meta["first_zero_of_J0_s"] == "inf"
+    # the receivers and time_average on the same static channel (they ran before the fix): still the same, and
+    # the limit of a vanishing speed
+    values = []
+    for speed in (0, 1e-9):
+        text = (JAKES0.replace("{kind: autocorrelation, max_lag: 5}", "{kind: time_average}")
+                .replace("value: 0, unit: mph", f"value: {speed}, unit: mph")
+                + "estimator: {kind: receiver, scenario: 2, threshold: {value: 14, unit: linear}}\n")
+        cfg.write_text(text, encoding="utf-8")
+        res = run_scenario_file(cfg, out_dir=tmp_path / f"t{speed}", force=True)
+        values.append(pd.read_csv(res / "jakes0.csv", comment="#").value.iloc[0])
+    assert np.isfinite(values[0]) and values[0] == pytest.approx(values[1], rel=1e-6)
