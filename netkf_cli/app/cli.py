@@ -35,6 +35,7 @@ from netkf_cli.app import runner  # (called as loader.x / runner.x: the tests' s
 from netkf_cli.analysis import references
 from netkf_cli.core._version import __version__
 from netkf_cli.core.errors import ConfigError, NetkfError, Problem
+from netkf_cli.core.tolerances import CRITICAL_BISECTION_TOL, CRITICAL_BISECTION_TOL_MAX, CRITICAL_BISECTION_TOL_MIN
 from netkf_cli.config.compat import compatibility, metric_compatibility
 from netkf_cli.config.kinds import describe
 from netkf_cli.config.loader import attribute, locate, parse_overrides
@@ -527,7 +528,8 @@ def mind(
 def critical(
     config: Annotated[Optional[Path], typer.Option("--config", help="Take the system (and the channel, if any) from this scenario.")] = None,
     arrival: Annotated[Optional[float], typer.Option("--arrival", help="Judge i.i.d. arrivals at this rate λ (overrides the scenario's channel).", min=0.0, max=1.0)] = None,
-    tol: Annotated[float, typer.Option("--tol", help="Bisection tolerance on λ_max.", min=1e-9, max=0.1)] = 1e-5,
+    tol: Annotated[float, typer.Option("--tol", help="Bisection tolerance on λ_max.", min=CRITICAL_BISECTION_TOL_MIN,
+                                       max=CRITICAL_BISECTION_TOL_MAX)] = CRITICAL_BISECTION_TOL,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ):
     """Critical arrival rate λ_c (Sinopoli et al. 2004): λ_min ≤ λ_c ≤ λ_max, exact where proven, E[P] bounds.

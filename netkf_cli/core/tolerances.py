@@ -93,6 +93,10 @@ re-evaluated) block matrix and of Y exceeds this (both are normalised by Y ≤ I
 CRITICAL_BISECTION_TOL = 1e-5
 """Critical arrival rate: default width of the bisection bracket on λ (``analysis.bisection_tol``)."""
 
+CRITICAL_BISECTION_TOL_MIN, CRITICAL_BISECTION_TOL_MAX = 1e-9, 0.1
+"""The range of that width accepted by a scenario (``analysis.bisection_tol``) and by ``netkf critical --tol`` alike:
+a bracket wider than 0.1 says little about λ_max; below 1e-9 the bisection only chases the LMI solver's rounding."""
+
 CRITICAL_RANK_TOL = 1e-8
 """C restricted to a quasi-equiblock counts as injective when σ_min(C V) > CRITICAL_RANK_TOL·‖C‖ (V orthonormal): scale-free."""
 

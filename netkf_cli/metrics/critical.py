@@ -38,7 +38,7 @@ from netkf_cli.runtime.plotting import PALETTE, footnote, legend_outside, new_fi
 from netkf_cli.core.artefact import Artefact, RunContext
 from netkf_cli.core.spec import AnalysisModel, PositiveFloat, PositiveInt, Probability, StrictModel
 from netkf_cli.core.system import LinearSystem
-from netkf_cli.core.tolerances import CRITICAL_BISECTION_TOL
+from netkf_cli.core.tolerances import CRITICAL_BISECTION_TOL, CRITICAL_BISECTION_TOL_MAX, CRITICAL_BISECTION_TOL_MIN
 
 TOPIC = "critical"
 PAPER = "Sinopoli et al. 2004"
@@ -307,7 +307,9 @@ class CriticalAnalysis(AnalysisModel):
     failure_rates: list[Probability] = Field(
         [0.02, 0.05, 0.1, 0.2, 0.4, 0.6, 0.8, 1.0],
         description="Gilbert–Elliott failure rates p = P(loss | arrival) of the critical curve (x-axis)")
-    bisection_tol: PositiveFloat = Field(CRITICAL_BISECTION_TOL, description="bisection tolerance on λ_max")
+    bisection_tol: PositiveFloat = Field(CRITICAL_BISECTION_TOL, ge=CRITICAL_BISECTION_TOL_MIN, le=CRITICAL_BISECTION_TOL_MAX,
+                                         description=f"bisection tolerance on λ_max ({CRITICAL_BISECTION_TOL_MIN:g} … "
+                                                     f"{CRITICAL_BISECTION_TOL_MAX:g}, as `netkf critical --tol`)")
     q_tol: PositiveFloat = Field(1e-3, description="bisection tolerance on the sufficient recovery rate q of the Markov LMI")
     monte_carlo: bool = Field(True, description="simulate E[tr P_{k|k−1}] with the generic engine at every λ above λ_min")
     title: str | None = Field(None, description="figure title (default: the system's name from the scenario)")

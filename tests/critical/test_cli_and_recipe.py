@@ -192,3 +192,21 @@ def test_tail_probabilities_and_their_intervals_stay_within_one(root):
     assert len(est) and (est["count"] == 300).all()  # every run above every M
     assert (t.value.dropna() <= 1).all() and (t.hi.dropna() <= 1).all() and (t.lo.dropna() >= 0).all()
     assert (est.hi == 1).all() and (est.value > 0.8).all()
+
+
+@pytest.mark.parametrize("tol, ok", [(1e-10, False), (1e-9, True), (1e-3, True), (0.1, True), (0.2, False), (2, False)])
+def test_scenario_bisection_tol_has_the_bounds_of_critical_tol(tmp_path, tol, ok):
+    """analysis.bisection_tol accepted 2 (any positive number) where `netkf critical --tol` stops at 0.1 (and 1e-9):
+    one range for both, refused with the same words."""
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text("name: t\nsystem: {A: 2, C: 1, Q: 1, R: 1}\nchannel: {kind: bernoulli, arrival: 0.9}\n"
+                   f"analysis: {{kind: critical, bisection_tol: {tol!r}}}\n", encoding="utf-8")
+    res = runner.invoke(app, ["validate", str(cfg)])
+    cli = runner.invoke(app, ["critical", "--tol", repr(tol), "--json"])
+    if ok:
+        assert res.exit_code == 0, res.output
+        assert cli.exit_code == 0, cli.output
+        return
+    word = "greater than or equal to" if tol < 1e-9 else "less than or equal to 0.1"
+    assert res.exit_code == 1 and "s.yaml:4 analysis.bisection_tol:" in res.output and word in res.output, res.output
+    assert cli.exit_code != 0 and "--tol" in cli.output and word in " ".join(cli.output.split()), cli.output
