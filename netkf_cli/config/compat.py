@@ -18,7 +18,7 @@ from pydantic import ValidationError
 
 from netkf_cli.core.errors import ConfigError, Problem
 from netkf_cli.config.kinds import GENERIC_METRICS
-from netkf_cli.config.scenario import SystemSpec, kinds, scenario_model
+from netkf_cli.config.scenario import MonteCarloSpec, OutputSpec, SystemSpec, kinds, scenario_model
 from netkf_cli.core.spec import AnalysisModel, ChannelModel, EstimatorModel
 from netkf_cli.linalg import riccati
 
@@ -344,8 +344,6 @@ recording covers)."""
 def metric_scenario(system_block, channel, estimator, analysis):
     """The scenario `netkf validate` would check for (system, channel, estimator, analysis), unvalidated
     (its parts are validated instances)."""
-    from netkf_cli.config.scenario import MonteCarloSpec, OutputSpec
-
     return scenario_model().model_construct(
         name="compat", description="", system=SystemSpec.model_validate(system_block), channel=channel,
         estimator=estimator, estimators=None, analysis=analysis, montecarlo=MonteCarloSpec(**METRIC_MONTECARLO),
