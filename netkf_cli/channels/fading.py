@@ -76,8 +76,9 @@ class JakesCorrelation(StrictModel):
     carrier_hz: PositiveFloat = Field(description="carrier frequency F_c in Hz")
     speed: Speed = Field(description="mobile speed s_mob")
     interval_s: PositiveFloat = Field(description="time between consecutive transmissions in seconds")
-    nugget: NonNegFloat = Field(1e-9, description="white floor ε added to the J₀ covariance (relative to the fading "
-                                                  "power) so that it is positive definite (Cholesky generation)")
+    nugget: PositiveFloat = Field(1e-9, description="white floor ε > 0 added to the J₀ covariance (relative to the "
+                                                    "fading power) so that it is positive definite (Cholesky generation: "
+                                                    "J₀'s Toeplitz matrix alone is singular to rounding)")
 
     @property
     def doppler(self) -> float:

@@ -429,3 +429,11 @@ def test_a_reference_that_cannot_be_drawn_is_refused(tmp_path, config, overrides
     assert r.exit_code == 1 and needle in out, out
     r = invoke("run", CONFIGS / config, *overrides, "--out", tmp_path / "o", "-q")
     assert r.exit_code == 1 and needle in " ".join(r.output.split()) and not (tmp_path / "o").exists()
+
+
+def test_a_jakes_channel_needs_its_white_floor(tmp_path):
+    """nugget: 0 passed validate and crashed netkf run ('Matrix is not positive definite': J₀'s Toeplitz matrix alone
+    is singular to rounding), at the shipped Fig. 7 settings too (the fields fuzz). Refused at validate."""
+    r = invoke("validate", CONFIGS / "fading" / "fig7.yaml", "channel.correlation.nugget=0")
+    out = " ".join(r.output.split())
+    assert r.exit_code == 1 and "nugget: Input should be greater than 0, got 0" in out, out
