@@ -61,12 +61,27 @@ def _pstar(s: LinearSystem) -> np.ndarray:
     try:
         P = kalman.dare(s.A, s.C, s.Q, s.R)
     except (np.linalg.LinAlgError, ValueError) as exc:
-        raise ConfigError.at(
-            "system",
-            f"the Riccati equation g(X) = X has no stabilizing solution ({exc}); "
-            "(A, C) must be detectable and (A, √Q) stabilizable",
-        ) from None
+        if _pbh(s.A, s.C, rows=True) and _pbh(s.A, s.Q, rows=False):
+            scale = [float(np.max(np.abs(X))) for X in (s.A, s.C, s.Q, s.R) if np.any(X)]
+            why = (f"(A, C) is detectable and (A, √Q) stabilizable, so the solver failed numerically: the entries of "
+                   f"A, C, Q, R span {max(scale):.3g} / {min(scale):.3g}; rescale the system (state or output units)")
+        else:
+            why = "(A, C) must be detectable and (A, √Q) stabilizable"
+        raise ConfigError.at("system", f"the Riccati equation g(X) = X has no stabilizing solution ({exc}); {why}") \
+            from None
     return sym(P)
+
+
+def _pbh(A: np.ndarray, B: np.ndarray, rows: bool) -> bool:
+    """The PBH test on the modes |λ| ≥ 1 of A: rank [λI − A; C] = n (``rows``: detectability of (A, C)) or
+    rank [λI − A, B] = n (stabilizability of (A, B); B = Q has the column space of √Q)."""
+    n = A.shape[0]
+    for lam in np.linalg.eigvals(A):
+        if abs(lam) >= 1.0:
+            M = np.vstack([lam * np.eye(n) - A, B]) if rows else np.hstack([lam * np.eye(n) - A, B])
+            if np.linalg.matrix_rank(M) < n:
+                return False
+    return True
 
 
 def initial_covariance(s: LinearSystem) -> np.ndarray:

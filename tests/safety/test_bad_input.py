@@ -203,6 +203,7 @@ def test_validate_reports_what_the_recipe_would_refuse(tmp_path, config, overrid
     ("critical/tail_scalar.yaml", ["system.C=0"], "system.P0: unset (or steady), P0 is P̄"),
     ("smoothing/table1.yaml", ["system.C=[[0]]"], "system.P0: unset (or steady), P0 is P̄"),
     ("fusion/fig2.yaml", ["system.A=1.5", "system.C=0"], "P_m = Φ(P_m, N) has no stabilizing solution"),
+    ("fig5.yaml", ["system.R=1e45"], "(A, C) is detectable and (A, √Q) stabilizable, so the solver failed numerically"),
 ])
 def test_validate_reports_a_start_or_bound_that_does_not_exist(tmp_path, config, overrides, needle):
     """An undetectable system: P0 unset means P̄ for every estimator (core/spec), and P̄ does not exist; fusion's
