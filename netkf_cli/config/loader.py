@@ -694,6 +694,8 @@ def attribute(problems: list[Problem], overrides) -> list[Problem]:
                 hit = o
             elif d.startswith(p.path + ".") and p.message.startswith(d[len(p.path) + 1:] + ":"):
                 hit = o  # a check of the enclosing block that names the field first (a sweep axis: "channel.buffer: …")
+            elif d.startswith(p.path + ".") and p.message.startswith("unknown key"):
+                hit = o  # foo.bar=1: the unknown key foo is the override's (the file has no foo)
         out.append(replace(p, file=hit.where(), line=None) if hit is not None else p)
     return out
 

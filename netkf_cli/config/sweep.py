@@ -225,7 +225,7 @@ def check_plot(spec: "SweepSpec", table: pd.DataFrame) -> None:
     """``plot.where`` and ``plot.series`` must name what the table holds: checked on the first
     point's table, before the other points run (a filter on a missing column would silently draw
     everything)."""
-    cols = [*spec.axes, *table.columns]
+    cols = list(dict.fromkeys([*spec.axes, *table.columns]))
     problems = [Problem(f"sweep.plot.where.{k}", f"is not a column of the table; columns: {', '.join(map(str, cols))}")
                 for k in spec.plot.where if k not in cols]
     if spec.plot.series is not None and "series" in table.columns:

@@ -224,7 +224,8 @@ def make_parent(final: Path) -> list[Path]:
         for q in (parent, *parent.parents):
             if os.path.lexists(q) and not q.is_dir():
                 raise OutputError(f"cannot write {final}: {q} is a file, not a folder") from None
-        raise OutputError(f"cannot create {parent}: {exc.strerror or exc}") from None
+        raise OutputError(f"cannot create {parent} (for the result folder {final}: --out or output.dir): "
+                          f"{exc.strerror or exc}") from None
     return list(reversed(missing))
 
 

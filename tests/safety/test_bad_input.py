@@ -438,3 +438,20 @@ def test_a_jakes_channel_needs_its_white_floor(tmp_path):
     r = invoke("validate", CONFIGS / "fading" / "fig7.yaml", "channel.correlation.nugget=0")
     out = " ".join(r.output.split())
     assert r.exit_code == 1 and "nugget: Input should be greater than 0, got 0" in out, out
+
+
+def test_small_messages_name_their_source(tmp_path):
+    """The UX fuzz: an unknown key given by an override was the file's; a result folder that cannot be made did not
+    say it is the result folder; a sweep's plot.where listed the swept column twice."""
+    r = invoke("validate", CONFIGS / "fig3.yaml", "foo.bar=1")
+    assert "command line (foo.bar=1) foo: unknown key" in " ".join(r.output.split()), r.output
+    if Path("/proc/self").is_dir():  # Linux: nothing, not even root, can make a folder in /proc
+        r = invoke("run", CONFIGS / "fig3.yaml", "output.dir=/proc/netkf-test/x", "-q")
+        assert r.exit_code == 1 and "--out or output.dir" in " ".join(r.output.split()), r.output
+    cfg = tmp_path / "sp.yaml"
+    cfg.write_text("name: sp\nsystem: {A: 1.2, C: 1, Q: 1, R: 1}\nchannel: {kind: bernoulli, arrival: 0.8}\n"
+                   "estimator: {kind: kf}\nanalysis: {kind: time_average}\nmontecarlo: {runs: 100, horizon: 20, seed: 1}\n"
+                   "sweep: {channel.arrival: [0.5, 0.6], plot: {where: {foo: 1}}}\n", encoding="utf-8")
+    r = invoke("run", cfg, "--out", tmp_path / "o", "-q")
+    out = " ".join(r.output.split())
+    assert r.exit_code == 1 and "columns: channel.arrival, estimator," in out, out
