@@ -413,12 +413,13 @@ class TailMetric(AnalysisModel):
             p0 = cnt0 / max(n0, 1)
             se0 = np.sqrt(p0 * (1 - p0) / max(n0, 1))
             if K > 1:
-                p, se = importance_estimate(st, j)
+                p_raw, se = importance_estimate(st, j)
                 # the unbiased estimate is not bounded by 1 (weights up to K: an undetectable system, every run
-                # above M, gave 1.08); projected onto [0, 1], which can only bring it closer to the probability
-                p = np.minimum(p, 1.0)
+                # above M, gave 1.08); projected onto [0, 1], which can only bring it closer to the probability;
+                # its interval is the unbiased one's, cut to [0, 1]
+                p = np.minimum(p_raw, 1.0)
             else:
-                p, se = p0, se0
+                p_raw, (p, se) = p0, (p0, se0)
             cnt = st[f"cnt_{j}"]
             rel = np.where(p > 0, se / np.where(p > 0, p, 1), np.inf)
             # a weighted estimate resting on few runs has an unreliable standard error too: a result needs
@@ -426,8 +427,8 @@ class TailMetric(AnalysisModel):
             good = (cnt >= MIN_CONTRIBUTORS) & (rel <= 0.25)
             for i, m in enumerate(M):
                 rows.append(dict(M=m, estimator=lab, series="importance" if K > 1 else "monte_carlo", value=p[i],
-                                 stderr=se[i], n=int(st["n_c"].sum()), lo=max(p[i] - 1.96 * se[i], 0.0),
-                                 hi=min(p[i] + 1.96 * se[i], 1.0), count=cnt[i], reliable=float(good[i])))
+                                 stderr=se[i], n=int(st["n_c"].sum()), lo=max(p_raw[i] - 1.96 * se[i], 0.0),
+                                 hi=min(p_raw[i] + 1.96 * se[i], 1.0), count=cnt[i], reliable=float(good[i])))
                 if K > 1:
                     rows.append(dict(M=m, estimator=lab, series="plain", value=p0[i], stderr=se0[i], n=n0,
                                      lo=lo0[i], hi=hi0[i], count=cnt0[i], reliable=float(cnt0[i] >= MIN_CONTRIBUTORS)))
