@@ -389,7 +389,7 @@ def dare(A, C, Q, R) -> np.ndarray:
     return X
 
 
-BURST_PROBE_STEPS = 400
+BURST_PROBE_STEPS = 100
 BURST_PROBE_DOUBLINGS = 40
 """:func:`burst_limit` walks a loss burst step by step for BURST_PROBE_STEPS steps (a stable A converges long
 before, an unstable one passes the rescue limit), then doubles its length BURST_PROBE_DOUBLINGS times."""
@@ -452,11 +452,10 @@ def _update_extended(P: np.ndarray, C: np.ndarray, R: np.ndarray) -> np.ndarray:
     for c in range(m):
         p = c + int(np.argmax(np.abs(S[c:, c])))
         S[[c, p]], B[[c, p]] = S[[p, c]], B[[p, c]]
-        for r in range(m):
-            if r != c:
-                f = S[r, c] / S[c, c]
-                S[r] -= f * S[c]
-                B[r] -= f * B[c]
+        f = S[:, c] / S[c, c]
+        f[c] = 0.0  # every other row at once
+        S -= np.outer(f, S[c])
+        B -= np.outer(f, B[c])
     X = B / np.diag(S)[:, None]
     out = P - (C @ P).T @ X
     return ((out + out.T) / 2).astype(float)
