@@ -40,9 +40,16 @@ def read_recording(path: Path, values: str) -> np.ndarray:
         raise ConfigError.at("channel.file", f"file not found: {path}") from None
     except UnicodeDecodeError:
         raise ConfigError.at("channel.file", f"{path} is not a UTF-8 text CSV file") from None
-    numbered = [(i + 1, r) for i, r in enumerate(csv.reader(text.splitlines())) if r and any(c.strip() for c in r)]
+    numbered = [(i + 1, r) for i, r in enumerate(csv.reader(text.splitlines()))]
+    filled = [k for k, (_, r) in enumerate(numbered) if r and any(c.strip() for c in r)]
+    # blank lines before the first and after the last filled line are formatting; between them a blank line is a
+    # row whose cells are empty: a lost packet of a delay recording (a one-column file writes an empty cell so),
+    # and an error naming its line for arrivals (dropping it shifted every later step by one)
+    numbered = numbered[filled[0]:filled[-1] + 1] if filled else []
     if numbered and not all(_is_value(c) for c in numbered[0][1]):
         numbered = numbered[1:]  # header
+    cols = max((len(r) for _, r in numbered), default=1)
+    numbered = [(n, r if r and any(c.strip() for c in r) else [""] * cols) for n, r in numbered]
     lines = [n for n, _ in numbered]  # the file's line of each data row, for messages
     rows = [r for _, r in numbered]
     if not rows:

@@ -54,17 +54,26 @@ def test_bad_delay_trace_is_refused_naming_file_line_and_column(tmp_path, cell, 
 
 
 def test_good_delay_trace_with_lost_markers_runs(tmp_path):
-    """(A blank line is no row: the recording has 3 rows, so horizon 3 — with horizon 4 `netkf run` refused it
-    after `netkf validate` said ✓; validate now refuses that too.)"""
-    (tmp_path / "rec.csv").write_text("sensor\n0\n\n-1\nlost\n")
+    """An empty cell is a lost packet, and in a one-column file an empty cell is a blank line between rows: 4 rows
+    here (0, lost, -1, lost). The reader dropped that line, so the recording had 3 rows (every later step shifted
+    by one) and `netkf run` refused horizon 4 after `netkf validate` said ✓. Blank lines around the data are
+    formatting; one more step than the recording holds is refused at validate."""
+    from netkf_cli.channels.trace_file import LOST, read_recording
+
+    (tmp_path / "rec.csv").write_text("\nsensor\n0\n\n-1\nlost\n\n\n")
+    assert read_recording(tmp_path / "rec.csv", "delay").tolist() == [[0, LOST, LOST, LOST]]
     cfg = tmp_path / "s.yaml"
-    cfg.write_text(TRACE.replace("horizon: 4", "horizon: 3"))
+    cfg.write_text(TRACE)
     assert invoke("validate", cfg).exit_code == 0
     r = invoke("run", cfg, "--out", tmp_path / "o", "-q")
     assert r.exit_code == 0, r.output
-    cfg.write_text(TRACE)
+    cfg.write_text(TRACE.replace("horizon: 4", "horizon: 5"))
     r = invoke("validate", cfg)
-    assert r.exit_code == 1 and "mode once needs 4 rows (offset + horizon), the recording has 3" in r.output, r.output
+    assert r.exit_code == 1 and "mode once needs 5 rows (offset + horizon), the recording has 4" in r.output, r.output
+    (tmp_path / "rec.csv").write_text("a\n1\n\n0\n1\n")  # arrivals: a blank line is no value
+    cfg.write_text(TRACE.replace("values: delay, buffer: 2", "values: arrival").replace("buffered", "kf"))
+    r = invoke("validate", cfg)
+    assert r.exit_code == 1 and "rec.csv line 3 column 1: expected 0 or 1, got ''" in r.output, r.output
 
 
 def test_bad_arrival_trace_names_file_and_line(tmp_path):
