@@ -53,7 +53,6 @@ from netkf_cli.linalg import batched, riccati
 from netkf_cli.analysis.delay_bounds import max_kept_delay
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.core.system import LinearSystem
-from netkf_cli.core.tolerances import PSD_TOL
 from netkf_cli.core.tolerances import DELAY_EXACT_TOL, PSD_TOL
 
 
@@ -93,16 +92,15 @@ def _lft_matrices(s: LinearSystem) -> tuple[np.ndarray, np.ndarray]:
     return H, G @ H
 
 
-def _lft_lam(T: np.ndarray, X: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(λ_max, 0) of (T₁₁X + T₁₂)(T₂₁X + T₂₂)⁻¹ for a stack T (N, 2n, 2n); (NaN, ∞) for a node whose denominator is
-    singular to working precision or whose value is not finite: it is undecided (:func:`_inherit`), and the bracket
-    stays certified, only wider.
+def _lft_lam(T: np.ndarray, X: np.ndarray, n: int) -> np.ndarray:
+    """λ_max of (T₁₁X + T₁₂)(T₂₁X + T₂₂)⁻¹ for a stack T (N, 2n, 2n); NaN for a node whose denominator is singular
+    to working precision or whose value is not finite: it is undecided (:func:`_inherit`), and the bracket stays
+    certified, only wider.
 
     A long word's composed map can be that ill-conditioned (A⁻ᵀ's powers: an eigenvalue −0.3 of A grows them 3.3× a
     step; the numerical fuzz found a LinAlgError out of the whole computation). A first-order error bound was tried
-    as the second member and is far too pessimistic here (on Fig. 9's vehicle it grew to 1e-6 by depth 20 while the
-    values stayed put to 1e-17, and left the staircase's jump points uncertified), so the error is 0 unless the value
-    is lost outright."""
+    and is far too pessimistic here (on Fig. 9's vehicle it grew to 1e-6 by depth 20 while the values stayed put to
+    1e-17, and left the staircase's jump points uncertified), so only a value lost outright is set aside."""
     num = T[:, :n, :n] @ X + T[:, :n, n:]
     den = T[:, n:, :n] @ X + T[:, n:, n:]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -112,38 +110,13 @@ def _lft_lam(T: np.ndarray, X: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarr
     ok = np.isfinite(P).all(axis=(1, 2))
     lam = np.full(len(P), np.nan)
     lam[ok] = P[ok, 0, 0] if n == 1 else np.linalg.eigvalsh(P[ok])[:, -1]
-    return lam, np.where(ok, 0.0, np.inf)
+    return lam
 
 
-def _widened(lam_err: tuple[np.ndarray, np.ndarray], sign: float) -> np.ndarray:
-    """λ_max from :func:`_lft_lam` as a bound: λ itself where its error is within the PSD comparison's own tolerance
-    (PSD_TOL·max(1, |λ|): the comparison with M absorbs it, as it always did), else λ + sign·error; unknown: ±∞."""
-    lam, err = lam_err
-    with np.errstate(invalid="ignore"):
-        out = np.where(err <= PSD_TOL * np.maximum(1.0, np.abs(lam)), lam, lam + sign * err)
-    return np.where(np.isfinite(err), out, sign * np.inf)
-
-
-def _inherit(lam_err: tuple[np.ndarray, np.ndarray], parent: np.ndarray, sign: float) -> np.ndarray:
-    """A node's bound (sign +1: upper, −1: lower) from :func:`_lft_lam`, or, where that value is not precise to the
-    comparison's tolerance, the tighter of its widened form and the parent's bound (valid: the node's histories are
-    some of its parent's). A precise value is used as is, as it always was."""
-    lam, err = lam_err
-    with np.errstate(invalid="ignore"):
-        precise = err <= PSD_TOL * np.maximum(1.0, np.abs(lam))
-    widened = _widened(lam_err, sign)
-    tighter = np.minimum(widened, parent) if sign > 0 else np.maximum(widened, parent)
-    return np.where(precise, lam, tighter)
-
-
-def _upper(lam_err: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """An upper bound on λ_max (:func:`_widened`; unknown: +∞)."""
-    return _widened(lam_err, 1.0)
-
-
-def _lower(lam_err: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """A lower bound on λ_max (:func:`_widened`; unknown: −∞)."""
-    return _widened(lam_err, -1.0)
+def _inherit(lam: np.ndarray, parent: np.ndarray) -> np.ndarray:
+    """A node's bound from :func:`_lft_lam`, or its parent's where the value is lost (valid: the node's histories are
+    some of its parent's)."""
+    return np.where(np.isnan(lam), parent, lam)
 
 
 def _open_loop_bound(s: LinearSystem) -> np.ndarray | None:
@@ -216,7 +189,7 @@ def exact_probability(s: LinearSystem, channel, span: int, M_grid, *, tol: float
             Tc = T @ step
             Tc /= np.abs(Tc).max(axis=(1, 2), keepdims=True)
             pc = prob * (p if g else 1.0 - p)
-            hc = _inherit(_lft_lam(T, Mbar, n), hi, 1.0) if g else hi.copy()
+            hc = _inherit(_lft_lam(T, Mbar, n), hi) if g else hi.copy()
             Ts.append(Tc), probs.append(pc), his.append(hc), gs.append(np.full(len(prob), g)), los.append(lo_n)
             yess.append(dyes), nos.append(dno)
         T = np.concatenate(Ts)
@@ -225,7 +198,7 @@ def exact_probability(s: LinearSystem, channel, span: int, M_grid, *, tol: float
         lo_n = np.concatenate(los)
         dyes, dno = np.concatenate(yess), np.concatenate(nos)
         if Xinf is not None:  # both bounds hold: keep the smaller λ_max
-            hi = np.minimum(hi, _upper(_lft_lam(T, Xinf, n)))
+            hi = np.fmin(hi, _lft_lam(T, Xinf, n))  # (a lost value: the other bound)
         gprev = np.concatenate(gs)
         keep = prob > 0
         T, prob, hi, gprev, lo_n, dyes, dno = T[keep], prob[keep], hi[keep], gprev[keep], lo_n[keep], dyes[keep], dno[keep]
@@ -234,14 +207,14 @@ def exact_probability(s: LinearSystem, channel, span: int, M_grid, *, tol: float
         depth = j
         if horizon is not None and j == horizon:
             lam = _lft_lam(T, X0, n)  # the whole pattern is known: exact P_k (unless the node lost its precision)
-            lower += prob @ (dyes | ((_inherit(lam, hi, 1.0)[:, None] <= thr[None, :]) & ~dno))
-            upper += prob @ (~dno & (dyes | (_inherit(lam, lo_n, -1.0)[:, None] <= thr[None, :])))
+            lower += prob @ (dyes | ((_inherit(lam, hi)[:, None] <= thr[None, :]) & ~dno))
+            upper += prob @ (~dno & (dyes | (_inherit(lam, lo_n)[:, None] <= thr[None, :])))
             prob = prob[:0]
             break
         if lower_ok:
-            lam, err = _lft_lam(T, Pbar, n)
-            lo = _inherit((lam, err), lo_n, -1.0)
-            lost = ~np.isfinite(err)  # a longer word only composes more: a lost value does not come back
+            lam = _lft_lam(T, Pbar, n)
+            lo = _inherit(lam, lo_n)
+            lost = np.isnan(lam)  # a longer word only composes more: a lost value does not come back
         else:
             lo, lost = np.zeros(len(prob)), np.zeros(len(prob), dtype=bool)
         sure_yes = dyes | ((hi[:, None] <= thr[None, :]) & ~dno)
@@ -259,7 +232,7 @@ def exact_probability(s: LinearSystem, channel, span: int, M_grid, *, tol: float
         T, prob, hi, gprev, lo_n = T[~close], prob[~close], hi[~close], gprev[~close], lo[~close]
         dyes, dno = dyes[~close], dno[~close]
     if len(prob):  # depth limit: remaining nodes unresolved
-        lo = _inherit(_lft_lam(T, Pbar, n), lo_n, -1.0) if lower_ok else np.zeros(len(prob))
+        lo = _inherit(_lft_lam(T, Pbar, n), lo_n) if lower_ok else np.zeros(len(prob))
         lower += prob @ (dyes | ((hi[:, None] <= thr[None, :]) & ~dno))
         upper += prob @ (~dno & (dyes | (lo[:, None] <= thr[None, :])))
     return ExactResult(M=M, lower=np.clip(lower, 0, 1), upper=np.clip(upper, 0, 1), nodes=nodes, depth=depth,
