@@ -67,6 +67,7 @@ import numpy as np
 import scipy.linalg
 
 from netkf_cli.linalg import kalman, sdp
+from netkf_cli.linalg.riccati import is_detectable  # noqa: F401 (re-exported: the PBH test lives with the Riccati solution it decides)
 from netkf_cli.analysis.delay_bounds import max_kept_delay
 from netkf_cli.core.errors import NetkfError
 from netkf_cli.core.tolerances import CRITICAL_BISECTION_TOL, CRITICAL_MARGIN_TOL, CRITICAL_RANK_TOL, CRITICAL_RHO_TOL
@@ -107,29 +108,6 @@ def observable_basis(A: np.ndarray, C: np.ndarray, tol: float = 1e-9) -> np.ndar
     _, s, Vt = np.linalg.svd(O)
     r = int((s > tol * max(1.0, s[0] if s.size else 1.0)).sum())
     return Vt[:r].T
-
-
-def is_detectable(A: np.ndarray, C: np.ndarray, tol: float = 1e-9) -> bool:
-    """PBH test: no eigenvector v of an eigenvalue |σ| ≥ 1 has C v = 0.
-
-    For each unstable σ the eigenspace N = ker(A − σI) is found on its own scale (SVD of A − σI),
-    then C N must have full column rank relative to ‖C‖ — so A = diag(1e200, 0.5) is judged like
-    A = diag(2, 0.5) (an SVD of the stacked [A − σI; C] would compare 1e200 with 1), and a
-    Jordan block contributes its true (one-dimensional) eigenspace.
-    """
-    n = A.shape[0]
-    cn = max(np.linalg.norm(C, 2), np.finfo(float).tiny)
-    for sig in np.linalg.eigvals(A):
-        if abs(sig) < 1 - CRITICAL_RHO_TOL:
-            continue
-        _, sv, Vh = np.linalg.svd(A - sig * np.eye(n))
-        null = Vh[(sv <= tol * max(1.0, sv[0])), :].conj().T if sv.size else np.eye(n)
-        if null.shape[1] == 0:  # numerically no eigenvector (should not happen for an eigenvalue): smallest direction
-            null = Vh[-1:, :].conj().T
-        s = np.linalg.svd(C @ null, compute_uv=False)
-        if (s > tol * cn).sum() < null.shape[1]:
-            return False
-    return True
 
 
 def unstable_eigenvalues(A: np.ndarray) -> np.ndarray:

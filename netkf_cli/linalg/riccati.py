@@ -18,7 +18,7 @@ import numpy as np
 from netkf_cli.linalg import kalman
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.core.system import LinearSystem
-from netkf_cli.core.tolerances import PSD_TOL
+from netkf_cli.core.tolerances import CRITICAL_RHO_TOL, PSD_TOL
 
 
 def sym(X: np.ndarray) -> np.ndarray:
@@ -61,7 +61,7 @@ def _pstar(s: LinearSystem) -> np.ndarray:
     try:
         P = kalman.dare(s.A, s.C, s.Q, s.R)
     except (np.linalg.LinAlgError, ValueError) as exc:
-        if _pbh(s.A, s.C, rows=True) and _pbh(s.A, s.Q, rows=False):
+        if is_detectable(s.A, s.C) and is_detectable(s.A.T, s.Q):  # (A, √Q) stabilizable ⇔ (Aᵀ, Q) detectable
             scale = [float(np.max(np.abs(X))) for X in (s.A, s.C, s.Q, s.R) if np.any(X)]
             why = (f"(A, C) is detectable and (A, √Q) stabilizable, so the solver failed numerically: the entries of "
                    f"A, C, Q, R span {max(scale):.3g} / {min(scale):.3g}; rescale the system (state or output units)")
@@ -72,15 +72,26 @@ def _pstar(s: LinearSystem) -> np.ndarray:
     return sym(P)
 
 
-def _pbh(A: np.ndarray, B: np.ndarray, rows: bool) -> bool:
-    """The PBH test on the modes |λ| ≥ 1 of A: rank [λI − A; C] = n (``rows``: detectability of (A, C)) or
-    rank [λI − A, B] = n (stabilizability of (A, B); B = Q has the column space of √Q)."""
+def is_detectable(A: np.ndarray, C: np.ndarray, tol: float = 1e-9) -> bool:
+    """PBH test: no eigenvector v of an eigenvalue |σ| ≥ 1 has C v = 0.
+
+    For each unstable σ the eigenspace N = ker(A − σI) is found on its own scale (SVD of A − σI),
+    then C N must have full column rank relative to ‖C‖ — so A = diag(1e200, 0.5) is judged like
+    A = diag(2, 0.5) (an SVD of the stacked [A − σI; C] would compare 1e200 with 1), and a
+    Jordan block contributes its true (one-dimensional) eigenspace.
+    """
     n = A.shape[0]
-    for lam in np.linalg.eigvals(A):
-        if abs(lam) >= 1.0:
-            M = np.vstack([lam * np.eye(n) - A, B]) if rows else np.hstack([lam * np.eye(n) - A, B])
-            if np.linalg.matrix_rank(M) < n:
-                return False
+    cn = max(np.linalg.norm(C, 2), np.finfo(float).tiny)
+    for sig in np.linalg.eigvals(A):
+        if abs(sig) < 1 - CRITICAL_RHO_TOL:
+            continue
+        _, sv, Vh = np.linalg.svd(A - sig * np.eye(n))
+        null = Vh[(sv <= tol * max(1.0, sv[0])), :].conj().T if sv.size else np.eye(n)
+        if null.shape[1] == 0:  # numerically no eigenvector (should not happen for an eigenvalue): smallest direction
+            null = Vh[-1:, :].conj().T
+        s = np.linalg.svd(C @ null, compute_uv=False)
+        if (s > tol * cn).sum() < null.shape[1]:
+            return False
     return True
 
 

@@ -133,10 +133,8 @@ class ClosedForms:
                 # and inside Thm 3.8's bounds (closed forms, independent of the word tree): a word whose composed map
                 # lost its precision without becoming singular can decide a node wrongly (a coupled system with an
                 # eigenvalue −0.3 of A: the bracket left the bounds by 8e-6)
-                for name, side in (("lower_bound", 1.0), ("upper_bound", -1.0)):
-                    b = out.get(name, np.full(len(M), np.nan))[ok]
-                    inside = (ex.upper >= b - self.tol) if side > 0 else (ex.lower <= b + self.tol)
-                    certified &= np.isnan(b) | inside
+                lb, ub = (out.get(name, np.full(len(M), np.nan))[ok] for name in ("lower_bound", "upper_bound"))
+                certified &= (np.isnan(lb) | (ex.upper >= lb - self.tol)) & (np.isnan(ub) | (ex.lower <= ub + self.tol))
                 v[ok] = np.where(certified, ex.value, np.nan)
                 e[ok] = ex.err
                 out["exact"], out["exact_err"] = v, e
