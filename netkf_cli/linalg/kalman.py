@@ -33,6 +33,7 @@ import scipy.linalg
 
 from netkf_cli.linalg import batched
 from netkf_cli.linalg import kalman_codegen as kc
+from netkf_cli.core import llvm_pages
 from netkf_cli.core.errors import ConfigError
 from netkf_cli.core.tolerances import PSD_TOL, RESCUE_RATIO
 
@@ -706,11 +707,13 @@ def eager() -> bool:
 
 
 def numba_available() -> bool:
-    """numba importable (an optional dependency: where it is missing, everything runs on numpy)."""
+    """numba importable (an optional dependency: where it is missing, everything runs on numpy). Once it is,
+    LLVM's pages are unmapped after each compilation (:mod:`netkf_cli.core.llvm_pages`)."""
     try:
         import numba  # noqa: F401  (optional: probed only, never required)
     except ImportError:
         return False
+    llvm_pages.install()
     return True
 
 

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from netkf_cli.core.stats import mean_se, proportion_stderr, wilson_interval  # noqa: F401 (re-exported: one statistics module)
+from netkf_cli.core import llvm_pages
 from netkf_cli.core.errors import ConfigError, NetkfError
 from netkf_cli.runtime.workers import pool_kwargs  # pool workers ignore Ctrl-C and die with this process
 from netkf_cli.runtime.workers import limit_blas, release_free_memory
@@ -133,6 +134,7 @@ def warm_compiler() -> None:
         import numba  # optional dependency (netkf runs on numpy without it)
     except ImportError:
         return
+    llvm_pages.install()
     numba.njit(cache=True)(_plus_one)(1.0)
 
 
