@@ -57,7 +57,7 @@ from rich.table import Table
 
 from netkf_cli.app import golden as golden_mod
 from netkf_cli.linalg import kalman
-from netkf_cli.runtime import montecarlo, plotting
+from netkf_cli.runtime import io, montecarlo, plotting
 from netkf_cli.core.errors import ConfigError, NetkfError, Problem
 from netkf_cli.config.compat import safe_load
 from netkf_cli.config.loader import line_index, load_scenario, validation_problems
@@ -484,24 +484,26 @@ def run_all(arts: list[Artefact], out_root: Path, quick: bool, jobs: int, on_don
     # (gc 3.0 -> 1.4 s CPU over the 37 quick artefacts), and forked workers stop touching (copying) their pages
     gc.collect()
     gc.freeze()
-    try:
-        if jobs <= 1:
-            for a in arts:
-                results[a.name] = _run_one(tasks[a.name])
-                if on_done:
-                    on_done(a, results[a.name])
-        else:
-            order = sorted(arts, key=lambda a: -_expected_wall(a, out_root, golden_root))  # stable among equals
-            with ProcessPoolExecutor(max_workers=min(jobs, len(arts)) or 1, **pool_kwargs()) as ex:
-                futures = {ex.submit(_run_one, tasks[a.name]): a for a in order}
-                for fut in as_completed(futures):
-                    a = futures[fut]
-                    results[a.name] = fut.result()
+    with io.fixed_commit():  # one git look for every manifest
+        io.git_commit()  # asked before the workers fork: they inherit the answer
+        try:
+            if jobs <= 1:
+                for a in arts:
+                    results[a.name] = _run_one(tasks[a.name])
                     if on_done:
                         on_done(a, results[a.name])
-    finally:
-        gc.unfreeze()
-        _SCENARIOS.clear()
+            else:
+                order = sorted(arts, key=lambda a: -_expected_wall(a, out_root, golden_root))  # stable among equals
+                with ProcessPoolExecutor(max_workers=min(jobs, len(arts)) or 1, **pool_kwargs()) as ex:
+                    futures = {ex.submit(_run_one, tasks[a.name]): a for a in order}
+                    for fut in as_completed(futures):
+                        a = futures[fut]
+                        results[a.name] = fut.result()
+                        if on_done:
+                            on_done(a, results[a.name])
+        finally:
+            gc.unfreeze()
+            _SCENARIOS.clear()
     return results
 
 

@@ -374,8 +374,31 @@ def dare(A, C, Q, R) -> np.ndarray:
 
     scipy raises for most undetectable systems, but not for all: with an undetected unstable complex pair
     (A with eigenvalues 1.47 ± 0.32i, C = 0) it returned an indefinite matrix of size 1e16, the solution of the
-    Lyapunov equation P = A P Aᵀ + Q, which no covariance satisfies. Checked here, so every caller refuses it."""
+    Lyapunov equation P = A P Aᵀ + Q, which no covariance satisfies. Checked here, so every caller refuses it.
+
+    Memoized per (A, C, Q, R) (a copy is returned; the same LinAlgError is raised again): validation, P̄, P0 and
+    the closed forms ask for the same system's P* many times (the quick reproduction: 503 solves of ~40 systems)."""
     A, C, Q, R = (np.atleast_2d(np.asarray(X, dtype=float)) for X in (A, C, Q, R))
+    key = tuple((X.shape, X.tobytes()) for X in (A, C, Q, R))
+    got = _DARE.get(key)
+    if got is None:
+        try:
+            got = _dare(A, C, Q, R)
+        except np.linalg.LinAlgError as exc:
+            got = exc
+        if len(_DARE) >= 256:  # a bound: the systems of this process's runs
+            _DARE.clear()
+        _DARE[key] = got
+    if isinstance(got, np.linalg.LinAlgError):
+        raise np.linalg.LinAlgError(*got.args)
+    return got.copy()
+
+
+_DARE: dict = {}
+
+
+def _dare(A, C, Q, R) -> np.ndarray:
+    """:func:`dare` without the memo."""
     X = scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)
     if not np.all(np.isfinite(X)):
         raise np.linalg.LinAlgError("the solution is not finite")

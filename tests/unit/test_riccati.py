@@ -172,3 +172,22 @@ def test_dare_returns_a_psd_stabilizing_fixed_point_or_refuses(seed, n, m, unsta
     A_KC = s.A - K @ C
     assert max(abs(np.linalg.eigvals(A_KC))) <= 1 + 1e-8
     np.testing.assert_array_equal(P, (lambda X: (X + X.T) / 2)(scipy.linalg.solve_discrete_are(s.A.T, C.T, s.Q, s.R)))
+
+
+def test_dare_memo_returns_copies_and_refuses_again():
+    """kalman.dare is memoized per (A, C, Q, R): a caller that writes into its answer does not change the next
+    caller's, an equal system built anew gets the same numbers, and a refused system is refused again with the
+    same message (scipy's 1e16 indefinite answer for an undetected unstable complex pair)."""
+    A, C, Q, R = np.array([[1.2, 0.3], [0.0, 0.8]]), np.array([[1.0, 0.0]]), np.eye(2), np.eye(1)
+    P = kalman.dare(A, C, Q, R)
+    first = P.copy()
+    P[:] = -1.0
+    np.testing.assert_array_equal(kalman.dare(A.copy(), C.copy(), Q.copy(), R.copy()), first)
+    th = 0.213
+    B = 1.5 * np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    msgs = []
+    for _ in range(2):
+        with pytest.raises(np.linalg.LinAlgError) as exc:
+            kalman.dare(B, np.zeros((1, 2)), np.eye(2), np.eye(1))
+        msgs.append(str(exc.value))
+    assert msgs[0] == msgs[1] and msgs[0]
