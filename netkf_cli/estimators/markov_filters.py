@@ -462,7 +462,7 @@ class ModeAwareKFTr:
                    :meth:`AugmentedModel.decorrelated`);  ξ̂(k+1|k) = F̄_q ξ̂(k|k) + D_q y(k)
 
     Mode 3 (noise only: H_3 = 0) leaves P(k|k) = P(k|k−1). The x block of a mode-1 / mode-3 step goes
-    through the plain KF's overflow policy ``kalman.Rescue.of(C, R)`` (flag on tr P_x(k|k−1), redo
+    through the plain KF's overflow policy ``kalman.Rescue.for_system`` (flag on tr P_x(k|k−1), redo
     in information form): with only modes 1 and 3 the x block is ``kalman.Filter`` with γ = 1{θ = 1}
     step for step. ``base``: which initial condition ``P0`` is (:meth:`AugmentedModel.prior_moments`).
     ``states=False`` propagates the covariances only (the generic ``covariances()`` path).
@@ -477,7 +477,7 @@ class ModeAwareKFTr:
         self.Rq = md.Rq
         self.Fb, self.D, self.Qb = md.decorrelated()
         self.scale = float(np.trace(md.Sigma))
-        self.rescue = kalman.Rescue.of(md.C, md.R)
+        self.rescue = kalman.Rescue.for_system(md.A, md.C, md.Q, md.R, md.m)  # Filter.of's: the same limit
 
     def predicted(self) -> tuple[np.ndarray | None, np.ndarray]:
         n = self.model.n

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
+
+from netkf_cli.core.tolerances import RESCUE_RATIO
 import pytest
 import scipy.linalg
 
@@ -91,31 +93,55 @@ def test_mode_aware_states_equal_the_textbook_predictor_form_per_run():
 
 
 @pytest.mark.parametrize("backend", ["numpy", "numba"])
-@pytest.mark.parametrize("sysname", ["ex2", "overflow", "3x2"])
+@pytest.mark.parametrize("sysname", ["ex2", "overflow", "3x2", "burst"])
 def test_mode_aware_with_only_modes_1_and_3_is_the_kf_step_for_step(backend, sysname):
     # modes 1 (on time) and 3 (noise only) are the kf's γ = 1 and γ = 0: same P0 = P_{0|0}, same step k,
     # filtered and predicted, relative 1e-12 (the x block goes through the same primitive sequence and the
-    # same kalman.Rescue — A = diag(1e6, 0.5) overflows in the standard form and is rescued alike).
+    # same kalman.Rescue — A = diag(1e6, 0.5) overflows in the standard form and is rescued alike; "burst": two
+    # rows, a coupled R, loss bursts of 10-30 steps, where kalman.burst_limit lowers the rescue limit below the
+    # trace rule's: tests/unit/test_kalman_core's system).
     if backend == "numba":
         pytest.importorskip("numba")
     S = {"ex2": EX2,
          "overflow": LinearSystem.create([[1e6, 0], [0, 0.5]], [[1, 0]], np.eye(2), 1.0),
          "3x2": LinearSystem.create([[1.1, 0.2, 0], [0, 0.9, 0.1], [0, 0, 0.7]], [[1, 0, 1], [0, 1, 0]], np.eye(3),
-                                    [[1, 0.3], [0.3, 2]])}[sysname]
+                                    [[1, 0.3], [0.3, 2]]),
+         "burst": LinearSystem.create([[0.7295, 0.8567], [1.046, 0.5705]], [[2.0939, 0.7043], [0.8812, 0.5822]],
+                                      [[0.5746, -0.6109], [-0.6109, 1.5627]], [[2.5394, -2.0212], [-2.0212, 2.4948]])}[sysname]
     rng = np.random.default_rng(0)
     R, K = 50, 40
     arr = rng.random((1, K, R)) < 0.7
+    if sysname == "burst":  # run r loses steps 4 … 4 + L_r − 1, L_r from 10 to 30
+        L = 10 + np.arange(R) % 21
+        arr = ~((np.arange(K)[:, None] >= 3) & (np.arange(K)[:, None] < 3 + L[None, :]))[None]
     tr = Trace(runs=R, horizon=K, mode=np.where(arr[0], 0, 2).astype(np.int8), arrival=arr, meta={})
     ks = range(1, K + 1)
     kf = dict(KalmanFilterEstimator(kind="kf").covariances(S, tr, ks, ("filtered", "predicted")))
     est = MarkovLMIEstimator(kind="markov_lmi", filter="mode_aware", backend=backend)
     ma = dict(est.covariances(S, tr, ks, ("filtered", "predicted")))
+    eps = np.finfo(float).eps
+    tol = np.full(R, 1e-12)
     for k in ks:
+        if sysname == "burst" and k > 1:
+            # a burst's prior is ill-conditioned by design: a float64 update of it promises ε·RESCUE_RATIO, or the
+            # prior's own rounding ε·κ(P⁻) where larger (tests/unit/test_kalman_core), carried by the steps after
+            # it; numpy's path is the kf's primitive for primitive (equal), the compiled one agrees to that per run
+            # (measured 6e-5 at a 30-step burst, κ ~ 1e12; before both used the same rescue limit numpy's mode-aware
+            # filter was 80x off)
+            prior = kf[k - 1]["predicted"]
+            kappa = np.linalg.cond(np.moveaxis(prior, -1, 0))
+            tol = np.maximum(tol, 2 * np.maximum(eps * RESCUE_RATIO, 16 * eps * kappa))
         for q in ("filtered", "predicted"):
             a, b = ma[k][q], kf[k][q]
             np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
-            fin = np.isfinite(b)
-            assert np.abs(a - b)[fin].max() <= 1e-12 * np.abs(b[fin]).max(), (k, q)
+            fin = np.isfinite(b).all(axis=(0, 1))
+            scale = np.abs(b[:, :, fin]).max(axis=(0, 1))
+            err = np.abs(a - b)[:, :, fin].max(axis=(0, 1)) / scale
+            allowed = tol[fin]
+            if q == "predicted":  # A δ Aᵀ of the filtered error δ (|A δ Aᵀ|max ≤ n ‖A‖₂² |δ|max), against P_{k+1|k}
+                Pf = kf[k]["filtered"][:, :, fin]
+                allowed = allowed * np.maximum(1.0, S.n * np.linalg.norm(S.A, 2) ** 2 * np.abs(Pf).max(axis=(0, 1)) / scale)
+            assert np.all(err <= allowed), (k, q, float(err.max()))
 
 
 @pytest.mark.parametrize("which", ["lmi", "naive"])
