@@ -9,7 +9,7 @@ P_{k|k} back to the target time k − N, t = k−1 … k−N:
             = P_{t|t, x_{t+1}} + J_t P_{t+1|k} J_tᵀ          (:class:`netkf_cli.linalg.kalman.SmoothStep`)
 
 with P_{t|t, x_{t+1}} = P_{t|t} − J_t A P_{t|t} the core's ``update`` of P_{t|t} by x_{t+1} = A x_t + w_t
-(C = A, R = Q; its gain is J_t), through the rescue ``Rescue.of(A, Q)``: the first form subtracts
+(C = A, R = Q; its gain is J_t), through the rescue ``Rescue.for_system(A, A, Q, Q, n)``: the first form subtracts
 two numbers of the size of P_{t|t} and loses every digit after a loss burst at A = 10⁶; the second
 does not (a test). The RTS recursion holds for any time-varying measurement model, so with the
 arrivals γ_t it is the covariance of x_{k−N} given the received y_1 … y_k — the same P_{k−N|k} as the
