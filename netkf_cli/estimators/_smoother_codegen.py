@@ -12,7 +12,7 @@ the system's numbers A, Q as constants (zeros skipped, ones dropped: :func:`kalm
 core's order of operations (S⁻¹ in closed form for n ≤ 2 — bit for bit the numpy core —, an unrolled
 Cholesky factor for 3 ≤ n ≤ :data:`kalman_codegen.MAX_N`, equal to rounding). Arrays are
 ``(rows, n, n, runs)``, run axis innermost. ``rts_prepare`` flags an entry (t, r) whose P_{t|t} has
-tr ≥ the rescue limit of ``Rescue.of(A, Q)`` or is non-finite, or whose result is non-finite: the caller
+tr ≥ the rescue limit of :class:`kalman.SmoothStep` or is non-finite, or whose result is non-finite: the caller
 redoes those entries on the numpy core (the rescue policy stays the core's). Kernels are generated,
 written and cached by :mod:`netkf_cli.linalg.kalman_codegen`'s loader (one file per source hash, numba's disk
 cache), depend only on (A, Q, limit) and are compiled once per machine.
