@@ -165,8 +165,22 @@ def work(n: int, m: int) -> tuple[np.ndarray, ...]:
 def information_update(Pm, info, out, W, Y):
     """out = (Pm⁻¹ + info)⁻¹, symmetrised: :func:`netkf_cli.linalg.kalman.information_update` for one run
     (the information form of the update, ``info`` = C̃ᵀR̃⁻¹C̃; the rescue of :class:`kalman.Rescue`).
-    ``Pm`` finite; work arrays W, Y (n, n)."""
+    ``Pm`` finite; work arrays W, Y (n, n). A prior singular to working precision (scaled to a unit diagonal,
+    σ_min ≤ n·ε·σ_max: :func:`netkf_cli.linalg.kalman.numerically_singular`) gives out = ∞: the run has diverged."""
     n = Pm.shape[0]
+    if n > 1:
+        for i in range(n):  # scaled to a unit diagonal (kalman.numerically_singular)
+            dd = np.sqrt(abs(Pm[i, i])) if Pm[i, i] != 0.0 else 1.0
+            Y[i, 0] = dd
+        for i in range(n):
+            for j in range(n):
+                W[i, j] = Pm[i, j] / Y[i, 0] / Y[j, 0]
+        sv = np.linalg.svd(W)[1]
+        if sv[n - 1] <= sv[0] * n * 2.220446049250313e-16:
+            for i in range(n):
+                for j in range(n):
+                    out[i, j] = np.inf
+            return
     for i in range(n):
         for j in range(n):
             W[i, j] = Pm[i, j]
