@@ -722,10 +722,8 @@ def test_the_burst_probe_covers_one_sensors_update_and_mf_is_the_kf():
     from netkf_cli.estimators.fusion import FusionEstimator
     from netkf_cli.estimators.kf import KalmanFilterEstimator
 
-    A = [[0.7295, 0.8567], [1.046, 0.5705]]
-    C1 = np.array([[2.0939, 0.7043], [0.8812, 0.5822]])
-    Q = [[0.5746, -0.6109], [-0.6109, 1.5627]]
-    R1 = np.array([[2.5394, -2.0212], [-2.0212, 2.4948]])
+    from tests.burst_system import A, Q, C as C1, R as R1
+
     one = LinearSystem.create(A, C1, Q, R1)
     two = LinearSystem.create(A, np.vstack([C1, C1]), Q, scipy.linalg.block_diag(R1, R1), sensors=((0, 1), (2, 3)))
     assert kalman.Filter.of(two, 2).rescue.limit == kalman.Filter.of(one, 1).rescue.limit < 1e5

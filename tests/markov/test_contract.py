@@ -24,6 +24,8 @@ from netkf_cli.config.loader import load_scenario_text
 from netkf_cli.core.trace import Trace
 from netkf_cli.core.system import LinearSystem
 
+from tests.burst_system import BURST
+
 from .conftest import CONFIGS
 
 EX2 = LinearSystem.create([[0.8, 0], [0.9, 0.2]], [[1, 1]], [[0.36, 0.30], [0.30, 0.25]], 0.25, P0=[[0, 0], [0, 0]])
@@ -106,8 +108,7 @@ def test_mode_aware_with_only_modes_1_and_3_is_the_kf_step_for_step(backend, sys
          "overflow": LinearSystem.create([[1e6, 0], [0, 0.5]], [[1, 0]], np.eye(2), 1.0),
          "3x2": LinearSystem.create([[1.1, 0.2, 0], [0, 0.9, 0.1], [0, 0, 0.7]], [[1, 0, 1], [0, 1, 0]], np.eye(3),
                                     [[1, 0.3], [0.3, 2]]),
-         "burst": LinearSystem.create([[0.7295, 0.8567], [1.046, 0.5705]], [[2.0939, 0.7043], [0.8812, 0.5822]],
-                                      [[0.5746, -0.6109], [-0.6109, 1.5627]], [[2.5394, -2.0212], [-2.0212, 2.4948]])}[sysname]
+         "burst": LinearSystem.create(**BURST)}[sysname]
     rng = np.random.default_rng(0)
     R, K = 50, 40
     arr = rng.random((1, K, R)) < 0.7

@@ -143,8 +143,9 @@ def test_a_word_whose_composed_map_lost_precision_is_not_drawn_as_exact():
     from netkf_cli.app.api import load
     from netkf_cli.recipes.base import RunContext
 
-    s = LinearSystem.create([[0.7295, 0.8567], [1.046, 0.5705]], [[2.0939, 0.7043], [0.8812, 0.5822]],
-                            [[0.5746, -0.6109], [-0.6109, 1.5627]], [[2.5394, -2.0212], [-2.0212, 2.4948]])
+    from tests.burst_system import BURST
+
+    s = LinearSystem.create(**BURST)
     ch = bernoulli(0.3)
     Ms = [3.0, 1e4, 1e8]
     exact_probability(s, ch, 1, np.array(Ms))  # no LinAlgError

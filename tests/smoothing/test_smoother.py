@@ -179,10 +179,8 @@ def test_smoothing_through_a_loss_burst_with_two_states(backend):
     from netkf_cli.core.trace import Trace
     from netkf_cli.estimators.smoother import SmootherEstimator
 
-    A = np.array([[0.7295, 0.8567], [1.046, 0.5705]])
-    C = np.array([[2.0939, 0.7043], [0.8812, 0.5822]])
-    Q = np.array([[0.5746, -0.6109], [-0.6109, 1.5627]])
-    R = np.array([[2.5394, -2.0212], [-2.0212, 2.4948]])
+    from tests.burst_system import A, C, Q, R
+
     s = LinearSystem.create(A, C, Q, R)
     P0 = riccati.initial_covariance(s)
     Ls = np.array([8, 16, 22, 24, 26, 30])

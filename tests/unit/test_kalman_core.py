@@ -21,6 +21,8 @@ from hypothesis import strategies as st
 from netkf_cli.linalg import kalman
 from netkf_cli.core.system import LinearSystem
 
+from tests import burst_system
+
 
 def _spd(rng, n, eps=0.2):
     X = rng.normal(size=(n, n))
@@ -343,10 +345,7 @@ def test_a_loss_burst_with_two_rows_keeps_the_posterior_exact(backend):
     one; the posterior then matches the exact update at every step, on both backends."""
     if backend == "numba":
         pytest.importorskip("numba")
-    A = np.array([[0.7295, 0.8567], [1.046, 0.5705]])
-    C = np.array([[2.0939, 0.7043], [0.8812, 0.5822]])
-    Q = np.array([[0.5746, -0.6109], [-0.6109, 1.5627]])
-    R = np.array([[2.5394, -2.0212], [-2.0212, 2.4948]])
+    A, C, Q, R = burst_system.A, burst_system.C, burst_system.Q, burst_system.R
     s = LinearSystem.create(A, C, Q, R)
     f = kalman.Filter.of(s, 1)
     trace_rule = kalman.Rescue.of(C, R, kalman.pbar_trace(A, C, Q, R)).limit
@@ -395,10 +394,6 @@ def test_random_bursts_with_several_rows_match_the_extended_recursion(seed, n, L
                 np.testing.assert_allclose(got, want, rtol=tol, atol=tol * np.abs(want).max(), err_msg=f"k={k}")
 
 
-_BURST = dict(A=[[0.7295, 0.8567], [1.046, 0.5705]], C=[[2.0939, 0.7043], [0.8812, 0.5822]],
-              Q=[[0.5746, -0.6109], [-0.6109, 1.5627]], R=[[2.5394, -2.0212], [-2.0212, 2.4948]])
-
-
 @pytest.mark.parametrize("backend", ["numpy", "numba"])
 def test_a_prior_singular_to_working_precision_diverges_and_recovers(backend):
     """After a loss burst of 40 or 46 steps the burst system's prior (variances ~1e17, correlated to 1 − 1e-16) has
@@ -411,7 +406,7 @@ def test_a_prior_singular_to_working_precision_diverges_and_recovers(backend):
     from netkf_cli.estimators.smoother import SmootherEstimator
     from netkf_cli.core.trace import Trace
 
-    s = LinearSystem.create(**_BURST)
+    s = LinearSystem.create(**burst_system.BURST)
     f = kalman.Filter.of(s, 1)
     Ls = np.array([30, 40, 46])
     K = 3 + Ls.max() + 3
@@ -419,7 +414,7 @@ def test_a_prior_singular_to_working_precision_diverges_and_recovers(backend):
     ks = list(range(1, K + 1))
     kf = dict(f.run(np.eye(2), arr[None], ks, ("filtered",), backend=backend))
     sm = dict(SmootherEstimator(kind="smoother", lag=0, backend=backend).covariances(
-        LinearSystem.create(**_BURST, P0=np.eye(2)), Trace(runs=3, horizon=K, arrival=arr[None], meta={}), ks, ("filtered",)))
+        LinearSystem.create(**burst_system.BURST, P0=np.eye(2)), Trace(runs=3, horizon=K, arrival=arr[None], meta={}), ks, ("filtered",)))
     for out in (kf, sm):
         for r, L in enumerate(Ls):
             first, second = out[3 + L + 1]["filtered"][:, :, r], out[3 + L + 2]["filtered"][:, :, r]
@@ -436,7 +431,7 @@ def test_no_rescued_posterior_is_indefinite_through_bursty_losses():
     """400 runs × 120 steps of a Gilbert–Elliott-like channel (bursts up to ~100 steps) on the burst system: every
     finite P_{k|k} is positive semi-definite to its own rounding (λ_min ≥ −1e-14 λ_max); before, 0.3 % of the
     steps after long bursts had λ_min as large as λ_max in magnitude."""
-    s = LinearSystem.create(**_BURST)
+    s = LinearSystem.create(**burst_system.BURST)
     rng = np.random.default_rng(5)
     runs, K = 400, 120
     bad, arr = np.zeros(runs, bool), np.empty((K, runs), bool)
