@@ -25,12 +25,14 @@ def _numba_cache_dir(pkg: _Path, root: _Path, keep: int = 8) -> str | None:
     """numba checks a cached function against its own source file only, so a compiled kernel that inlines another
     module's primitives (kalman_numba's, in the smoother, Markov and fading kernels) stayed stale when only that
     module changed: after a `git pull` of an editable install the smoother ran the old rescue. netkf's kernels are
-    therefore cached per state of its sources: ``root``/<digest of every .py file of ``pkg``: path, size, mtime>
-    (1-2 ms), the ``keep`` newest such folders kept. None where it cannot be made (numba's default then)."""
+    therefore cached per state of its compiled sources: ``root``/<digest of each .py file of ``pkg`` that names
+    numba (a kernel, a compiled primitive, a kernel generator): path, size, mtime> (~3 ms), the ``keep`` newest
+    such folders kept. None where it cannot be made (numba's default then)."""
     h = _hashlib.sha256()
     for f in sorted(pkg.rglob("*.py")):
-        st = f.stat()
-        h.update(f"{f.relative_to(pkg)}:{st.st_size}:{st.st_mtime_ns};".encode())
+        if b"numba" in f.read_bytes():
+            st = f.stat()
+            h.update(f"{f.relative_to(pkg)}:{st.st_size}:{st.st_mtime_ns};".encode())
     d = root / h.hexdigest()[:16]
     try:
         if not d.is_dir():

@@ -15,11 +15,14 @@ import netkf_cli
 def test_the_folder_follows_every_source_file(tmp_path):
     pkg, root = tmp_path / "pkg", tmp_path / "cache"
     (pkg / "sub").mkdir(parents=True)
-    (pkg / "a.py").write_text("x = 1\n")
-    (pkg / "sub" / "b.py").write_text("y = 2\n")
+    (pkg / "a.py").write_text("import numba\n")
+    (pkg / "sub" / "b.py").write_text("import numba as nb  # primitives\n")
+    (pkg / "c.py").write_text("z = 3\n")  # no compiled code
     first = netkf_cli._numba_cache_dir(pkg, root)
     assert first and os.path.isdir(first) and netkf_cli._numba_cache_dir(pkg, root) == first
-    (pkg / "sub" / "b.py").write_text("y = 30\n")  # another module's change (its size too: mtimes tick coarsely)
+    (pkg / "c.py").write_text("z = 30\n")  # a module without compiled code: the same kernels
+    assert netkf_cli._numba_cache_dir(pkg, root) == first
+    (pkg / "sub" / "b.py").write_text("import numba as nb  # primitives, changed\n")  # what a kernel may inline
     second = netkf_cli._numba_cache_dir(pkg, root)
     assert second != first and os.path.isdir(second)
 
@@ -29,7 +32,7 @@ def test_only_the_newest_folders_are_kept(tmp_path):
     pkg.mkdir()
     made = []
     for i in range(5):
-        (pkg / "a.py").write_text("x = " + "1" * (i + 1) + "\n")
+        (pkg / "a.py").write_text("import numba  # " + "1" * (i + 1) + "\n")
         made.append(netkf_cli._numba_cache_dir(pkg, root, keep=3))
         t = time.time() - 100 + i
         os.utime(made[-1], (t, t))
