@@ -142,12 +142,13 @@ def _prior_inv(X: np.ndarray) -> np.ndarray:
     is beyond what the information form resolves and :func:`information_update` returns it as ∞, diverged.
 
     Singular to working precision is numpy's ``matrix_rank`` < n of the prior scaled to a unit diagonal
-    (:func:`numerically_singular`; LAPACK's zero pivot is the extreme case) — a flagged prior so large along one direction that the others are
-    lost beside it, after a long loss burst of an unstable A or an undetectable mode's growth. The posterior's
-    error is ≈ ε·κ(P⁻) relative (a coupled 2-state system, against exact arithmetic: 7e-6 at κ = 2e11, 1e-2 at
-    3e14, 0.24 at 3e15; there the scaled κ is of the same size); beyond 1/(nε) the computed P⁺ was garbage, an indefinite matrix of trace −26 once, which
-    Pr[P ≤ M] counted as small. The compiled kernels decide alike (kalman_numba.information_update). An invertible
-    batch is inverted as before, bit for bit (one LAPACK call per matrix either way)."""
+    (:func:`numerically_singular`; LAPACK's zero pivot is the extreme case): a flagged prior so large along one
+    direction that the others are lost beside it, after a long loss burst of an unstable A or an undetectable
+    mode's growth. The posterior's error is ≈ ε·κ(P⁻) relative (a coupled 2-state system, against exact
+    arithmetic: 7e-6 at κ = 2e11, 1e-2 at 3e14, 0.24 at 3e15; the scaled κ is of the same size there); beyond
+    1/(nε) the computed P⁺ was garbage, once an indefinite matrix of trace −26, which Pr[P ≤ M] counted as small.
+    The compiled kernels decide alike (kalman_numba.information_update). An invertible batch is inverted as
+    before, bit for bit (one LAPACK call per matrix either way)."""
     try:
         out = _inv(X)
     except np.linalg.LinAlgError:
@@ -288,7 +289,7 @@ class Rescue:
         tr P̄, its limit lowered by :func:`burst_limit` where rows ≥ 2. With ``groups`` (the rows each arrival stream
         carries) the burst is probed with every group of ≥ 2 rows alone, as the filter updates it when only that
         stream arrives (and with all rows too where the groups are not updated one after another): two 2-row
-        sensors probed together gave a limit 50x too high for one sensor's update (1.5e6 against 2.7e4; the kf and
+        sensors probed together gave a limit 40x too high for one sensor's update (1.5e6 against 3.7e4; the kf and
         the fusion centre, each right to 1e-7 there, then differed by up to 2 % after long bursts)."""
         rescue = cls.of(C, R, pbar_trace(A, C, Q, R))
         if rows >= 2:
